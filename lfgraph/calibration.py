@@ -1,0 +1,241 @@
+"""A calibrated array (`Calibration`) and its JSON file ``calibration.json`` (format in docs/architecture.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.geometry import invert_T, is_rotation, make_T
+from lfgraph.grid import ViewGrid
+from lfgraph.io_utils import write_text_atomic
+
+FORMAT_NAME = "lfgraph.calibration"
+FORMAT_VERSION = 1
+REFERENCE_POSE_TOLERANCE = 1e-9  # the reference view's pose must be the identity to this (rad, m)
+DEFAULT_METRICS: dict[str, Any] = {"e_mono_px": None, "e_pnp_px": None, "rig_rms_px": None}
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file that cannot be read; the message names the file and the field."""
+
+    def __init__(self, path: str | os.PathLike | None, field: str, problem: str) -> None:
+        self.path = None if path is None else str(path)
+        self.field = field
+        where = f"{self.path}: " if self.path else ""
+        super().__init__(f"{where}{field}: {problem}")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Per-view intrinsics and poses of a camera array.
+
+    Attributes:
+        grid: the view grid and its reference view.
+        image_size_px: (width, height) of every view in pixels.
+        intrinsics: one `Intrinsics` per view, row-major.
+        ref_T_view: (V, 4, 4) pose of each view in the reference view's frame (metres); identity for the reference.
+        rectification: the stored rectification (see lfgraph.rectify), or None.
+        metrics: figures of merit (``e_mono_px``, ``e_pnp_px``, ``rig_rms_px``, sigmas, ...), JSON-serialisable.
+    """
+
+    grid: ViewGrid
+    image_size_px: tuple[int, int]
+    intrinsics: tuple[Intrinsics, ...]
+    ref_T_view: np.ndarray
+    rectification: Mapping[str, Any] | None = None
+    metrics: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        n = self.grid.num_views
+        object.__setattr__(self, "intrinsics", tuple(self.intrinsics))
+        if len(self.intrinsics) != n:
+            raise ValueError(f"a {self.grid} grid needs {n} intrinsics, got {len(self.intrinsics)}")
+        poses = np.asarray(self.ref_T_view, dtype=np.float64)
+        if poses.shape != (n, 4, 4):
+            raise ValueError(f"ref_T_view must have shape ({n}, 4, 4), got {poses.shape}")
+        if not np.all(np.isfinite(poses)):
+            raise ValueError("ref_T_view contains NaN or infinity")
+        for v in range(n):
+            if not is_rotation(poses[v, :3, :3]):
+                raise ValueError(f"ref_T_view[{v}] does not hold a rotation matrix")
+        poses = poses.copy()
+        poses.setflags(write=False)
+        object.__setattr__(self, "ref_T_view", poses)
+        w, h = (int(x) for x in self.image_size_px)
+        if w <= 0 or h <= 0:
+            raise ValueError(f"image_size_px must be positive (width, height), got {self.image_size_px}")
+        object.__setattr__(self, "image_size_px", (w, h))
+        object.__setattr__(self, "metrics", {**DEFAULT_METRICS, **dict(self.metrics or {})})
+
+    @property
+    def num_views(self) -> int:
+        return self.grid.num_views
+
+    def view_T_ref(self, view: int) -> np.ndarray:  # noqa: N802
+        """(4, 4) OpenCV extrinsics of a view relative to the reference: ``x_view = R x_ref + t``."""
+        return invert_T(self.ref_T_view[view])
+
+    def replace(self, **changes: Any) -> Calibration:
+        return dataclasses.replace(self, **changes)
+
+    # ------------------------------------------------------------------------------------------ JSON
+    def to_dict(self) -> dict[str, Any]:
+        views = []
+        for v in range(self.num_views):
+            r, c = self.grid.position(v)
+            intr = self.intrinsics[v]
+            view_T_ref = self.view_T_ref(v)  # noqa: N806
+            views.append({
+                "index": v, "row": r, "col": c,
+                "K": intr.K.tolist(),
+                "distortion": {"k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2},
+                "R_view_from_ref": view_T_ref[:3, :3].tolist(),
+                "t_view_from_ref_m": view_T_ref[:3, 3].tolist(),
+            })
+        return {
+            "format": FORMAT_NAME, "version": FORMAT_VERSION,
+            "grid": {"rows": self.grid.rows, "cols": self.grid.cols, "reference": self.grid.reference},
+            "image_size_px": list(self.image_size_px),
+            "views": views,
+            "rectification": None if self.rectification is None else dict(self.rectification),
+            "metrics": dict(self.metrics or {}),
+        }
+
+    def to_json(self) -> str:
+        try:
+            return json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n"
+        except ValueError as exc:
+            raise ValueError(f"calibration holds a non-finite number and cannot be saved: {exc}") from exc
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write ``calibration.json`` atomically (UTF-8)."""
+        write_text_atomic(path, self.to_json())
+
+    @classmethod
+    def from_dict(cls, data: Any, path: str | os.PathLike | None = None) -> Calibration:
+        """Validate and build from parsed JSON; every problem raises `CalibrationFileError` naming the field."""
+        return _parse(data, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Calibration:
+        """Read a ``calibration.json``.
+
+        Raises:
+            CalibrationFileError: unreadable file, bad JSON, wrong format or version, NaN, a non-rotation matrix,
+                a view count that does not match the grid, ... — the message names the file and the field.
+        """
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise CalibrationFileError(p, "file", "does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise CalibrationFileError(p, "file", f"cannot be read ({exc})") from None
+
+        def reject_constant(name: str) -> float:
+            raise CalibrationFileError(p, "JSON", f"non-finite number {name} is not allowed")
+
+        try:
+            data = json.loads(text, parse_constant=reject_constant)
+        except json.JSONDecodeError as exc:
+            raise CalibrationFileError(p, "JSON", f"not valid JSON (line {exc.lineno}, column {exc.colno}: "
+                                                  f"{exc.msg})") from None
+        return _parse(data, p)
+
+
+def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
+    def fail(field: str, problem: str) -> CalibrationFileError:
+        return CalibrationFileError(path, field, problem)
+
+    def get(obj: Any, key: str, where: str) -> Any:
+        if not isinstance(obj, dict):
+            raise fail(where or "top level", f"must be a JSON object, got {type(obj).__name__}")
+        if key not in obj:
+            raise fail(f"{where}.{key}" if where else key, "is missing")
+        return obj[key]
+
+    def number(x: Any, field: str) -> float:
+        if isinstance(x, bool) or not isinstance(x, int | float):
+            raise fail(field, f"must be a number, got {x!r}")
+        if not math.isfinite(x):
+            raise fail(field, f"must be finite, got {x}")
+        return float(x)
+
+    def matrix(x: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
+        try:
+            arr = np.array(x, dtype=object)
+        except ValueError:
+            raise fail(field, f"must be a {'x'.join(map(str, shape))} array of numbers") from None
+        if arr.shape != shape:
+            raise fail(field, f"must have shape {'x'.join(map(str, shape))}, got {list(arr.shape)}")
+        return np.array([number(v, field) for v in arr.ravel()]).reshape(shape)
+
+    fmt = get(data, "format", "")
+    if fmt != FORMAT_NAME:
+        raise fail("format", f"must be {FORMAT_NAME!r}, got {fmt!r}")
+    version = get(data, "version", "")
+    if version != FORMAT_VERSION:
+        raise fail("version", f"unknown version {version!r}; this lfgraph reads version {FORMAT_VERSION}")
+    g = get(data, "grid", "")
+    dims = {}
+    for key in ("rows", "cols", "reference"):
+        val = get(g, key, "grid")
+        if isinstance(val, bool) or not isinstance(val, int) or val < 0:
+            raise fail(f"grid.{key}", f"must be a non-negative integer, got {val!r}")
+        dims[key] = val
+    try:
+        grid = ViewGrid(dims["rows"], dims["cols"], dims["reference"])
+    except ValueError as exc:
+        raise fail("grid", str(exc)) from None
+    size = get(data, "image_size_px", "")
+    if (not isinstance(size, list) or len(size) != 2
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+        raise fail("image_size_px", f"must be [width, height] in positive whole pixels, got {size!r}")
+    views = get(data, "views", "")
+    if not isinstance(views, list):
+        raise fail("views", f"must be a list, got {type(views).__name__}")
+    if len(views) != grid.num_views:
+        raise fail("views", f"has {len(views)} entries but the {grid} grid needs {grid.num_views}")
+    intrinsics, poses = [], []
+    for i, view in enumerate(views):
+        w = f"views[{i}]"
+        index = get(view, "index", w)
+        if index != i:
+            raise fail(f"{w}.index", f"must be {i} (views are stored row-major), got {index!r}")
+        r, c = grid.position(i)
+        for key, expected in (("row", r), ("col", c)):
+            if key in view and view[key] != expected:
+                raise fail(f"{w}.{key}", f"must be {expected} for view {i} of a {grid} grid, got {view[key]!r}")
+        K = matrix(get(view, "K", w), (3, 3), f"{w}.K")  # noqa: N806
+        if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise fail(f"{w}.K", f"must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
+        dist = get(view, "distortion", w)
+        coeffs = [number(get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}") for k in ("k1", "k2", "p1", "p2")]
+        intrinsics.append(Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *coeffs))
+        R = matrix(get(view, "R_view_from_ref", w), (3, 3), f"{w}.R_view_from_ref")  # noqa: N806
+        if not is_rotation(R):
+            raise fail(f"{w}.R_view_from_ref", "is not a rotation matrix (R^T R must be I and det R = +1)")
+        t = matrix(get(view, "t_view_from_ref_m", w), (3,), f"{w}.t_view_from_ref_m")
+        poses.append(invert_T(make_T(R, t)))
+    ref_pose = poses[grid.reference]
+    if np.max(np.abs(ref_pose - np.eye(4))) > REFERENCE_POSE_TOLERANCE:
+        raise fail(f"views[{grid.reference}]", "is the reference view, so its R_view_from_ref must be the identity "
+                                                "and its t_view_from_ref_m zero")
+    rect = data.get("rectification") if isinstance(data, dict) else None
+    if rect is not None and not isinstance(rect, dict):
+        raise fail("rectification", f"must be an object or null, got {type(rect).__name__}")
+    metrics = data.get("metrics", {})
+    if metrics is None:
+        metrics = {}
+    if not isinstance(metrics, dict):
+        raise fail("metrics", f"must be an object, got {type(metrics).__name__}")
+    return Calibration(grid, (size[0], size[1]), tuple(intrinsics), np.stack(poses), rect, metrics)
