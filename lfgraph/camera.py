@@ -22,6 +22,7 @@ import numpy as np
 
 UNDISTORT_MAX_ITERATIONS = 50
 UNDISTORT_TOLERANCE = 1e-15  # normalised units; ~1e-12 px at f = 1000 px
+UNDISTORT_RESIDUAL_LIMIT = 1e-11  # normalised units; larger residuals mean the pixel has no inverse
 
 
 def _as_points(points: np.ndarray, dims: tuple[int, ...], name: str) -> np.ndarray:
@@ -72,7 +73,8 @@ class Intrinsics:
     def from_vector(cls, v: np.ndarray) -> Intrinsics:
         v = np.asarray(v, dtype=np.float64).ravel()
         if v.shape not in ((4,), (6,), (8,)):
-            raise ValueError(f"intrinsics vector must have 4, 6 or 8 entries (fx fy cx cy [k1 k2 [p1 p2]]), got {v.shape}")
+            raise ValueError(f"intrinsics vector must have 4, 6 or 8 entries (fx fy cx cy [k1 k2 [p1 p2]]), "
+                             f"got {v.shape}")
         return cls(*v.tolist())
 
     def to_gtsam(self) -> gtsam.Cal3DS2:
@@ -147,6 +149,8 @@ class Intrinsics:
 
         Newton's method on the 2-D distortion map with its analytic Jacobian, started from the distorted
         coordinates; converges to ~1e-15 for the radial strengths of real lenses (|k1| <= 0.3 over the image).
+        Pixels the model cannot reach (beyond the radius where strong barrel distortion folds back on itself), or
+        whose solution lies on the folded branch, give NaN rather than a wrong answer.
         """
         px = _as_points(pixels, (2,), "pixels")
         target = np.stack([(px[:, 0] - self.cx) / self.fx, (px[:, 1] - self.cy) / self.fy], axis=1)
@@ -172,6 +176,14 @@ class Intrinsics:
             xy[:, 1] -= dy
             if np.nanmax(np.abs(np.concatenate([dx, dy])), initial=0.0) < UNDISTORT_TOLERANCE:
                 break
+        # Keep only true inverses on the unfolded branch: residual ~0 and a positive Jacobian determinant.
+        with np.errstate(invalid="ignore", over="ignore"):
+            residual = np.max(np.abs(self.distort(xy) - target), axis=1)
+            x, y = xy[:, 0], xy[:, 1]
+            r2 = x * x + y * y
+            radial_derivative = 1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2)  # d(r radial)/dr, > 0 before the fold
+            bad = ~(residual < UNDISTORT_RESIDUAL_LIMIT) | ~(radial_derivative > 0)
+        xy[bad] = np.nan
         return xy
 
     def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:

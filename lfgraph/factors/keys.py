@@ -1,0 +1,44 @@
+"""Every GTSAM key lfgraph uses. Business code calls these helpers and never builds symbols itself."""
+
+from __future__ import annotations
+
+import gtsam
+
+_VIEW_POSE = "x"  # ref_T_view of view v
+_CALIB = "k"  # Cal3DS2 of view v
+_BOARD_POSE = "b"  # board_T_ref of frame f (the reference view's pose in that frame's board)
+_BOARD_CORNER = "c"  # board corner j (board frame), shared by all frames
+_LANDMARK = "l"  # scene landmark j (reference frame)
+
+
+def view_pose_key(view: int) -> int:
+    """Key of view ``view``'s pose ``ref_T_view`` (Pose3)."""
+    return gtsam.symbol(_VIEW_POSE, view)
+
+
+def calib_key(view: int) -> int:
+    """Key of view ``view``'s intrinsics (Cal3DS2)."""
+    return gtsam.symbol(_CALIB, view)
+
+
+def board_pose_key(frame: int) -> int:
+    """Key of frame ``frame``'s ``board_T_ref`` (Pose3)."""
+    return gtsam.symbol(_BOARD_POSE, frame)
+
+
+def board_corner_key(corner: int) -> int:
+    """Key of board corner ``corner`` (Point3 in the board frame)."""
+    return gtsam.symbol(_BOARD_CORNER, corner)
+
+
+def landmark_key(index: int) -> int:
+    """Key of scene landmark ``index`` (Point3 in the reference frame)."""
+    return gtsam.symbol(_LANDMARK, index)
+
+
+def describe_key(key: int) -> str:
+    """Readable name of a key, e.g. ``view pose 3`` — for error messages."""
+    sym = gtsam.Symbol(key)
+    names = {_VIEW_POSE: "view pose", _CALIB: "intrinsics of view", _BOARD_POSE: "board pose of frame",
+             _BOARD_CORNER: "board corner", _LANDMARK: "landmark"}
+    return f"{names.get(chr(sym.chr()), chr(sym.chr()))} {sym.index()}"
