@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 _BOARD_RE = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
@@ -71,3 +72,57 @@ class BoardSpec:
         x0, y0 = -s * (1 + m), -s * (1 + m)
         x1, y1 = s * (self.cols + m), s * (self.rows + m)
         return np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+
+
+# ------------------------------------------------------------------------------------------------ detection
+FIND_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
+SUBPIX_MAX_HALF_WINDOW_PX = 6  # cornerSubPix half window; shrunk for small squares so it never spans two corners
+
+
+def _canonical_order(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """Put detected corners in `BoardSpec` order: OpenCV may report them reversed (the board turned by 180°).
+
+    The square diagonally before inner corner 0 is black (`BoardSpec`), its neighbour along the first row is white.
+    Reversal swaps their colours on every board whose square counts make the 180° turn change colours (e.g. 12x9
+    squares); for boards that look the same turned around, the order OpenCV gives is kept.
+    """
+    obj = board.object_points()[:, :2] / board.square_m
+    H, _ = cv2.findHomography(obj, corners, 0)  # noqa: N806
+    if H is None:
+        return corners
+    probes = np.array([[-0.5, -0.5], [0.5, -0.5]], dtype=np.float64).reshape(-1, 1, 2)
+    pts = cv2.perspectiveTransform(probes, H).reshape(-1, 2)
+    h, w = gray.shape
+    x = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
+    y = np.clip(np.round(pts[:, 1]).astype(int), 0, h - 1)
+    dark, light = gray[y[0], x[0]], gray[y[1], x[1]]
+    return corners[::-1].copy() if dark > light else corners
+
+
+def detect_board(image: np.ndarray, board: BoardSpec) -> np.ndarray | None:
+    """Find the checkerboard's inner corners with sub-pixel accuracy.
+
+    ``cv2.findChessboardCorners`` (adaptive threshold, normalised image) first, ``cv2.findChessboardCornersSB`` as
+    the fallback; then ``cv2.cornerSubPix`` with a window sized to the squares (the paper's Förstner refinement).
+
+    Args:
+        image: (H, W) uint8 grayscale (or (H, W, 3) BGR, converted).
+        board: the board to look for.
+
+    Returns:
+        (C, 2) float64 pixel positions in `BoardSpec` order, or None when the whole board is not found.
+    """
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    found, corners = cv2.findChessboardCorners(gray, board.pattern_size, flags=FIND_FLAGS)
+    if not found:
+        found, corners = cv2.findChessboardCornersSB(gray, board.pattern_size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            return None
+    corners = corners.reshape(-1, 2).astype(np.float32)
+    grid = corners.reshape(board.rows, board.cols, 2)
+    spacing = min(np.min(np.linalg.norm(np.diff(grid, axis=0), axis=-1)),
+                  np.min(np.linalg.norm(np.diff(grid, axis=1), axis=-1)))
+    half = int(max(2, min(SUBPIX_MAX_HALF_WINDOW_PX, np.floor(0.45 * spacing))))
+    cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (half, half), (-1, -1), SUBPIX_CRITERIA)
+    return _canonical_order(gray, corners.astype(np.float64), board)
