@@ -93,7 +93,7 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
     from lfgraph.datasets.rig import make_rig
     from lfgraph.datasets.scenes import get_scene
 
-    named = get_scene(args.scene, kind="checkerboard")
+    named = get_scene(args.scene)
     rig = _synth_rig(args, named)
     cfg = named.checkerboard
     changes = {}
@@ -127,7 +127,7 @@ def cmd_synth_scene(args: argparse.Namespace) -> int:
     from lfgraph.datasets.scene import write_scene_dataset
     from lfgraph.datasets.scenes import get_scene
 
-    named = get_scene(args.scene, kind="scene")
+    named = get_scene(args.scene)
     rig = _synth_rig(args, named)
     cfg = named.scene
     if args.keyboard:
