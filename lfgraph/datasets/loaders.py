@@ -1,0 +1,278 @@
+"""Input layouts of camera-array captures, auto-detected, loaded lazily one frame at a time.
+
+Layouts (views row-major):
+- ``folders``: ``DIR/<frame>/r{row:02d}_c{col:02d}.<ext>``, frames in natural name order; a single folder holding
+  ``rRR_cCC`` files is one frame.
+- ``mosaic``: ``DIR/<frame>.<ext>``, one image per frame with the views tiled row-major.
+- ``hci``: ``input_Cam000.<ext>`` ... (row-major index) in one folder (one frame) or in per-frame folders.
+- ``pairs``: ``left<id>.<ext>`` / ``right<id>.<ext>`` stereo sets (OpenCV's sample), a 1x2 grid, frames by ``<id>``.
+
+``open_capture`` checks names and presence of every file and the size of the first frame's images; every image's
+size and readability are checked when its frame is loaded.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from lfgraph.grid import ViewGrid
+from lfgraph.io_utils import atomic_path
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs")
+_VIEW_RE = re.compile(r"^r(\d+)_c(\d+)$")
+_HCI_RE = re.compile(r"^input_Cam(\d+)$")
+_PAIR_RE = re.compile(r"^(left|right)(.*)$")
+
+
+class CaptureError(ValueError):
+    """An input capture that cannot be used; the message names the file or folder and what was wrong."""
+
+
+def _natural_key(name: str) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _images(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS),
+                  key=lambda p: _natural_key(p.name))
+
+
+def _read(path: Path, grayscale: bool) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
+    if img is None:
+        raise CaptureError(f"{path}: cannot read this image (missing, unreadable or not an image)")
+    return img
+
+
+def split_mosaic(image: np.ndarray, grid: ViewGrid, path: str | os.PathLike = "mosaic") -> np.ndarray:
+    """(rows*H, cols*W[, 3]) mosaic -> (V, H, W[, 3]) views, row-major."""
+    h_all, w_all = image.shape[:2]
+    if h_all % grid.rows or w_all % grid.cols:
+        raise CaptureError(f"{path}: a {w_all}x{h_all} mosaic does not divide into a {grid} grid of equal views")
+    h, w = h_all // grid.rows, w_all // grid.cols
+    tiles = image.reshape(grid.rows, h, grid.cols, w, *image.shape[2:]).swapaxes(1, 2)
+    return tiles.reshape(grid.num_views, h, w, *image.shape[2:]).copy()
+
+
+def tile_mosaic(images: np.ndarray, grid: ViewGrid) -> np.ndarray:
+    """(V, H, W[, 3]) views -> (rows*H, cols*W[, 3]) mosaic, row-major."""
+    images = np.asarray(images)
+    if images.shape[0] != grid.num_views:
+        raise ValueError(f"a {grid} mosaic needs {grid.num_views} views, got {images.shape[0]}")
+    v, h, w = images.shape[:3]
+    tiles = images.reshape(grid.rows, grid.cols, h, w, *images.shape[3:]).swapaxes(1, 2)
+    return tiles.reshape(grid.rows * h, grid.cols * w, *images.shape[3:])
+
+
+@dataclass(frozen=True)
+class CaptureSet:
+    """A capture on disk: paths only, images are read one frame at a time.
+
+    Attributes:
+        root: the input folder.
+        layout: ``folders``, ``mosaic``, ``hci`` or ``pairs``.
+        grid: the view grid.
+        frame_names: one name per frame, in order.
+        files: per frame, the view files in row-major order (one file for a mosaic).
+        image_size_px: (width, height) of one view, from the first frame.
+    """
+
+    root: Path
+    layout: str
+    grid: ViewGrid
+    frame_names: tuple[str, ...]
+    files: tuple[tuple[Path, ...], ...]
+    image_size_px: tuple[int, int]
+
+    def __len__(self) -> int:
+        return len(self.frame_names)
+
+    def paths(self, frame: int) -> tuple[Path, ...]:
+        return self.files[frame]
+
+    def load_frame(self, frame: int, grayscale: bool = True) -> np.ndarray:
+        """(V, H, W) uint8 grayscale (or (V, H, W, 3) BGR) images of one frame; checks every size."""
+        if self.layout == "mosaic":
+            path = self.files[frame][0]
+            views = split_mosaic(_read(path, grayscale), self.grid, path)
+            h, w = views.shape[1:3]
+            if (w, h) != self.image_size_px:
+                raise CaptureError(f"{path}: views are {w}x{h} px but the first frame's are "
+                                   f"{self.image_size_px[0]}x{self.image_size_px[1]}")
+            return views
+        return np.stack([self.load_view(frame, v, grayscale) for v in range(self.grid.num_views)])
+
+    def load_view(self, frame: int, view: int, grayscale: bool = True) -> np.ndarray:
+        """One view of one frame, (H, W) or (H, W, 3)."""
+        if self.layout == "mosaic":
+            return self.load_frame(frame, grayscale)[view]
+        path = self.files[frame][view]
+        img = _read(path, grayscale)
+        h, w = img.shape[:2]
+        if (w, h) != self.image_size_px:
+            first = self.files[0][0]
+            raise CaptureError(f"{path}: image is {w}x{h} px but {first} is "
+                               f"{self.image_size_px[0]}x{self.image_size_px[1]}; all views must have one size")
+        return img
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for f in range(len(self)):
+            yield self.load_frame(f)
+
+
+def _view_files(folder: Path, grid: ViewGrid) -> tuple[Path, ...] | None:
+    """Row-major view files of one frame folder (rRR_cCC or input_CamNNN names), None when it has neither."""
+    found: dict[int, Path] = {}
+    positions = []
+    for p in _images(folder):
+        m = _VIEW_RE.match(p.stem)
+        h = _HCI_RE.match(p.stem)
+        if m:
+            r, c = int(m.group(1)), int(m.group(2))
+            positions.append((r, c))
+            if r < grid.rows and c < grid.cols:
+                found[grid.index(r, c)] = p
+        elif h:
+            idx = int(h.group(1))
+            positions.append(divmod(idx, grid.cols) if idx < grid.num_views else (idx, 0))
+            if idx < grid.num_views:
+                found[idx] = p
+    if not positions:
+        return None
+    rows = max(r for r, _ in positions) + 1
+    cols = max(c for _, c in positions) + 1
+    if rows > grid.rows or cols > grid.cols:
+        raise CaptureError(f"{folder}: the grid does not match the files: they reach row {rows - 1}, column "
+                           f"{cols - 1}, but the grid is {grid} (rows 0..{grid.rows - 1}, columns 0..{grid.cols - 1})")
+    missing = [grid.name(v) for v in range(grid.num_views) if v not in found]
+    if missing:
+        raise CaptureError(f"{folder}: missing view(s) {', '.join(missing)} of the {grid} grid")
+    return tuple(found[v] for v in range(grid.num_views))
+
+
+def _detect(root: Path, grid: ViewGrid) -> str:
+    images = _images(root)
+    subdirs = [p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")]
+    view_named = [p for p in images if _VIEW_RE.match(p.stem) or _HCI_RE.match(p.stem)]
+    pair_named = [p for p in images if _PAIR_RE.match(p.stem)]
+    frame_dirs = [d for d in subdirs if any(_VIEW_RE.match(p.stem) or _HCI_RE.match(p.stem) for p in _images(d))]
+    candidates = []
+    if view_named or frame_dirs:
+        sample = view_named or _images(frame_dirs[0])
+        candidates.append("hci" if any(_HCI_RE.match(p.stem) for p in sample) else "folders")
+    if pair_named and len(pair_named) == len(images):
+        candidates.append("pairs")
+    other = [p for p in images if p not in view_named and p not in pair_named]
+    if other:
+        candidates.append("mosaic")
+    if not candidates:
+        raise CaptureError(f"{root}: no images found (looked for {', '.join(IMAGE_EXTENSIONS)} files and frame "
+                           f"folders holding rRR_cCC or input_CamNNN images)")
+    if len(candidates) > 1:
+        raise CaptureError(f"{root}: ambiguous layout, it holds {', '.join(candidates)} inputs "
+                           f"({len(frame_dirs)} frame folders, {len(view_named)} view images, {len(other)} other "
+                           f"images); pass --layout or clean the folder")
+    return candidates[0]
+
+
+def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layout: str = "auto") -> CaptureSet:
+    """Open a capture folder in one of the `LAYOUTS`; see the module docstring.
+
+    Raises:
+        CaptureError: missing folder, no frames, missing or extra views, a grid that does not match the files,
+            unreadable first images, images of different sizes, a mosaic that does not divide into the grid.
+    """
+    root = Path(path)
+    if not isinstance(grid, ViewGrid):
+        grid = ViewGrid(*grid)
+    if layout not in LAYOUTS:
+        raise CaptureError(f"{root}: unknown layout {layout!r}; choose from {', '.join(LAYOUTS)}")
+    if not root.exists():
+        raise CaptureError(f"{root}: input folder does not exist")
+    if not root.is_dir():
+        raise CaptureError(f"{root}: input must be a folder of images, not a file")
+    if layout == "auto":
+        layout = _detect(root, grid)
+    names: list[str] = []
+    files: list[tuple[Path, ...]] = []
+    if layout in ("folders", "hci"):
+        single = _view_files(root, grid)
+        if single is not None:
+            names, files = [root.name], [single]
+        else:
+            for d in sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
+                            key=lambda p: _natural_key(p.name)):
+                views = _view_files(d, grid)
+                if views is not None:
+                    names.append(d.name)
+                    files.append(views)
+    elif layout == "mosaic":
+        for p in _images(root):
+            names.append(p.stem)
+            files.append((p,))
+    else:  # pairs
+        if (grid.rows, grid.cols) != (1, 2):
+            raise CaptureError(f"{root}: the pairs layout (left*/right* images) is a 1x2 grid, not {grid}")
+        sides: dict[str, dict[str, Path]] = {"left": {}, "right": {}}
+        for p in _images(root):
+            m = _PAIR_RE.match(p.stem)
+            if m:
+                sides[m.group(1)][m.group(2)] = p
+        for side, other in (("left", "right"), ("right", "left")):
+            lonely = sorted(set(sides[side]) - set(sides[other]), key=_natural_key)
+            if lonely:
+                raise CaptureError(f"{sides[side][lonely[0]]}: no {other} image for this {side} image")
+        for key in sorted(sides["left"], key=_natural_key):
+            names.append(key)
+            files.append((sides["left"][key], sides["right"][key]))
+    if not files:
+        raise CaptureError(f"{root}: no frames found for the {layout} layout")
+    first = files[0]
+    if layout == "mosaic":
+        img = _read(first[0], True)
+        h_all, w_all = img.shape[:2]
+        if h_all % grid.rows or w_all % grid.cols:
+            raise CaptureError(f"{first[0]}: a {w_all}x{h_all} mosaic does not divide into a {grid} grid")
+        size = (w_all // grid.cols, h_all // grid.rows)
+    else:
+        sizes = []
+        for p in first:
+            img = _read(p, True)
+            sizes.append((img.shape[1], img.shape[0]))
+        for p, s in zip(first, sizes, strict=True):
+            if s != sizes[0]:
+                raise CaptureError(f"{p}: image is {s[0]}x{s[1]} px but {first[0]} is {sizes[0][0]}x{sizes[0][1]}; "
+                                   f"all views must have one size")
+        size = sizes[0]
+    return CaptureSet(root, layout, grid, tuple(names), tuple(files), size)
+
+
+def write_frame(out_dir: str | os.PathLike, frame_name: str, images: np.ndarray, grid: ViewGrid,
+                layout: str = "folders", ext: str = ".png") -> list[Path]:
+    """Write one frame's (V, H, W[, 3]) views in a layout, each file atomically. Returns the written paths."""
+    out = Path(out_dir)
+    images = np.asarray(images)
+    if images.shape[0] != grid.num_views:
+        raise ValueError(f"a {grid} frame needs {grid.num_views} views, got {images.shape[0]}")
+    if layout == "mosaic":
+        targets = [(out / f"{frame_name}{ext}", tile_mosaic(images, grid))]
+    elif layout == "folders":
+        targets = [(out / frame_name / f"{grid.name(v)}{ext}", images[v]) for v in range(grid.num_views)]
+    elif layout == "hci":
+        targets = [(out / frame_name / f"input_Cam{v:03d}{ext}", images[v]) for v in range(grid.num_views)]
+    else:
+        raise ValueError(f"write_frame supports folders, mosaic and hci, got {layout!r}")
+    for path, img in targets:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            if not cv2.imwrite(str(tmp), img):
+                raise OSError(f"could not write {path}")
+    return [p for p, _ in targets]

@@ -1,0 +1,131 @@
+"""Input layouts: round trips, auto-detection, real data, and every error."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lfgraph.datasets.loaders import CaptureError, open_capture, split_mosaic, tile_mosaic, write_frame
+from lfgraph.grid import ViewGrid
+
+STEREO = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_stereo_left_right"
+GRID = ViewGrid(2, 2)
+
+
+def _frames(n: int = 3, seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, (4, 24, 32), dtype=np.uint8) for _ in range(n)]
+
+
+@pytest.mark.parametrize("layout", ["folders", "mosaic", "hci"])
+def test_round_trip_and_auto_detection(tmp_path, layout):
+    frames = _frames()
+    names = ["frame2", "frame10", "frame1"]  # natural order: 1, 2, 10
+    for name, imgs in zip(names, frames, strict=True):
+        write_frame(tmp_path, name, imgs, GRID, layout=layout)
+    cap = open_capture(tmp_path, GRID)
+    assert cap.layout == layout
+    assert cap.frame_names == ("frame1", "frame2", "frame10")
+    assert cap.image_size_px == (32, 24)
+    assert np.array_equal(cap.load_frame(2), frames[1])
+    assert np.array_equal(cap.load_view(0, 3), frames[2][3])
+    assert len(list(cap)) == 3
+
+
+def test_single_folder_is_one_frame(tmp_path):
+    imgs = _frames(1)[0]
+    for v in range(4):
+        cv2.imwrite(str(tmp_path / f"{GRID.name(v)}.png"), imgs[v])
+    cap = open_capture(tmp_path, (2, 2))
+    assert len(cap) == 1 and np.array_equal(cap.load_frame(0), imgs)
+
+
+def test_mosaic_helpers_invert_each_other():
+    imgs = _frames(1)[0]
+    assert np.array_equal(split_mosaic(tile_mosaic(imgs, GRID), GRID), imgs)
+
+
+@pytest.mark.skipif(not STEREO.exists(), reason="shared data folder not present")
+def test_real_opencv_stereo_pairs():
+    cap = open_capture(STEREO, (1, 2))
+    assert cap.layout == "pairs" and len(cap) == 13 and "10" not in cap.frame_names
+    assert cap.image_size_px == (640, 480)
+    assert cap.load_frame(0).shape == (2, 480, 640)
+
+
+def _folders(tmp_path, n=2):
+    for i, imgs in enumerate(_frames(n)):
+        write_frame(tmp_path, f"{i:03d}", imgs, GRID)
+    return tmp_path
+
+
+def test_missing_view(tmp_path):
+    (_folders(tmp_path) / "001" / "r01_c00.png").unlink()
+    with pytest.raises(CaptureError, match=r"001: missing view\(s\) r01_c00"):
+        open_capture(tmp_path, GRID)
+
+
+def test_files_beyond_the_grid(tmp_path):
+    _folders(tmp_path)
+    cv2.imwrite(str(tmp_path / "000" / "r02_c00.png"), np.zeros((24, 32), np.uint8))
+    with pytest.raises(CaptureError, match="000: the grid does not match the files: they reach row 2"):
+        open_capture(tmp_path, GRID)
+
+
+def test_unreadable_image(tmp_path):
+    _folders(tmp_path)
+    (tmp_path / "001" / "r00_c01.png").write_bytes(b"not a png")
+    cap = open_capture(tmp_path, GRID)  # only the first frame is read when opening
+    with pytest.raises(CaptureError, match=r"001/r00_c01.png: cannot read"):
+        cap.load_frame(1)
+
+
+def test_images_of_different_sizes(tmp_path):
+    _folders(tmp_path)
+    cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((20, 32), np.uint8))
+    with pytest.raises(CaptureError, match=r"r01_c01.png: image is 32x20 px but .*r00_c00.png is 32x24"):
+        open_capture(tmp_path, GRID)
+    cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((24, 32), np.uint8))
+    cv2.imwrite(str(tmp_path / "001" / "r01_c01.png"), np.zeros((20, 32), np.uint8))
+    with pytest.raises(CaptureError, match=r"001/r01_c01.png: image is 32x20"):
+        open_capture(tmp_path, GRID).load_frame(1)
+
+
+def test_mosaic_not_divisible(tmp_path):
+    cv2.imwrite(str(tmp_path / "000.png"), np.zeros((49, 64), np.uint8))
+    with pytest.raises(CaptureError, match=r"000.png: a 64x49 mosaic does not divide into a 2x2 grid"):
+        open_capture(tmp_path, GRID)
+
+
+def test_folder_problems(tmp_path):
+    with pytest.raises(CaptureError, match="does not exist"):
+        open_capture(tmp_path / "nope", GRID)
+    (tmp_path / "file.png").write_bytes(b"")
+    with pytest.raises(CaptureError, match="not a file"):
+        open_capture(tmp_path / "file.png", GRID)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(CaptureError, match="empty: no images found"):
+        open_capture(empty, GRID)
+    with pytest.raises(CaptureError, match="unknown layout 'tiles'"):
+        open_capture(empty, GRID, layout="tiles")
+    with pytest.raises(CaptureError, match="no frames found"):
+        open_capture(empty, GRID, layout="folders")
+
+
+def test_ambiguous_layout(tmp_path):
+    _folders(tmp_path)
+    cv2.imwrite(str(tmp_path / "extra.png"), np.zeros((48, 64), np.uint8))
+    with pytest.raises(CaptureError, match="ambiguous layout"):
+        open_capture(tmp_path, GRID)
+    assert open_capture(tmp_path, GRID, layout="folders").layout == "folders"
+
+
+def test_pairs_errors(tmp_path):
+    for name in ("left01.png", "right01.png", "left02.png"):
+        cv2.imwrite(str(tmp_path / name), np.zeros((24, 32), np.uint8))
+    with pytest.raises(CaptureError, match="left02.png: no right image"):
+        open_capture(tmp_path, (1, 2))
+    with pytest.raises(CaptureError, match="1x2 grid, not 2x2"):
+        open_capture(tmp_path, GRID, layout="pairs")
