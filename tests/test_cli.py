@@ -1,0 +1,72 @@
+"""The lfgraph command: synth and info end to end, and clear failures on bad input."""
+
+import json
+import subprocess
+import sys
+
+import cv2
+import pytest
+
+from lfgraph.calibration import Calibration
+from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.datasets.checkerboard import CheckerboardTruth
+
+
+def test_synth_checkerboard_then_info(tmp_path, capsys):
+    out = tmp_path / "small"
+    code = main(["synth", "checkerboard", str(out), "--scene", "small-2x2", "--frames", "3", "--board", "5x4",
+                 "--square-mm", "20", "--jobs", "1", "--quiet", "--seed", "4"])
+    assert code == 0
+    calib = Calibration.load(out / "truth.json")
+    assert calib.grid.rows == 2 and calib.image_size_px == (320, 240)
+    truth = CheckerboardTruth.load_npz(out / "truth_corners.npz")
+    assert truth.board.pattern_size == (5, 4) and abs(truth.board.square_m - 0.02) < 1e-12
+    img = cv2.imread(str(out / "002" / "r01_c01.png"), cv2.IMREAD_GRAYSCALE)
+    assert img.shape == (240, 320)
+    assert main(["info", str(out / "truth.json")]) == 0
+    text = capsys.readouterr().out
+    assert "r01_c01" in text and "fx_px" in text and "grid 2x2" in text
+
+
+def test_synth_mosaic_with_grid_override(tmp_path):
+    out = tmp_path / "mosaic"
+    assert main(["synth", "checkerboard", str(out), "--scene", "small-2x2", "--grid", "1x3", "--frames", "2",
+                 "--layout", "mosaic", "--jobs", "1", "--quiet"]) == 0
+    assert cv2.imread(str(out / "000.png"), cv2.IMREAD_GRAYSCALE).shape == (240, 960)
+
+
+def test_info_bad_json_exits_nonzero_naming_the_file(tmp_path, capsys):
+    bad = tmp_path / "calib.json"
+    bad.write_text(json.dumps({"format": "lfgraph.calibration", "version": 7}))
+    assert main(["info", str(bad)]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "calib.json: version: unknown version 7" in err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["synth", "checkerboard", "OUT", "--grid", "4by4"],
+        ["synth", "checkerboard", "OUT", "--image-size", "960"],
+        ["synth", "checkerboard", "OUT", "--frames", "0"],
+    ],
+)
+def test_usage_errors_exit_2(argv, tmp_path):
+    argv = [str(tmp_path / "o") if a == "OUT" else a for a in argv]
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_unknown_scene_and_bad_board_write_nothing(tmp_path, capsys):
+    assert main(["synth", "checkerboard", str(tmp_path / "a"), "--scene", "paper-9x9"]) == EXIT_BAD_INPUT
+    assert "unknown scene 'paper-9x9'" in capsys.readouterr().err
+    assert main(["synth", "checkerboard", str(tmp_path / "b"), "--scene", "small-2x2", "--board", "1x4"]) == 1
+    assert "at least 2x2 inner corners" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_console_script_runs():
+    proc = subprocess.run([sys.executable, "-m", "lfgraph.cli", "--help"], capture_output=True, text=True, check=False)
+    assert proc.returncode == 0 and "synth" in proc.stdout and "info" in proc.stdout
