@@ -1,7 +1,5 @@
 """Input layouts: round trips, auto-detection, real data, and every error."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -9,7 +7,6 @@ import pytest
 from lfgraph.datasets.loaders import CaptureError, open_capture, split_mosaic, tile_mosaic, write_frame
 from lfgraph.grid import ViewGrid
 
-STEREO = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_stereo_left_right"
 GRID = ViewGrid(2, 2)
 
 
@@ -46,9 +43,8 @@ def test_mosaic_helpers_invert_each_other():
     assert np.array_equal(split_mosaic(tile_mosaic(imgs, GRID), GRID), imgs)
 
 
-@pytest.mark.skipif(not STEREO.exists(), reason="shared data folder not present")
-def test_real_opencv_stereo_pairs():
-    cap = open_capture(STEREO, (1, 2))
+def test_real_opencv_stereo_pairs(shared_data):
+    cap = open_capture(shared_data / "opencv_stereo_left_right", (1, 2))
     assert cap.layout == "pairs" and len(cap) == 13 and "10" not in cap.frame_names
     assert cap.image_size_px == (640, 480)
     assert cap.load_frame(0).shape == (2, 480, 640)
