@@ -120,6 +120,33 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_synth_scene(args: argparse.Namespace) -> int:
+    from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
+    from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
+    from lfgraph.datasets.scenes import get_scene
+
+    named = get_scene(args.scene)
+    rig = _synth_rig(args, named)
+    near, far = named.scene_depth_m
+    cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4,
+                      kind="keyboard" if args.keyboard else "dead-leaves")
+    frames = args.frames if args.frames is not None else named.frames
+    original = make_rig(rig, np.random.default_rng(args.seed))
+    shaken = args.shake_rot_deg > 0 or args.shake_trans_mm > 0
+    truth = original
+    if shaken:
+        shake = ShakeConfig(rot_deg=args.shake_rot_deg, trans_mm=args.shake_trans_mm, axis=args.shake_axis)
+        truth = shake_rig(original, shake, np.random.default_rng([args.seed, 1]))
+    start = time.perf_counter()
+    write_scene_dataset(args.out, truth, cfg, frames=frames, seed=args.seed, layout=args.layout, jobs=args.jobs,
+                        progress=not args.quiet, original=original if shaken else None)
+    seconds = time.perf_counter() - start
+    print(f"wrote {frames} frames x {truth.num_views} views ({args.layout}) to {args.out} in {seconds:.1f} s")
+    print(f"ground truth: {Path(args.out) / 'truth.json'}"
+          + (f"; the rig before the shake: {Path(args.out) / 'original.json'}" if shaken else ""))
+    return EXIT_OK
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from lfgraph.calibration import Calibration
     from lfgraph.report import calibration_summary
@@ -164,6 +191,17 @@ def build_parser() -> argparse.ArgumentParser:
     cb.add_argument("--board", help="inner corners COLSxROWS, OpenCV patternSize (e.g. 11x8)")
     cb.add_argument("--square-mm", type=float, help="square side in millimetres")
     cb.set_defaults(func=cmd_synth_checkerboard)
+
+    sc = synth_sub.add_parser("scene", help="textured scenes (for auto-refinement), optionally after a shake")
+    common_synth(sc, "paper-5x5")
+    sc.add_argument("--keyboard", action="store_true", help="the hard scene with repetitive texture")
+    sc.add_argument("--shake-rot-deg", type=_non_negative, default=0.0,
+                    help="shake: turn each non-reference view by up to this many degrees")
+    sc.add_argument("--shake-trans-mm", type=_non_negative, default=0.0,
+                    help="shake: move each non-reference view by up to this many millimetres per axis")
+    sc.add_argument("--shake-axis", choices=("optical", "any"), default="optical",
+                    help="rotation axis of the shake (default: each view's optical axis, as in the paper)")
+    sc.set_defaults(func=cmd_synth_scene)
 
     info = sub.add_parser("info", help="print a calibration file as a table")
     info.add_argument("calibration", type=Path)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import cv2
+import numpy as np
 import pytest
 
 from lfgraph.calibration import Calibration
@@ -33,6 +34,16 @@ def test_synth_mosaic_with_grid_override(tmp_path):
     assert main(["synth", "checkerboard", str(out), "--scene", "small-2x2", "--grid", "1x3", "--frames", "2",
                  "--layout", "mosaic", "--jobs", "1", "--quiet"]) == 0
     assert cv2.imread(str(out / "000.png"), cv2.IMREAD_GRAYSCALE).shape == (240, 960)
+
+
+def test_synth_shaken_scene_writes_truth_and_original(tmp_path):
+    out = tmp_path / "scene"
+    assert main(["synth", "scene", str(out), "--scene", "small-2x2", "--frames", "1", "--image-size", "96x64",
+                 "--shake-rot-deg", "1", "--shake-trans-mm", "5", "--jobs", "1", "--quiet"]) == 0
+    truth, original = Calibration.load(out / "truth.json"), Calibration.load(out / "original.json")
+    moved_mm = 1e3 * np.abs(truth.ref_T_view[:, :3, 3] - original.ref_T_view[:, :3, 3])
+    assert moved_mm[0].max() == 0 and 0 < moved_mm.max() <= 5 + 1e-9
+    assert cv2.imread(str(out / "000" / "r01_c01.png"), 0).shape == (64, 96)
 
 
 def test_info_bad_json_exits_nonzero_naming_the_file(tmp_path, capsys):
