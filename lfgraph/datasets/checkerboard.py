@@ -12,19 +12,18 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics, transform_points
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
+from lfgraph.parallel import run_tasks
 
 BLACK_LEVEL, WHITE_LEVEL = 30.0, 220.0
 OUTLINE_SAMPLES_PER_EDGE = 24  # points per printed-board edge checked for visibility (edges bend under distortion)
@@ -379,18 +378,9 @@ def write_checkerboard_dataset(out_dir: str | os.PathLike, calib: Calibration, t
     truth_path = out / "truth_corners.npz"
     truth.save_npz(truth_path)
     render_dir = out if layout == "folders" else Path(tempfile.mkdtemp(prefix=".render-", dir=out))
-    jobs = max(1, jobs or os.cpu_count() or 1)
     tasks = [(calib.to_json(), str(truth_path), config, seed, v, str(render_dir)) for v in range(calib.num_views)]
-    bar = tqdm(total=len(tasks), desc="rendering views", unit="view", disable=not progress)
     try:
-        if jobs == 1:
-            for t in tasks:
-                _render_view_task(t)
-                bar.update()
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                for _ in pool.map(_render_view_task, tasks):
-                    bar.update()
+        run_tasks(_render_view_task, tasks, jobs, "rendering views", "view", progress)
         if layout == "mosaic":
             rows, cols = calib.grid.rows, calib.grid.cols
             w, h = calib.image_size_px
@@ -403,7 +393,6 @@ def write_checkerboard_dataset(out_dir: str | os.PathLike, calib: Calibration, t
                 with atomic_path(out / f"{frame_name(f)}.png") as tmp:
                     cv2.imwrite(str(tmp), mosaic)
     finally:
-        bar.close()
         if render_dir != out:
             shutil.rmtree(render_dir, ignore_errors=True)
     calib.save(out / "truth.json")

@@ -11,18 +11,17 @@ from __future__ import annotations
 
 import json
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
 from lfgraph.datasets.loaders import write_frame
 from lfgraph.geometry import rotation_from_rotvec
+from lfgraph.parallel import run_tasks
 
 
 @dataclass(frozen=True)
@@ -251,16 +250,7 @@ def write_scene_dataset(out_dir: str | os.PathLike, calib: Calibration, config: 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tasks = [(calib.to_json(), config, seed, f, str(out), layout) for f in range(frames)]
-    jobs = max(1, jobs or os.cpu_count() or 1)
-    with tqdm(total=frames, desc="rendering frames", unit="frame", disable=not progress) as bar:
-        if jobs == 1:
-            for t in tasks:
-                _render_frame_task(t)
-                bar.update()
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                for _ in pool.map(_render_frame_task, tasks):
-                    bar.update()
+    run_tasks(_render_frame_task, tasks, jobs, "rendering frames", "frame", progress)
     calib.save(out / "truth.json")
     if original is not None:
         original.save(out / "original.json")
