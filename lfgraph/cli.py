@@ -60,6 +60,19 @@ def _non_negative(text: str) -> float:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs")
+
+
 def _jobs_default() -> int:
     return max(1, os.cpu_count() or 1)
 
@@ -163,6 +176,59 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.out), jobs=args.jobs, quiet=args.quiet)
 
 
+# --------------------------------------------------------------------------------------------- calibrate
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from lfgraph.board import BoardSpec
+    from lfgraph.calibrate import JointSettings, calibrate
+    from lfgraph.datasets.loaders import open_capture
+    from lfgraph.detections import detect_capture
+    from lfgraph.grid import ViewGrid
+    from lfgraph.report import calibration_report_text
+
+    try:
+        board = BoardSpec.parse(args.board, args.square_mm)
+        grid = ViewGrid(args.grid[0], args.grid[1], args.reference)
+        settings = JointSettings(robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.output.exists() and args.output.is_dir():
+        raise UsageError(f"-o {args.output} is a folder; give the calibration file's path")
+    if not args.output.parent.exists():
+        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    start = time.perf_counter()
+    capture = open_capture(args.input, grid, args.layout)
+    print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
+          f"{capture.image_size_px[0]}x{capture.image_size_px[1]} px; board {board}")
+    obs, cached = detect_capture(capture, board, jobs=args.jobs, progress=not args.quiet, cache=not args.no_cache)
+    seen = obs.seen
+    print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} images "
+          f"({time.perf_counter() - start:.1f} s)")
+    calib, report = calibrate(obs, method=args.method, init=args.init, settings=settings, focal_px=args.focal_px,
+                              pitch_m=None if args.pitch_mm is None else args.pitch_mm / 1000, log=print)
+    calib.save(args.output)
+    print(calibration_report_text(calib, report))
+    print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
+    return EXIT_OK
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from lfgraph.calibrate import evaluate_calibration
+    from lfgraph.calibration import Calibration
+    from lfgraph.report import evaluation_table
+
+    estimate = Calibration.load(args.calibration)
+    truth = Calibration.load(args.truth)
+    errors = evaluate_calibration(estimate, truth)
+    if args.json:
+        print(json.dumps(errors.summary(), indent=1))
+    else:
+        print(f"{args.calibration} against {args.truth}:")
+        print(evaluation_table(errors, "truth"))
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -206,6 +272,37 @@ def build_parser() -> argparse.ArgumentParser:
     info = sub.add_parser("info", help="print a calibration file as a table")
     info.add_argument("calibration", type=Path)
     info.set_defaults(func=cmd_info)
+
+    cal = sub.add_parser("calibrate", help="calibrate the array from checkerboard captures (paper Section 3.2)")
+    cal.add_argument("input", type=Path, help="capture folder (see --layout)")
+    cal.add_argument("--grid", type=_grid, required=True, help="ROWSxCOLS of the array, e.g. 4x4")
+    cal.add_argument("--board", required=True, help="inner corners COLSxROWS (OpenCV patternSize), e.g. 11x8")
+    cal.add_argument("--square-mm", type=_positive_float, required=True, help="square side in millimetres")
+    cal.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
+    cal.add_argument("--reference", type=int, default=0, help="reference view, row-major index (default 0)")
+    cal.add_argument("--method", choices=("joint", "paper"), default="joint",
+                     help="joint: one GTSAM graph over all views and frames (default); paper: per-view Zhang + "
+                          "relative PnP/LM as in the paper")
+    cal.add_argument("--init", choices=("paper", "design"), default="paper",
+                     help="start of the joint route: the paper route (default) or design values")
+    cal.add_argument("--robust", default="none",
+                     help="robust kernel NAME[:THRESHOLD_PX]: none, huber:1.0, cauchy:..., tukey:..., gm, dcs, ...")
+    cal.add_argument("--tangential", action="store_true", help="estimate p1, p2 (held at 0 by default)")
+    cal.add_argument("--board-sigma-mm", type=_positive_float,
+                     help="board flatness tolerance: estimate the corners' positions within it (default: rigid)")
+    cal.add_argument("--focal-px", type=_positive_float, help="design focal length for --init design")
+    cal.add_argument("--pitch-mm", type=_positive_float, help="design grid pitch for --init design")
+    cal.add_argument("--jobs", type=_positive_int, default=_jobs_default(), help="detection processes")
+    cal.add_argument("--no-cache", action="store_true", help="re-detect even if INPUT/.lfgraph-detections.npz is valid")
+    cal.add_argument("--quiet", action="store_true", help="no progress bar")
+    cal.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
+    cal.set_defaults(func=cmd_calibrate)
+
+    ev = sub.add_parser("evaluate", help="compare a calibration with ground truth (e.g. a synthetic truth.json)")
+    ev.add_argument("calibration", type=Path)
+    ev.add_argument("--truth", type=Path, required=True, help="ground-truth calibration.json")
+    ev.add_argument("--json", action="store_true", help="print the RMS errors as JSON")
+    ev.set_defaults(func=cmd_evaluate)
 
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")

@@ -58,3 +58,74 @@ def calibration_summary(calib: Calibration) -> str:
         lines.append("metrics: " + ", ".join(f"{k} = {v:.4g}" for k, v in metrics.items()))
     lines.append(f"rectification: {'stored' if calib.rectification else 'none'}")
     return "\n".join(lines)
+
+
+def _pm(value: float, sigma: float | None, fmt: str) -> str:
+    return format(value, fmt) if sigma is None else f"{format(value, fmt)} ± {sigma:.2g}"
+
+
+def calibration_report_text(calib: Calibration, report) -> str:  # report: lfgraph.calibrate.CalibrationReport
+    """The ``lfgraph calibrate`` printout: figures of merit, per-view table with 1-sigma, per-frame RMS, warnings."""
+    lines = []
+    head = [f"method {report.method}" + (f" (started from the {report.init} route)" if report.init else "")]
+    if report.e_mono_px is not None:
+        head.append(f"E_mono {report.e_mono_px:.4f} px")
+    if report.e_pnp_px is not None:
+        head.append(f"E_PnP {report.e_pnp_px:.4f} px")
+    head.append(f"rig-consistent RMS {report.rig_rms_px:.4f} px")
+    if report.noise_sigma_px is not None:
+        head.append(f"corner noise estimate {report.noise_sigma_px:.4f} px per coordinate")
+    lines.append(", ".join(head))
+    if report.optimization is not None:
+        opt = report.optimization
+        lines.append(f"optimiser: {opt.iterations} Levenberg-Marquardt iterations, graph error "
+                     f"{opt.initial_error:.6g} -> {opt.final_error:.6g}, {opt.seconds:.2f} s")
+    rows = []
+    for v in range(calib.num_views):
+        intr = calib.intrinsics[v]
+        s = report.sigmas[v] if report.sigmas else {}
+        pos = 1e3 * calib.ref_T_view[v][:3, 3]
+        pos_sigma = float(np.linalg.norm(s["position_mm"])) if s else None
+        rot_sigma = float(np.linalg.norm(s["rotation_deg"])) if s else None
+        rows.append([
+            calib.grid.name(v) + (" *" if v == calib.grid.reference else ""), int(report.frames_per_view[v]),
+            f"{100 * report.coverage[v]:.0f}",
+            None if not np.isfinite(report.view_e_mono_px[v]) else float(report.view_e_mono_px[v]),
+            None if not np.isfinite(report.view_e_pnp_px[v]) else float(report.view_e_pnp_px[v]),
+            float(report.view_rms_px[v]),
+            _pm(intr.fx, s.get("fx_px"), ".2f"), _pm(intr.fy, s.get("fy_px"), ".2f"),
+            _pm(intr.cx, s.get("cx_px"), ".2f"), _pm(intr.cy, s.get("cy_px"), ".2f"),
+            _pm(intr.k1, s.get("k1"), "+.5f"), _pm(intr.k2, s.get("k2"), "+.5f"),
+            _pm(float(np.linalg.norm(pos)), pos_sigma, ".3f"),
+            f"{pos[0]:+.3f} {pos[1]:+.3f} {pos[2]:+.3f}",
+            _pm(float(rotation_angle_deg(calib.ref_T_view[v][:3, :3])), rot_sigma, ".4f"),
+        ])
+    lines.append("per view (* reference; ± 1-sigma from the factor graph's marginals; positions relative to the "
+                 "reference):")
+    lines.append(format_table(["view", "frames", "cover_%", "e_mono_px", "e_pnp_px", "rig_rms_px", "fx_px", "fy_px",
+                               "cx_px", "cy_px", "k1", "k2", "dist_mm", "x y z_mm", "rot_deg"], rows))
+    frame_rms = report.frame_rms_px
+    finite = frame_rms[np.isfinite(frame_rms)]
+    if finite.size:
+        lines.append(f"per-frame RMS: median {np.median(finite):.4f} px, max {np.max(finite):.4f} px "
+                     f"(frame {int(np.nanargmax(frame_rms))}); outlier frames: "
+                     f"{', '.join(map(str, report.outlier_frames)) or 'none'}")
+    for w in report.warnings:
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def evaluation_table(errors, truth_name: str = "truth") -> str:  # errors: lfgraph.calibrate.CalibrationErrors
+    """Per-view errors against ground truth and their RMS."""
+    rows = []
+    for v in range(errors.intrinsics.shape[0]):
+        e = errors.intrinsics[v]
+        rows.append([v, f"{e[0]:+.4f}", f"{e[1]:+.4f}", f"{e[2]:+.4f}", f"{e[3]:+.4f}", f"{e[4]:+.2e}",
+                     f"{e[5]:+.2e}", f"{float(np.linalg.norm(errors.position_mm[v])):.4f}",
+                     f"{errors.rotation_deg[v]:.5f}"])
+    s = errors.summary()
+    rows.append(["rms", f"{s['rms_fx_px']:.4f}", f"{s['rms_fy_px']:.4f}", f"{s['rms_cx_px']:.4f}",
+                 f"{s['rms_cy_px']:.4f}", f"{s['rms_k1']:.2e}", f"{s['rms_k2']:.2e}", f"{s['rms_position_mm']:.4f}",
+                 f"{s['rms_rotation_deg']:.5f}"])
+    return f"error = estimate - {truth_name} (poses relative to the reference view)\n" + format_table(
+        ["view", "d_fx_px", "d_fy_px", "d_cx_px", "d_cy_px", "d_k1", "d_k2", "d_pos_mm", "d_rot_deg"], rows)

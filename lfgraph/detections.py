@@ -1,0 +1,181 @@
+"""Board detections of a whole capture as dense ``(view, frame, corner, 2)`` tables, with a cache next to the input."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lfgraph.board import BoardSpec, detect_board
+from lfgraph.datasets.loaders import CaptureSet
+from lfgraph.grid import ViewGrid
+from lfgraph.io_utils import atomic_path
+from lfgraph.parallel import run_tasks
+
+MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
+CACHE_NAME = ".lfgraph-detections.npz"
+CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class BoardObservations:
+    """Checkerboard corners seen by every view in every frame.
+
+    Attributes:
+        board: the checkerboard.
+        grid: the view grid.
+        image_size_px: (width, height) of every view.
+        corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
+        valid: (V, F, C) which corners were observed.
+        frame_names: (F,) one name per frame (for messages).
+        sources: (F,) per frame the files it came from (for messages); may be empty for synthetic corners.
+    """
+
+    board: BoardSpec
+    grid: ViewGrid
+    image_size_px: tuple[int, int]
+    corners_px: np.ndarray
+    valid: np.ndarray
+    frame_names: tuple[str, ...]
+    sources: tuple[tuple[str, ...], ...] = ()
+
+    def __post_init__(self) -> None:
+        v, c = self.grid.num_views, self.board.num_corners
+        corners = np.asarray(self.corners_px, dtype=np.float64)
+        if corners.ndim != 4 or corners.shape[0] != v or corners.shape[2:] != (c, 2):
+            raise ValueError(f"corners_px must be (V={v}, F, C={c}, 2) for a {self.grid} grid and a {self.board} "
+                             f"board, got {corners.shape}")
+        f = corners.shape[1]
+        valid = np.asarray(self.valid, dtype=bool)
+        if valid.shape != (v, f, c):
+            raise ValueError(f"valid must be ({v}, {f}, {c}), got {valid.shape}")
+        if not np.all(np.isfinite(corners[valid])):
+            raise ValueError("corners_px holds NaN or infinity at observations marked valid")
+        if len(self.frame_names) != f:
+            raise ValueError(f"frame_names must have {f} entries, got {len(self.frame_names)}")
+        if self.sources and len(self.sources) != f:
+            raise ValueError(f"sources must have {f} entries, got {len(self.sources)}")
+        corners = np.where(valid[..., None], corners, np.nan)
+        corners.setflags(write=False)
+        valid = valid.copy()
+        valid.setflags(write=False)
+        object.__setattr__(self, "corners_px", corners)
+        object.__setattr__(self, "valid", valid)
+        object.__setattr__(self, "frame_names", tuple(str(n) for n in self.frame_names))
+
+    @property
+    def num_views(self) -> int:
+        return self.grid.num_views
+
+    @property
+    def num_frames(self) -> int:
+        return self.corners_px.shape[1]
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(V, F) the board is usable in this view-frame (at least `MIN_CORNERS_PER_BOARD` corners)."""
+        return self.valid.sum(axis=2) >= MIN_CORNERS_PER_BOARD
+
+    @property
+    def num_observations(self) -> int:
+        return int(self.valid.sum())
+
+    def describe(self, view: int, frame: int | None = None) -> str:
+        """``view r01_c02 (frame 003: path/to/file.png)`` for messages."""
+        name = f"view {view} ({self.grid.name(view)})"
+        if frame is None:
+            return name
+        where = f"frame {self.frame_names[frame]}"
+        if self.sources:
+            files = self.sources[frame]
+            where += f", {files[view] if len(files) == self.num_views else files[0]}"
+        return f"{name}, {where}"
+
+    def subset_frames(self, frames: np.ndarray | list[int]) -> BoardObservations:
+        idx = np.asarray(frames, dtype=int)
+        return BoardObservations(self.board, self.grid, self.image_size_px, self.corners_px[:, idx],
+                                 self.valid[:, idx], tuple(self.frame_names[i] for i in idx),
+                                 tuple(self.sources[i] for i in idx) if self.sources else ())
+
+
+def observations_from_arrays(board: BoardSpec, grid: ViewGrid, image_size_px: tuple[int, int],
+                             corners_px: np.ndarray, valid: np.ndarray) -> BoardObservations:
+    """Wrap synthetic (V, F, C, 2) corners, e.g. from `make_corner_observations`."""
+    names = tuple(f"{f:03d}" for f in range(np.asarray(corners_px).shape[1]))
+    return BoardObservations(board, grid, tuple(image_size_px), corners_px, valid, names)
+
+
+# ------------------------------------------------------------------------------------------------- detection
+def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
+    """Worker: (V, C, 2) corners of one frame, NaN where the board was not found. Loads one frame at a time."""
+    capture, frame, board = task
+    out = np.full((capture.grid.num_views, board.num_corners, 2), np.nan)
+    if capture.layout == "mosaic":
+        views = capture.load_frame(frame)
+        images = (views[v] for v in range(capture.grid.num_views))
+    else:
+        images = (capture.load_view(frame, v) for v in range(capture.grid.num_views))
+    for v, img in enumerate(images):
+        corners = detect_board(img, board)
+        if corners is not None:
+            out[v] = corners
+    return out
+
+
+def _cache_key(capture: CaptureSet, board: BoardSpec) -> str:
+    files = []
+    for frame_files in capture.files:
+        for p in frame_files:
+            st = p.stat()
+            files.append([os.path.relpath(p, capture.root), st.st_size, st.st_mtime_ns])
+    spec = {"version": CACHE_VERSION, "layout": capture.layout, "grid": [capture.grid.rows, capture.grid.cols],
+            "board": [board.cols, board.rows], "files": files}
+    return hashlib.sha256(json.dumps(spec).encode()).hexdigest()
+
+
+def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray | None:
+    try:
+        with np.load(path) as data:
+            if str(data["key"]) != key or data["corners_px"].shape != shape:
+                return None
+            return np.array(data["corners_px"])
+    except (OSError, KeyError, ValueError, EOFError):
+        return None  # a damaged or foreign cache is simply recomputed
+
+
+def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = None, progress: bool = True,
+                   cache: bool = True) -> tuple[BoardObservations, bool]:
+    """Detect the board in every image of a capture, one frame per task on a process pool.
+
+    The result is cached in ``INPUT/.lfgraph-detections.npz``, keyed by the board, the layout and every file's
+    name, size and modification time, so a second run does not re-detect and a changed image invalidates it.
+
+    Returns:
+        the observations and whether they came from the cache.
+
+    Raises:
+        CaptureError: an unreadable image or one of a different size (names the file).
+    """
+    shape = (capture.grid.num_views, len(capture), board.num_corners, 2)
+    cache_path = capture.root / CACHE_NAME
+    key = _cache_key(capture, board) if cache else ""
+    corners = _read_cache(cache_path, key, shape) if cache and cache_path.exists() else None
+    from_cache = corners is not None
+    if corners is None:
+        tasks = [(capture, f, board) for f in range(len(capture))]
+        per_frame = run_tasks(_detect_frame, tasks, jobs, desc="detecting", unit="frame", progress=progress)
+        corners = np.stack(per_frame, axis=1)
+        if cache:
+            try:
+                with atomic_path(cache_path) as tmp, open(tmp, "wb") as fh:
+                    np.savez_compressed(fh, key=np.array(key), corners_px=corners)
+            except OSError:
+                pass  # a read-only input folder only costs the next run a re-detection
+    valid = np.all(np.isfinite(corners), axis=-1)
+    sources = tuple(tuple(str(p) for p in files) for files in capture.files)
+    obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources)
+    return obs, from_cache

@@ -1,0 +1,113 @@
+"""Graph fragments of pattern calibration: board-corner observations, corner priors, the gauge, intrinsics pins.
+
+Each frame's board is that frame's world. A corner j seen by view v in frame f projects through the camera at
+``board_T_ref(f).compose(ref_T_view(v))`` (`gtsam_unstable.ProjectionFactorPPPCCal3DS2`: pose, transform, point,
+calibration), so one ``ref_T_view`` per view and one ``Cal3DS2`` per view are shared by every frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import gtsam_unstable
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, view_pose_key
+from lfgraph.factors.noise import MIN_SIGMA, calibration_noise, point_noise
+from lfgraph.geometry import to_pose3
+
+GAUGE_SIGMA = 1e-8  # rad and m: the reference view's pose is the identity by definition (Isotropic stays fast)
+RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
+FREE_SIGMA = 1e4  # "unconstrained" sigma for Cal3DS2 components that the data determine
+
+
+def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
+                           noise: gtsam.noiseModel.Base) -> int:
+    """One `ProjectionFactorPPPCCal3DS2` per valid corner observation.
+
+    Args:
+        graph: extended in place.
+        corners_px: (V, F, C, 2) observed corners, pixels.
+        valid: (V, F, C) which observations exist.
+        noise: measurement noise (possibly robust), shared by every factor.
+
+    Returns:
+        the number of factors added.
+    """
+    vs, fs, cs = np.nonzero(valid)
+    pts = corners_px[vs, fs, cs]
+    factor = gtsam_unstable.ProjectionFactorPPPCCal3DS2
+    for v, f, c, uv in zip(vs.tolist(), fs.tolist(), cs.tolist(), pts, strict=True):
+        graph.add(factor(uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c), calib_key(v)))
+    return len(vs)
+
+
+def add_fixed_rig_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
+                               intrinsics: Sequence[Intrinsics], ref_T_view: np.ndarray,  # noqa: N803
+                               noise: gtsam.noiseModel.Base) -> int:
+    """Corner observations through a *given* rig: only board poses (and corners) are unknown.
+
+    Uses `GenericProjectionFactorCal3DS2` with ``body_P_sensor = ref_T_view``, so the camera is again
+    ``board_T_ref.compose(ref_T_view)``. This is how a calibration from any route is scored as one rig.
+    """
+    cals = [intr.to_gtsam() for intr in intrinsics]
+    bodies = [to_pose3(T) for T in ref_T_view]
+    vs, fs, cs = np.nonzero(valid)
+    pts = corners_px[vs, fs, cs]
+    factor = gtsam.GenericProjectionFactorCal3DS2
+    for v, f, c, uv in zip(vs.tolist(), fs.tolist(), cs.tolist(), pts, strict=True):
+        graph.add(factor(uv, noise, board_pose_key(f), board_corner_key(c), cals[v], False, False, bodies[v]))
+    return len(vs)
+
+
+def add_corner_priors(graph: gtsam.NonlinearFactorGraph, object_points_m: np.ndarray, sigma_m: float) -> None:
+    """Board corners at their nominal positions: tight for a rigid board, the flatness tolerance otherwise.
+
+    Without these priors the board's scale and shape are free (only the square size fixes metric scale).
+    """
+    noise = point_noise(sigma_m)
+    for j, p in enumerate(np.asarray(object_points_m, dtype=np.float64)):
+        graph.add(gtsam.PriorFactorPoint3(board_corner_key(j), p, noise))
+
+
+def add_gauge_prior(graph: gtsam.NonlinearFactorGraph, reference: int) -> None:
+    """The reference view defines the array's frame: ``ref_T_view(reference) = I``.
+
+    `Isotropic` (not `Diagonal` with sigmas < 1e-8, which GTSAM turns into a slow constrained model).
+    """
+    graph.add(gtsam.PriorFactorPose3(view_pose_key(reference), gtsam.Pose3(),
+                                     gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))
+
+
+def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[Intrinsics],
+                        tangential: bool) -> None:
+    """Hold what the model lacks: skew at 0 always; p1, p2 at 0 unless ``tangential``.
+
+    The other components get a ``FREE_SIGMA`` prior (no information), which keeps one factor per view.
+    """
+    for v, intr in enumerate(intrinsics):
+        prior = intr.to_gtsam() if tangential else Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1,
+                                                               intr.k2).to_gtsam()
+        noise = calibration_noise(FREE_SIGMA, FREE_SIGMA, radial=1e2, tangential=FREE_SIGMA if tangential
+                                  else MIN_SIGMA, skew_px=MIN_SIGMA)
+        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, noise))
+
+
+def insert_board_values(values: gtsam.Values, board_T_ref: np.ndarray, object_points_m: np.ndarray,  # noqa: N803
+                        frames: Sequence[int] | None = None) -> None:
+    """Initial board poses (one per frame) and corners."""
+    frames = range(len(board_T_ref)) if frames is None else frames
+    for f in frames:
+        values.insert(board_pose_key(f), to_pose3(board_T_ref[f]))
+    for j, p in enumerate(np.asarray(object_points_m, dtype=np.float64)):
+        values.insert(board_corner_key(j), p)
+
+
+def insert_rig_values(values: gtsam.Values, intrinsics: Sequence[Intrinsics],
+                      ref_T_view: np.ndarray) -> None:  # noqa: N803
+    """Initial per-view intrinsics and poses."""
+    for v, intr in enumerate(intrinsics):
+        values.insert(calib_key(v), intr.to_gtsam())
+        values.insert(view_pose_key(v), to_pose3(ref_T_view[v]))
