@@ -52,6 +52,11 @@ class BoardSpec:
         return (self.cols, self.rows)
 
     @property
+    def is_symmetric(self) -> bool:
+        """The board looks the same turned by 180° (its corner order is then ambiguous): cols + rows even."""
+        return (self.cols + self.rows) % 2 == 0
+
+    @property
     def num_corners(self) -> int:
         return self.cols * self.rows
 
@@ -85,8 +90,12 @@ def _canonical_order(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) ->
 
     The square diagonally before inner corner 0 is black (`BoardSpec`), its neighbour along the first row is white.
     Reversal swaps their colours on every board whose square counts make the 180° turn change colours (e.g. 12x9
-    squares); for boards that look the same turned around, the order OpenCV gives is kept.
+    squares). A board that looks the same turned around (both square counts even or both odd, e.g. 8x6 squares =
+    7x5 inner corners) cannot tell; there corner 0 is put nearer the image's top-left than the last corner, which
+    is consistent across the nearly parallel views of an array as long as the board is rolled by less than 45°.
     """
+    if board.is_symmetric:
+        return corners[::-1].copy() if corners[0].sum() > corners[-1].sum() else corners
     obj = board.object_points()[:, :2] / board.square_m
     H, _ = cv2.findHomography(obj, corners, 0)  # noqa: N806
     if H is None:

@@ -134,3 +134,14 @@ def test_dataset_writer_layouts_and_job_independence(tmp_path):
                                                                  "truth_corners.npz"]
     with pytest.raises(ValueError, match="layout"):
         write_checkerboard_dataset(tmp_path / "x", calib, truth, cfg, seed=3, layout="tiles", progress=False)
+
+
+def test_symmetric_board_order_does_not_depend_on_what_opencv_reports(setup):
+    from lfgraph.board import _canonical_order
+
+    calib, cfg, truth = setup
+    assert cfg.board.is_symmetric  # 7x5 inner corners = 8x6 squares: the same after a 180° turn
+    _, img = next(iter_view_images(calib, truth, cfg, seed=0, view=1, frames=range(1)))
+    corners = detect_board(img, cfg.board)
+    np.testing.assert_allclose(_canonical_order(img, corners[::-1].copy(), cfg.board), corners)
+    assert np.max(np.abs(corners - truth.corners_px[1, 0])) < 0.2

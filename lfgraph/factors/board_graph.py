@@ -20,7 +20,7 @@ from lfgraph.geometry import to_pose3
 
 GAUGE_SIGMA = 1e-8  # rad and m: the reference view's pose is the identity by definition (Isotropic stays fast)
 RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
-FREE_SIGMA = 1e4  # "unconstrained" sigma for Cal3DS2 components that the data determine
+FREE_SIGMA = 1e8  # "no information" sigma for Cal3DS2 components that the data determine (a pull of 1e-16 per unit²)
 
 
 def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
@@ -90,7 +90,7 @@ def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[
     for v, intr in enumerate(intrinsics):
         prior = intr.to_gtsam() if tangential else Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1,
                                                                intr.k2).to_gtsam()
-        noise = calibration_noise(FREE_SIGMA, FREE_SIGMA, radial=1e2, tangential=FREE_SIGMA if tangential
+        noise = calibration_noise(FREE_SIGMA, FREE_SIGMA, radial=FREE_SIGMA, tangential=FREE_SIGMA if tangential
                                   else MIN_SIGMA, skew_px=MIN_SIGMA)
         graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, noise))
 

@@ -1,0 +1,187 @@
+"""Pattern calibration on corner-only synthetic data: exact recovery, accuracy against the marginals, options."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from lfgraph.calibrate import (
+    CalibrationInputError,
+    JointSettings,
+    calibrate,
+    calibrate_paper,
+    evaluate_calibration,
+)
+from lfgraph.camera import Intrinsics
+from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
+from lfgraph.datasets.rig import make_rig
+from lfgraph.datasets.scenes import get_scene
+from lfgraph.detections import observations_from_arrays
+
+EXACT_RELATIVE = 1e-6  # noise-free: every parameter to 1e-6 of its scale (issue 3)
+FOCAL_SCALE_PX = 300.0  # small-2x2 focal length: the scale of fx, fy, cx, cy errors
+RADIAL_SCALE = 0.08  # |k1| of the synthetic lens
+PITCH_M = 0.010  # small-2x2 pitch: the scale of position errors
+SIGMA_PX = 0.1  # corner noise of the noisy tests
+MAX_Z = 4.0  # a single seed's error stays within 4 marginal sigmas (per parameter, per view)
+
+
+def small_rig(frames: int = 12, seed: int = 0, tangential: bool = False):
+    scene = get_scene("small-2x2")
+    rng = np.random.default_rng(seed)
+    calib = make_rig(scene.rig, rng)
+    if tangential:
+        calib = calib.replace(intrinsics=tuple(dataclasses.replace(i, p1=8e-4, p2=-5e-4) for i in calib.intrinsics))
+    cfg = dataclasses.replace(scene.checkerboard, frames=frames)
+    truth = make_checkerboard_truth(calib, cfg, rng)
+    return calib, truth
+
+
+def observations(calib, truth, sigma_px: float, seed: int = 1, full_boards_only: bool = True):
+    corners, valid = make_corner_observations(truth, sigma_px, np.random.default_rng(seed), full_boards_only)
+    return observations_from_arrays(truth.board, calib.grid, calib.image_size_px, corners, valid)
+
+
+def max_relative_errors(est, true_calib):
+    err = evaluate_calibration(est, true_calib)
+    return {
+        "focal/principal": np.max(np.abs(err.intrinsics[:, :4])) / FOCAL_SCALE_PX,
+        "radial": np.max(np.abs(err.intrinsics[:, 4:])) / RADIAL_SCALE,
+        "position": np.max(np.abs(err.position_mm)) / 1e3 / PITCH_M,
+        "rotation": np.max(np.radians(err.rotation_deg)),
+    }
+
+
+@pytest.mark.parametrize("init", ["paper", "design"])
+def test_joint_recovers_noise_free_rig_exactly(init):
+    calib, truth = small_rig()
+    obs = observations(calib, truth, 0.0)
+    est, report = calibrate(obs, "joint", init, focal_px=320.0 if init == "design" else None)
+    for name, rel in max_relative_errors(est, calib).items():
+        assert rel < EXACT_RELATIVE, f"{name} error {rel:.2e} relative"
+    assert report.rig_rms_px < 1e-4
+    assert est.metrics["rig_rms_px"] == pytest.approx(report.rig_rms_px)
+
+
+def test_joint_with_partial_boards_and_tangential_distortion():
+    calib, truth = small_rig(tangential=True)
+    obs = observations(calib, truth, 0.0, full_boards_only=False)
+    assert obs.valid.sum() > observations(calib, truth, 0.0).valid.sum()  # partial boards are really there
+    est, _ = calibrate(obs, "joint", "design", settings=JointSettings(tangential=True), focal_px=300.0)
+    for v in range(calib.num_views):
+        assert est.intrinsics[v].p1 == pytest.approx(calib.intrinsics[v].p1, abs=1e-8)
+        assert est.intrinsics[v].p2 == pytest.approx(calib.intrinsics[v].p2, abs=1e-8)
+    for name, rel in max_relative_errors(est, calib).items():
+        assert rel < EXACT_RELATIVE, f"{name} error {rel:.2e} relative"
+
+
+def test_tangential_held_at_zero_by_default():
+    calib, truth = small_rig()
+    est, _ = calibrate(observations(calib, truth, 0.1), "joint")
+    assert all(i.p1 == 0.0 and i.p2 == 0.0 for i in est.intrinsics)
+
+
+def test_noisy_joint_errors_match_marginals_and_beat_the_paper_route():
+    calib, truth = small_rig(frames=16)
+    obs = observations(calib, truth, SIGMA_PX)
+    est, report = calibrate(obs, "joint")
+    paper, paper_report = calibrate(obs, "paper")
+    err = evaluate_calibration(est, calib)
+    assert report.noise_sigma_px == pytest.approx(SIGMA_PX, rel=0.15)  # the residuals estimate the true noise
+    for v in range(calib.num_views):
+        s = report.sigmas[v]
+        for i, name in enumerate(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2")):
+            assert abs(err.intrinsics[v, i]) < MAX_Z * s[name], f"view {v} {name}"
+        if v != calib.grid.reference:
+            assert np.all(np.abs(err.position_mm[v]) < MAX_Z * np.asarray(s["position_mm"])), f"view {v} position"
+    paper_err = evaluate_calibration(paper, calib).summary()
+    joint_err = err.summary()
+    assert joint_err["rms_position_mm"] < paper_err["rms_position_mm"]
+    assert joint_err["rms_fx_px"] < paper_err["rms_fx_px"]
+    assert report.rig_rms_px <= paper_report.rig_rms_px  # the joint optimum is the rig-consistent optimum
+    assert report.e_mono_px == pytest.approx(paper_report.e_mono_px)  # both start from the same Zhang stage
+
+
+def test_paper_route_reports_e_mono_and_e_pnp_like_opencv():
+    import cv2
+
+    calib, truth = small_rig()
+    obs = observations(calib, truth, SIGMA_PX)
+    result = calibrate_paper(obs)
+    v = 1
+    frames = np.nonzero(obs.seen[v])[0]
+    obj = [obs.board.object_points().astype(np.float32)] * len(frames)
+    img = [obs.corners_px[v, f].astype(np.float32) for f in frames]
+    rms = cv2.calibrateCamera(obj, img, obs.image_size_px, None, None,
+                              flags=cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST)[0]
+    assert result.view_e_mono_px[v] == pytest.approx(rms, rel=1e-6)
+    assert np.isnan(result.view_e_pnp_px[calib.grid.reference])
+    assert np.all(result.view_e_pnp_px[1:] > 0.5 * SIGMA_PX)
+
+
+def test_robust_kernel_resists_a_corrupted_frame_and_the_frame_is_flagged():
+    calib, truth = small_rig(frames=16)
+    obs = observations(calib, truth, SIGMA_PX)
+    corners = np.array(obs.corners_px)
+    bad_frame = int(np.nonzero(obs.seen[1])[0][2])
+    corners[1, bad_frame] += np.array([4.0, -3.0])  # a view's corners mis-assigned by a few pixels in one frame
+    bad = dataclasses.replace(obs, corners_px=corners)
+    plain, plain_report = calibrate(bad, "joint")
+    robust, _ = calibrate(bad, "joint", settings=JointSettings(robust="cauchy:0.3"))
+    assert bad_frame in plain_report.outlier_frames
+    assert any("outlying" in w for w in plain_report.warnings)
+    e_plain = evaluate_calibration(plain, calib).summary()
+    e_robust = evaluate_calibration(robust, calib).summary()
+    assert e_robust["rms_position_mm"] < 0.5 * e_plain["rms_position_mm"]
+    assert e_robust["rms_cx_px"] < e_plain["rms_cx_px"]
+
+
+def test_coverage_warning_names_the_empty_region():
+    calib, truth = small_rig()
+    obs = observations(calib, truth, SIGMA_PX)
+    w, _ = calib.image_size_px
+    valid = obs.valid & (np.nan_to_num(obs.corners_px[..., 0], nan=w) < 0.5 * w)  # only the left half is seen
+    _, report = calibrate(dataclasses.replace(obs, valid=valid), "joint", "design", focal_px=300.0)
+    assert np.all(report.coverage < 0.6)
+    view0 = [m for m in report.warnings if "view 0 (r00_c00)" in m]
+    assert view0
+    named = view0[0].split("show the board in the ")[1].split(" region")[0].split(", ")
+    assert {"top-right", "right", "bottom-right"} <= set(named)
+
+
+def test_view_without_enough_frames_is_named():
+    calib, truth = small_rig()
+    obs = observations(calib, truth, SIGMA_PX)
+    valid = np.array(obs.valid)
+    valid[3] = False
+    with pytest.raises(CalibrationInputError, match=r"view 3 \(r01_c01\).*no board detected"):
+        calibrate(dataclasses.replace(obs, valid=valid))
+    seen_frames = np.nonzero(obs.seen[2])[0]
+    valid = np.array(obs.valid)
+    valid[2, seen_frames[2:]] = False
+    with pytest.raises(CalibrationInputError, match=r"view 2 \(r01_c00\).*only 2 frame"):
+        calibrate(dataclasses.replace(obs, valid=valid))
+
+
+def test_unknown_method_or_kernel_is_refused():
+    calib, truth = small_rig()
+    obs = observations(calib, truth, SIGMA_PX)
+    with pytest.raises(ValueError, match="unknown method"):
+        calibrate(obs, "bundle")
+    with pytest.raises(ValueError, match="unknown robust kernel"):
+        JointSettings(robust="hubber:1")
+
+
+def test_evaluate_refuses_a_different_grid():
+    calib, _ = small_rig()
+    other = make_rig(dataclasses.replace(get_scene("small-2x2").rig, cols=3), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="grid"):
+        evaluate_calibration(other, calib)
+
+
+def test_intrinsics_metrics_are_json_ready():
+    calib, truth = small_rig()
+    est, _ = calibrate(observations(calib, truth, SIGMA_PX))
+    text = est.to_json()
+    assert '"sigmas"' in text and '"coverage"' in text and "NaN" not in text
+    assert isinstance(est.intrinsics[0], Intrinsics)
