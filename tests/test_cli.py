@@ -81,3 +81,11 @@ def test_unknown_scene_and_bad_board_write_nothing(tmp_path, capsys):
 def test_console_script_runs():
     proc = subprocess.run([sys.executable, "-m", "lfgraph.cli", "--help"], capture_output=True, text=True, check=False)
     assert proc.returncode == 0 and "synth" in proc.stdout and "info" in proc.stdout
+
+
+def test_demo_on_the_small_scene(tmp_path, capsys):
+    assert main(["demo", "--scene", "small-2x2", "--out", str(tmp_path), "--jobs", "1", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "[3/3]" in text and "paper / joint" in text and "rig-consistent RMS" in text
+    calib = Calibration.load(tmp_path / "calibration.json")
+    assert calib.metrics["method"] == "joint" and calib.num_views == 4
