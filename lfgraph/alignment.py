@@ -205,7 +205,8 @@ class PointAlignmentReport:
     parallax: Alignment
 
 
-def align_points(calib: Calibration, rect: Rectification, pixels: np.ndarray, valid: np.ndarray) -> PointAlignmentReport:
+def align_points(calib: Calibration, rect: Rectification, pixels: np.ndarray,
+                 valid: np.ndarray) -> PointAlignmentReport:
     """The full report for (V, N, 2) matched original pixels (e.g. board corners flattened over frames)."""
     grid = calib.grid
     rect_px = np.full(pixels.shape, np.nan)

@@ -229,6 +229,82 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------------------- rectify / check
+def _rectify_frame_task(task: tuple) -> int:
+    capture, frame, calib_json, crop, out_dir, out_layout = task
+    from lfgraph.calibration import Calibration
+    from lfgraph.datasets.loaders import write_frame
+    from lfgraph.rectify import build_maps, remap_views, stored_rectification
+
+    calib = Calibration.from_dict(calib_json)
+    maps = build_maps(calib, stored_rectification(calib))
+    images = capture.load_frame(frame, grayscale=False)
+    write_frame(out_dir, capture.frame_names[frame], remap_views(images, maps), capture.grid, out_layout)
+    return frame
+
+
+def cmd_rectify(args: argparse.Namespace) -> int:
+    import shutil
+    import tempfile
+
+    from lfgraph.calibration import Calibration
+    from lfgraph.datasets.loaders import open_capture
+    from lfgraph.parallel import run_tasks
+    from lfgraph.rectify import attach, check_compatible, compute_rectification
+    from lfgraph.report import rectification_text
+
+    out = args.output
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UsageError(f"-o {out} exists and is not an empty folder; choose a new output folder")
+    calib = Calibration.load(args.calibration)
+    capture = open_capture(args.input, calib.grid, args.layout)
+    check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    rect = compute_rectification(calib, args.crop)
+    rectified = attach(calib, rect)
+    print(rectification_text(calib, rect))
+    out_layout = "folders" if capture.layout == "pairs" else capture.layout
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        tasks = [(capture, f, rectified.to_dict(), args.crop, tmp, out_layout) for f in range(len(capture))]
+        run_tasks(_rectify_frame_task, tasks, args.jobs, desc="rectifying", unit="frame", progress=not args.quiet)
+        rectified.save(tmp / "calibration.json")
+        if out.exists():
+            out.rmdir()  # empty, checked above
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    print(f"wrote {len(capture)} rectified frames ({out_layout}) and {out / 'calibration.json'} "
+          f"(with the rectification) to {out}")
+    return EXIT_OK
+
+
+EXIT_DRIFT = 2
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from lfgraph.calibration import Calibration
+    from lfgraph.check import check_capture
+    from lfgraph.datasets.loaders import open_capture
+    from lfgraph.rectify import check_compatible, compute_rectification, stored_rectification
+    from lfgraph.report import drift_text
+
+    calib = Calibration.load(args.calibration)
+    capture = open_capture(args.input, calib.grid, args.layout)
+    check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    rect = stored_rectification(calib) or compute_rectification(calib)
+    n = min(len(capture), args.max_frames)
+    report = check_capture(calib, rect, (capture.load_frame(f) for f in range(n)))
+    print(drift_text(calib, report))
+    if report.rms_px > args.max_px:
+        print(f"DRIFT: reprojection RMS {report.rms_px:.3f} px is above --max-px {args.max_px:g}; "
+              f"re-calibrate or run lfgraph refine")
+        return EXIT_DRIFT
+    print(f"OK: reprojection RMS {report.rms_px:.3f} px <= --max-px {args.max_px:g}")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -303,6 +379,27 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--truth", type=Path, required=True, help="ground-truth calibration.json")
     ev.add_argument("--json", action="store_true", help="print the RMS errors as JSON")
     ev.set_defaults(func=cmd_evaluate)
+
+    rc = sub.add_parser("rectify", help="rectify a capture with a calibration (paper Section 3.3)")
+    rc.add_argument("calibration", type=Path, help="calibration.json")
+    rc.add_argument("input", type=Path, help="capture folder")
+    rc.add_argument("-o", "--output", type=Path, required=True, help="new folder for the rectified capture")
+    rc.add_argument("--crop", choices=("valid", "full"), default="valid",
+                    help="valid: the rectangle every view fills (default); full: keep the source size")
+    rc.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    rc.add_argument("--jobs", type=_positive_int, default=_jobs_default())
+    rc.add_argument("--quiet", action="store_true")
+    rc.set_defaults(func=cmd_rectify)
+
+    ck = sub.add_parser("check", help="drift check: does the calibration still fit an ordinary capture? "
+                                      "(exit 2 when not)")
+    ck.add_argument("calibration", type=Path, help="calibration.json")
+    ck.add_argument("input", type=Path, help="capture folder of any textured scene")
+    ck.add_argument("--max-px", type=_positive_float, default=0.5,
+                    help="largest acceptable reprojection RMS (default 0.5 px)")
+    ck.add_argument("--max-frames", type=_positive_int, default=3, help="frames to use (default 3)")
+    ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    ck.set_defaults(func=cmd_check)
 
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")

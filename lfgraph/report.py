@@ -129,3 +129,43 @@ def evaluation_table(errors, truth_name: str = "truth") -> str:  # errors: lfgra
                  f"{s['rms_rotation_deg']:.5f}"])
     return f"error = estimate - {truth_name} (poses relative to the reference view)\n" + format_table(
         ["view", "d_fx_px", "d_fy_px", "d_cx_px", "d_cy_px", "d_k1", "d_k2", "d_pos_mm", "d_rot_deg"], rows)
+
+
+def rectification_text(calib: Calibration, rect) -> str:  # rect: lfgraph.rectify.Rectification
+    """K_r, crop, pitch and the grid-deviation table (how far the real array is from the ideal one)."""
+    k = rect.K_r
+    lines = [f"rectified views {rect.image_size_px[0]}x{rect.image_size_px[1]} px (crop {rect.crop}, "
+             f"rectangle {rect.crop_rect_px} of the {rect.source_size_px[0]}x{rect.source_size_px[1]} frame); "
+             f"K_r fx {k[0, 0]:.2f} fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f} px",
+             f"grid pitch: {1e3 * rect.pitch_m[0]:.4f} mm along rows, {1e3 * rect.pitch_m[1]:.4f} mm along columns",
+             "grid deviation (view centre minus ideal grid position in the rectified frame; rotation away from the "
+             "common one):"]
+    rows = []
+    for v in range(calib.num_views):
+        d = rect.deviation_mm[v]
+        rows.append([calib.grid.name(v) + (" *" if v == calib.grid.reference else ""), f"{d[0]:+.4f}",
+                     f"{d[1]:+.4f}", f"{d[2]:+.4f}", f"{np.linalg.norm(d):.4f}",
+                     f"{rect.rotation_deviation_deg[v]:.4f}"])
+    lines.append(format_table(["view", "dx_mm", "dy_mm", "dz_mm", "|d|_mm", "rot_deg"], rows))
+    return "\n".join(lines)
+
+
+def alignment_table(named: Sequence[tuple[str, object]]) -> str:
+    """Rows of `lfgraph.alignment.Alignment` figures."""
+    rows = [[name, f"{a.row_px:.4f}", f"{a.col_px:.4f}", f"{a.proportionality_px:.4f}", a.n_points]
+            for name, a in named]
+    return format_table(["", "row_px", "col_px", "proportionality_px", "points"], rows)
+
+
+def drift_text(calib: Calibration, report) -> str:  # report: lfgraph.check.DriftReport
+    counts = ", ".join(f"{k} {v}" for k, v in report.counts.items())
+    lines = [f"{report.frames} frame(s); tracks after each filter: {counts}",
+             f"reprojection RMS {report.rms_px:.4f} px; per view:",
+             format_table(["view", "rms_px"], [[calib.grid.name(v), float(report.view_rms_px[v])]
+                                               for v in range(calib.num_views)]),
+             "alignment of the tracks in rectified views (RMS px):",
+             alignment_table([("original views", report.alignment.before),
+                              ("rectified", report.alignment.after),
+                              ("off-grid parallax alone", report.alignment.parallax),
+                              ("rectified, parallax removed", report.alignment.compensated)])]
+    return "\n".join(lines)

@@ -1,0 +1,87 @@
+"""Drift check of a stored calibration on an ordinary capture (no pattern): track features through the grid,
+triangulate them with the calibration, and report reprojection residuals and parallax-compensated misalignment."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfgraph.alignment import PointAlignmentReport, align_points, triangulate
+from lfgraph.calibration import Calibration
+from lfgraph.camera import project_world
+from lfgraph.rectify import Rectification
+from lfgraph.refine.matching import MatchSettings, Tracks, track_chain
+
+TRACK_OUTLIER_FACTOR = 4.0  # a track whose largest residual exceeds 4x the median track's is a mismatch
+TRACK_OUTLIER_MIN_PX = 0.5  # ... and exceeds this (so a perfect calibration does not reject its noise)
+
+
+@dataclass(frozen=True)
+class DriftReport:
+    """What `check_capture` measured.
+
+    Attributes:
+        rms_px: RMS Euclidean reprojection residual of every kept track in every view.
+        view_rms_px: (V,) the same per view.
+        counts: tracks after each filter, summed over frames (``detected``, ``chain``, ``dedup``, ``ransac``,
+            ``triangulation``).
+        alignment: parallax-compensated alignment of the kept tracks (before/after/compensated/parallax).
+        frames: number of frames used.
+    """
+
+    rms_px: float
+    view_rms_px: np.ndarray
+    counts: dict[str, int]
+    alignment: PointAlignmentReport
+    frames: int
+
+
+def reprojection_residuals(calib: Calibration, tracks: Tracks) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate tracks with ``calib`` and return ((V, N) residual norms in px, (N, 3) points)."""
+    points = triangulate(calib, tracks.points_px, tracks.valid)
+    res = np.full(tracks.valid.shape, np.nan)
+    for v in range(calib.num_views):
+        m = tracks.valid[v] & np.all(np.isfinite(points), axis=1)
+        if m.any():
+            proj = project_world(calib.intrinsics[v], calib.view_T_ref(v), points[m])
+            res[v, m] = np.linalg.norm(proj - tracks.points_px[v, m], axis=1)
+    return res, points
+
+
+def triangulation_filter(residuals: np.ndarray) -> np.ndarray:
+    """Keep tracks whose largest residual is within `TRACK_OUTLIER_FACTOR` x the median track's."""
+    worst = np.nanmax(np.where(np.isfinite(residuals), residuals, -np.inf), axis=0)
+    finite = np.isfinite(worst) & (worst >= 0)
+    if not finite.any():
+        return finite
+    limit = max(TRACK_OUTLIER_FACTOR * float(np.median(worst[finite])), TRACK_OUTLIER_MIN_PX)
+    return finite & (worst <= limit)
+
+
+def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.ndarray],
+                  settings: MatchSettings | None = None) -> DriftReport:
+    """Run the drift check over (V, H, W) grayscale frames."""
+    pixels, valid, counts, n_frames = [], [], {}, 0
+    for images in frames:
+        tracks = track_chain(images, calib.grid, settings)
+        res, _ = reprojection_residuals(calib, tracks)
+        keep = triangulation_filter(res)
+        tracks_counts = {**tracks.counts, "triangulation": int(keep.sum())}
+        for k, n in tracks_counts.items():
+            counts[k] = counts.get(k, 0) + n
+        pixels.append(tracks.points_px[:, keep])
+        valid.append(tracks.valid[:, keep])
+        n_frames += 1
+    if not n_frames:
+        raise ValueError("the capture has no frames to check")
+    px = np.concatenate(pixels, axis=1)
+    ok = np.concatenate(valid, axis=1)
+    if ok.shape[1] == 0:
+        raise ValueError("no feature could be tracked through every view; the scene has too little texture "
+                         "(or the views do not overlap)")
+    res, _ = reprojection_residuals(calib, Tracks(px, ok))
+    rms = float(np.sqrt(np.nanmean(res**2)))
+    view_rms = np.sqrt(np.nanmean(res**2, axis=1))
+    return DriftReport(rms, view_rms, counts, align_points(calib, rect, px, ok), n_frames)
