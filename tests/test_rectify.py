@@ -151,6 +151,8 @@ def test_far_board_corners_line_up_in_rectified_renders():
             rows.append(corners[a][:, 1] - corners[b][:, 1])
         for a, b in calib.grid.vertical_pairs():
             cols.append(corners[a][:, 0] - corners[b][:, 0])
+    print(f"far board: rows {np.sqrt(np.mean(np.concatenate(rows) ** 2)):.4f} px, "
+          f"cols {np.sqrt(np.mean(np.concatenate(cols) ** 2)):.4f} px")
     assert np.sqrt(np.mean(np.concatenate(rows) ** 2)) <= FAR_BOARD_PX
     assert np.sqrt(np.mean(np.concatenate(cols) ** 2)) <= FAR_BOARD_PX
 
