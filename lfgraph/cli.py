@@ -305,6 +305,42 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------------------- refine
+def cmd_refine(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from lfgraph.calibration import Calibration
+    from lfgraph.datasets.loaders import open_capture
+    from lfgraph.rectify import check_compatible
+    from lfgraph.refine.staged import RefineSettings, refine, with_reference
+    from lfgraph.report import refinement_text
+
+    try:
+        settings = RefineSettings(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
+                                  target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if not args.output.parent.exists():
+        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    calib = Calibration.load(args.calibration)
+    if args.reference is not None:
+        if not 0 <= args.reference < calib.num_views:
+            raise UsageError(f"--reference {args.reference} is not a view of the {calib.grid} grid")
+        calib = with_reference(calib, args.reference)
+    capture = open_capture(args.input, calib.grid, args.layout)
+    check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
+    print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {','.join(settings.stages)}, "
+          f"triangulation filter {settings.triangulation_filter}, robust {settings.robust}")
+    frames = (capture.load_frame(f) for f in range(n))
+    bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
+    refined, report = refine(calib, bar, settings, log=None if args.quiet else bar.write)
+    refined.save(args.output)
+    print(refinement_text(calib, refined, report))
+    print(f"wrote {args.output}")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -400,6 +436,25 @@ def build_parser() -> argparse.ArgumentParser:
     ck.add_argument("--max-frames", type=_positive_int, default=3, help="frames to use (default 3)")
     ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
     ck.set_defaults(func=cmd_check)
+
+    rf = sub.add_parser("refine", help="auto-refine a calibration from ordinary scene captures (paper Section 4)")
+    rf.add_argument("calibration", type=Path, help="calibration.json to refine")
+    rf.add_argument("input", type=Path, help="capture folder of a textured scene")
+    rf.add_argument("-o", "--output", type=Path, required=True, help="refined calibration.json to write")
+    rf.add_argument("--stages", default="default",
+                    help="schedule: default (points,poses,clean), paper (points,intrinsics,all) or a comma list of "
+                         "points, intrinsics, poses, all, clean")
+    rf.add_argument("--robust", default="none", help="robust kernel NAME[:THRESHOLD_PX] (none, huber:1.345, "
+                                                     "cauchy:..., tukey:..., gm:..., dcs:...)")
+    rf.add_argument("--triangulation-filter", choices=("median", "worst", "none"),
+                    help="median: the paper's (default with --stages paper); worst: drop outlying tracks (default)")
+    rf.add_argument("--max-frames", type=_positive_int, help="use at most this many frames")
+    rf.add_argument("--target-rms", type=_positive_float,
+                    help="stop adding frames once a new frame fits the calibration at this RMS (px)")
+    rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
+    rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    rf.add_argument("--quiet", action="store_true")
+    rf.set_defaults(func=cmd_refine)
 
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")

@@ -169,3 +169,32 @@ def drift_text(calib: Calibration, report) -> str:  # report: lfgraph.check.Drif
                               ("off-grid parallax alone", report.alignment.parallax),
                               ("rectified, parallax removed", report.alignment.compensated)])]
     return "\n".join(lines)
+
+
+def refinement_text(before: Calibration, after: Calibration, report) -> str:  # lfgraph.refine.staged.RefinementReport
+    """Per-frame track counts, per-stage RMS and the per-view changes the refinement made."""
+    lines = [f"{report.frames_used} frame(s) used ({report.stop_reason}); reprojection RMS of all kept tracks "
+             f"{report.rms_before_px:.4f} px with the input calibration -> {report.rms_after_px:.4f} px refined "
+             f"({report.seconds:.1f} s)"]
+    keys = list(report.frame_counts[0]) if report.frame_counts else []
+    lines.append("tracks after each filter, per frame:")
+    lines.append(format_table(["frame", *keys, "rms_px"],
+                              [[f, *(c[k] for k in keys), report.frame_rms_before_px[f]]
+                               for f, c in enumerate(report.frame_counts)]))
+    lines.append("stages (last pass over all frames):")
+    lines.append(format_table(["stage", "landmarks", "observations", "rms_before_px", "rms_after_px", "iterations",
+                               "seconds"],
+                              [[s.name, s.landmarks, s.observations, s.rms_before_px, s.rms_after_px, s.iterations,
+                                s.seconds] for s in report.stages]))
+    rows = []
+    for v in range(after.num_views):
+        a, b = after.intrinsics[v], before.intrinsics[v]
+        rot = float(rotation_angle_deg(before.ref_T_view[v][:3, :3].T @ after.ref_T_view[v][:3, :3]))
+        pos = 1e3 * (after.ref_T_view[v][:3, 3] - before.ref_T_view[v][:3, 3])
+        rows.append([after.grid.name(v) + (" *" if v == after.grid.reference else ""), f"{rot:.4f}",
+                     f"{np.linalg.norm(pos):.3f}", f"{pos[0]:+.3f} {pos[1]:+.3f} {pos[2]:+.3f}",
+                     f"{a.fx - b.fx:+.3f}", f"{a.fy - b.fy:+.3f}", f"{a.cx - b.cx:+.3f}", f"{a.cy - b.cy:+.3f}"])
+    lines.append("changes per view (refined minus input; * reference):")
+    lines.append(format_table(["view", "rot_deg", "move_mm", "dx dy dz_mm", "d_fx_px", "d_fy_px", "d_cx_px",
+                               "d_cy_px"], rows))
+    return "\n".join(lines)

@@ -26,17 +26,23 @@ class MatchSettings:
         ransac_threshold_px: distance to the epipolar line for a fundamental-matrix inlier.
         ransac_confidence: RANSAC confidence.
         min_views: keep tracks seen in at least this many views (None = all views, the paper's rule).
+        forward_backward_px: track each step back and drop points that do not return within this distance
+            (None: off). Chain tracking through 24 steps of an occluding scene otherwise keeps ~1/3 wrong tracks.
+        anchor_px: after the chain, re-track every view from the reference patch (started at the chain's
+            estimate) and drop points that move more than this (None: keep the chained positions).
     """
 
     max_features: int = 2000
-    quality_level: float = 0.01
-    min_distance_px: float = 7.0
+    quality_level: float = 0.005
+    min_distance_px: float = 5.0
     block_size_px: int = 7
     klt_window_px: int = 15
     klt_levels: int = 3  # 2 lost ~40 % more tracks on paper-5x5 (35 px steps) even with the initial-flow guess
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.999
     min_views: int | None = None
+    forward_backward_px: float | None = 0.5
+    anchor_px: float | None = 1.0
 
 
 @dataclass(frozen=True)
@@ -134,14 +140,39 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         p1, status, _ = cv2.calcOpticalFlowPyrLK(images[a], images[b], p0, start, winSize=win,
                                                  maxLevel=s.klt_levels, criteria=criteria,
                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        ok_back = np.ones(len(idx), dtype=bool)
+        if s.forward_backward_px is not None:
+            p0b, status_b, _ = cv2.calcOpticalFlowPyrLK(images[b], images[a], p1, p0.copy(), winSize=win,
+                                                        maxLevel=s.klt_levels, criteria=criteria,
+                                                        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            back = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+            ok_back = (status_b.ravel() == 1) & (back <= s.forward_backward_px)
         p1 = p1.reshape(-1, 2).astype(np.float64)
-        ok = (status.ravel() == 1) & (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+        inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+        ok = ok_back & (status.ravel() == 1) & inside
         pts[b, idx[ok]] = p1[ok]
         alive[b, idx[ok]] = True
         step = np.full((n, 2), np.nan)
         step[idx[ok]] = p1[ok] - pts[a, idx[ok]]
         steps[direction] = step
         dup |= _duplicates(pts[b], alive[b], DUPLICATE_PX)
+    if s.anchor_px is not None:
+        # Chained KLT drifts coherently (small biases add up over up to V-1 steps). Re-track every view directly
+        # from the reference patch, started at the chain's estimate, and keep points that stay near it.
+        ref_pts = pts[ref].astype(np.float32).reshape(-1, 1, 2)
+        for b in range(n_views):
+            if b == ref or not alive[b].any():
+                continue
+            idx = np.nonzero(alive[b])[0]
+            start = pts[b, idx].astype(np.float32).reshape(-1, 1, 2)
+            p1, status, _ = cv2.calcOpticalFlowPyrLK(images[ref], images[b], ref_pts[idx], start.copy(),
+                                                     winSize=win, maxLevel=1, criteria=criteria,
+                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            p1 = p1.reshape(-1, 2).astype(np.float64)
+            moved = np.linalg.norm(p1 - pts[b, idx], axis=1)
+            ok = (status.ravel() == 1) & (moved <= s.anchor_px)
+            pts[b, idx[ok]] = p1[ok]
+            alive[b, idx[~ok]] = False
     min_views = n_views if s.min_views is None else s.min_views
     seen = alive.sum(axis=0)
     counts = {"detected": n}

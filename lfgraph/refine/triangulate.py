@@ -1,0 +1,77 @@
+"""N-view triangulation by DLT (SVD, vectorised over tracks) and the paper's triangulation filter (Section 4.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.camera import project_world
+
+
+def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Linear N-view triangulation in normalised coordinates (undistorted), one batched SVD for all tracks.
+
+    Each view i contributes ``x P_i3 - P_i1`` and ``y P_i3 - P_i2`` with ``P_i = [R | t]`` its ``view_T_ref``;
+    missing views contribute zero rows.
+
+    Args:
+        calib: cameras.
+        pixels: (V, N, 2) observations in original pixels.
+        valid: (V, N) which exist.
+
+    Returns:
+        (N, 3) points in the reference frame; NaN for tracks seen by fewer than two views.
+    """
+    n_views, n = valid.shape
+    A = np.zeros((n, 2 * n_views, 4))  # noqa: N806
+    for i in range(n_views):
+        m = valid[i] & np.all(np.isfinite(pixels[i]), axis=-1)
+        if not m.any():
+            continue
+        xy = np.full((n, 2), np.nan)
+        xy[m] = calib.intrinsics[i].undistort(pixels[i][m])
+        m &= np.all(np.isfinite(xy), axis=-1)
+        P = calib.view_T_ref(i)[:3]  # noqa: N806
+        rows_x = xy[:, 0:1] * P[2][None] - P[0][None]
+        rows_y = xy[:, 1:2] * P[2][None] - P[1][None]
+        A[m, 2 * i] = rows_x[m]
+        A[m, 2 * i + 1] = rows_y[m]
+    count = np.count_nonzero(np.any(A != 0, axis=2), axis=1) // 2
+    # scale rows so distant views do not dominate through |t|
+    _, _, vt = np.linalg.svd(A)
+    h = vt[:, -1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pts = h[:, :3] / h[:, 3:4]
+    pts[count < 2] = np.nan
+    return pts
+
+
+def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.ndarray,
+                        valid: np.ndarray) -> np.ndarray:
+    """(V, N) Euclidean reprojection error of each observation (NaN where not observed)."""
+    out = np.full(valid.shape, np.nan)
+    ok = np.all(np.isfinite(points_ref), axis=1)
+    for i in range(calib.num_views):
+        m = valid[i] & ok
+        if m.any():
+            proj = project_world(calib.intrinsics[i], calib.view_T_ref(i), points_ref[m])
+            out[i, m] = np.linalg.norm(proj - pixels[i, m], axis=1)
+    return out
+
+
+def median_filter(errors: np.ndarray, reference: int) -> np.ndarray:
+    """The paper's triangulation filter: keep tracks whose reference-view error is <= the median."""
+    ref = errors[reference]
+    finite = np.isfinite(ref)
+    if not finite.any():
+        return finite
+    return finite & (ref <= np.median(ref[finite]))
+
+
+def worst_error_filter(errors: np.ndarray, factor: float, floor_px: float) -> np.ndarray:
+    """Keep tracks whose largest error over views is <= max(factor x the median track's largest, floor_px)."""
+    worst = np.where(np.isfinite(errors), errors, -np.inf).max(axis=0)
+    finite = np.isfinite(worst) & (worst >= 0)
+    if not finite.any():
+        return finite
+    return finite & (worst <= max(factor * float(np.median(worst[finite])), floor_px))
