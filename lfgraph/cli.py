@@ -173,7 +173,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from lfgraph.demo import run_demo
 
-    return run_demo(Path(args.out), jobs=args.jobs, quiet=args.quiet, scene_name=args.scene)
+    return run_demo(Path(args.out), jobs=args.jobs, quiet=args.quiet, scene_name=args.scene,
+                    with_refinement=not args.no_refine)
 
 
 # --------------------------------------------------------------------------------------------- calibrate
@@ -459,6 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")
     demo.add_argument("--scene", default="paper-4x4", help="named scene (default paper-4x4; small-2x2 is quick)")
+    demo.add_argument("--no-refine", action="store_true", help="skip the refinement part (shaken paper-5x5)")
     demo.add_argument("--jobs", type=_positive_int, default=_jobs_default())
     demo.add_argument("--quiet", action="store_true")
     demo.set_defaults(func=cmd_demo)

@@ -11,33 +11,37 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.alignment import align_points, infinity_alignment
+from lfgraph.alignment import align_points, infinity_alignment, transfer_error_at_infinity
 from lfgraph.calibrate import calibrate, evaluate_calibration
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, write_checkerboard_dataset
 from lfgraph.datasets.loaders import open_capture, write_frame
-from lfgraph.datasets.rig import make_rig
+from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
+from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import detect_capture
 from lfgraph.rectify import build_maps, compute_rectification, remap_views
+from lfgraph.refine.staged import refine
 from lfgraph.report import (
     alignment_table,
     calibration_report_text,
     evaluation_table,
     format_table,
     rectification_text,
+    refinement_text,
 )
 
 DEMO_SCENE = "paper-4x4"
 DEMO_SEED = 0
 
 
-def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_SCENE) -> int:
+def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_SCENE,
+             with_refinement: bool = True) -> int:
     scene = get_scene(scene_name)
     rng = np.random.default_rng(DEMO_SEED)
     truth_calib = make_rig(scene.rig, rng)
     truth = make_checkerboard_truth(truth_calib, scene.checkerboard, rng)
     data_dir = out / scene_name
-    print(f"[1/4] rendering {scene_name}: {scene.description}")
+    print(f"[1/5] rendering {scene_name}: {scene.description}")
     start = time.perf_counter()
     write_checkerboard_dataset(data_dir, truth_calib, truth, scene.checkerboard, seed=DEMO_SEED, jobs=jobs,
                                progress=not quiet)
@@ -45,7 +49,7 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     print(f"      {n_images} images in {time.perf_counter() - start:.1f} s -> {data_dir} "
           f"(truth: {data_dir / 'truth.json'})")
 
-    print("[2/4] lfgraph calibrate: detection, the paper's route, the joint factor graph")
+    print("[2/5] lfgraph calibrate: detection, the paper's route, the joint factor graph")
     start = time.perf_counter()
     capture = open_capture(data_dir, truth_calib.grid)
     obs, _ = detect_capture(capture, scene.checkerboard.board, jobs=jobs, progress=not quiet, cache=False)
@@ -60,7 +64,7 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     print(calibration_report_text(joint, report))
     print(f"      calibrated in {time.perf_counter() - start:.1f} s -> {out_json}")
 
-    print("[3/4] lfgraph evaluate: the joint calibration against the ground truth")
+    print("[3/5] lfgraph evaluate: the joint calibration against the ground truth")
     errors = evaluate_calibration(joint, truth_calib)
     print(evaluation_table(errors))
     p, j = evaluate_calibration(paper, truth_calib).summary(), errors.summary()
@@ -70,7 +74,7 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     print("RMS error against truth, paper route vs joint graph:")
     print(format_table(["parameter", "paper route", "joint (lfgraph)", "paper / joint"], rows))
 
-    print("[4/4] lfgraph rectify: common K_r and rotation, grid deviation, alignment before/after")
+    print("[4/5] lfgraph rectify: common K_r and rotation, grid deviation, alignment before/after")
     rect = compute_rectification(joint)
     print(rectification_text(joint, rect))
     maps = build_maps(joint, rect)
@@ -83,5 +87,41 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
         ("  off-grid parallax alone", report_pts.parallax), ("  rectified, parallax removed", report_pts.compensated),
         ("infinity, true cameras", infinity_alignment(joint, rect, seen_by=truth_calib))]))
     print(f"      rectified frame {capture.frame_names[0]} -> {out / 'rectified'}")
-    print("next step (coming issue): auto-refine from scene images")
+    if with_refinement:
+        run_refinement_demo(out, jobs, quiet)
     return 0
+
+
+REFINE_SCENE = "paper-5x5"
+REFINE_SHAKE = (1.0, 5.0)  # degrees about each optical axis, millimetres per axis: the paper's largest shake
+REFINE_FRAMES = 2
+
+
+def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
+    """Shake paper-5x5, render textured scenes with the shaken rig, refine from the original calibration."""
+    scene = get_scene(REFINE_SCENE)
+    original = make_rig(scene.rig, np.random.default_rng(DEMO_SEED))
+    rot, trans = REFINE_SHAKE
+    truth = shake_rig(original, ShakeConfig(rot_deg=rot, trans_mm=trans), np.random.default_rng([DEMO_SEED, 1]))
+    data_dir = out / f"{REFINE_SCENE}-shaken"
+    print(f"[5/5] lfgraph refine: {REFINE_SCENE} shaken by up to {rot:g} deg about each optical axis and {trans:g} mm; "
+          f"{REFINE_FRAMES} textured frames rendered with the shaken rig")
+    near, far = scene.scene_depth_m
+    start = time.perf_counter()
+    write_scene_dataset(data_dir, truth, SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4),
+                        frames=REFINE_FRAMES, seed=DEMO_SEED, jobs=jobs, progress=not quiet, original=original)
+    print(f"      rendered in {time.perf_counter() - start:.1f} s -> {data_dir}")
+    capture = open_capture(data_dir, original.grid)
+    refined, report = refine(original, (capture.load_frame(f) for f in range(len(capture))))
+    refined.save(out / "refined.json")
+    print(refinement_text(original, refined, report).split("changes per view")[0].rstrip())
+    rows = []
+    for name, calib in (("original calibration", original), ("refined (lfgraph default)", refined)):
+        e = evaluate_calibration(calib, truth)
+        te = transfer_error_at_infinity(calib, truth)
+        rows.append([name, f"{np.sqrt(np.mean(e.rotation_deg ** 2)):.4f}", f"{np.max(e.rotation_deg):.4f}",
+                     f"{np.sqrt(np.mean(te ** 2)):.3f}", f"{np.sqrt(np.mean(np.sum(e.position_mm ** 2, axis=1))):.3f}"])
+    print("errors against the shaken truth (RMS over views):")
+    print(format_table(["calibration", "rot_err_deg", "max_rot_err_deg", "transfer_at_infinity_px", "pos_err_mm"],
+                       rows))
+    print(f"      refined calibration -> {out / 'refined.json'}")

@@ -175,7 +175,8 @@ def refinement_text(before: Calibration, after: Calibration, report) -> str:  # 
     """Per-frame track counts, per-stage RMS and the per-view changes the refinement made."""
     lines = [f"{report.frames_used} frame(s) used ({report.stop_reason}); reprojection RMS of all kept tracks "
              f"{report.rms_before_px:.4f} px with the input calibration -> {report.rms_after_px:.4f} px refined "
-             f"({report.seconds:.1f} s)"]
+             f"({report.seconds:.1f} s: matching {report.seconds_matching:.1f} s, adjustment "
+             f"{report.seconds_adjustment:.1f} s); tracks cover {100 * report.coverage:.0f} % of the reference image"]
     keys = list(report.frame_counts[0]) if report.frame_counts else []
     lines.append("tracks after each filter, per frame:")
     lines.append(format_table(["frame", *keys, "rms_px"],
@@ -194,7 +195,9 @@ def refinement_text(before: Calibration, after: Calibration, report) -> str:  # 
         rows.append([after.grid.name(v) + (" *" if v == after.grid.reference else ""), f"{rot:.4f}",
                      f"{np.linalg.norm(pos):.3f}", f"{pos[0]:+.3f} {pos[1]:+.3f} {pos[2]:+.3f}",
                      f"{a.fx - b.fx:+.3f}", f"{a.fy - b.fy:+.3f}", f"{a.cx - b.cx:+.3f}", f"{a.cy - b.cy:+.3f}"])
-    lines.append("changes per view (refined minus input; * reference):")
+    lines.append("changes per view (refined minus input; * reference)"
+                 + ("" if report.accepted else " — none: the input calibration was kept") + ":")
     lines.append(format_table(["view", "rot_deg", "move_mm", "dx dy dz_mm", "d_fx_px", "d_fy_px", "d_cx_px",
                                "d_cy_px"], rows))
+    lines += [f"warning: {w}" for w in report.warnings]
     return "\n".join(lines)

@@ -133,8 +133,14 @@ def test_refine_without_shake_changes_nothing_measurable(tmp_path):
                  "--seed", "1"]) == 0
     truth = Calibration.load(out / "truth.json")
     capture = open_capture(out, truth.grid)
-    refined, _ = refine(truth, (capture.load_frame(f) for f in range(len(capture))))
-    e = evaluate_calibration(refined, truth)
+    frames = [capture.load_frame(f) for f in range(len(capture))]
+    refined, report = refine(truth, frames)
+    # the data do not support a change: the input is kept, and the report says so
+    assert not report.accepted and any("already fits" in w for w in report.warnings)
+    np.testing.assert_array_equal(refined.ref_T_view, truth.ref_T_view)
+    # what the refit alone would have done (always accepting) stays small too
+    forced, _ = refine(truth, frames, RefineSettings(min_improvement=1.0))
+    e = evaluate_calibration(forced, truth)
     assert np.max(e.rotation_deg) < NO_SHAKE_ROTATION_DEG
     assert np.max(np.linalg.norm(e.position_mm, axis=1)) < 0.5
 

@@ -53,6 +53,9 @@ OUTLIER_FACTOR = 4.0  # between stages: drop a track whose worst residual is > 4
 OUTLIER_FLOOR_PX = 0.5  # ... and > 0.5 px
 CLEAN_FACTOR = 3.0  # the clean stage: worst residual > 3x the median track's ...
 CLEAN_FLOOR_PX = 0.3  # ... and > 0.3 px (the prototype's threshold)
+COVERAGE_CELLS = 8
+COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells
+MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive tracking and the filters
 
 
 def parse_stages(spec: str | Iterable[str]) -> tuple[str, ...]:
@@ -91,6 +94,9 @@ class RefineSettings:
             simpler scheme, which pulls positions back and biases rotations by ~position error / depth).
         max_iterations: LM cap per stage.
         clean_robust: kernel of the ``clean`` stage's repeat (the prototype's ``cauchy:0.1`` measured worse here).
+        min_improvement: keep the input calibration unless the refined one lowers the RMS of the kept tracks by at
+            least this factor — with no real drift, a refit only chases the tracks' own small biases (1 = always
+            accept).
         match: feature tracking options.
     """
 
@@ -102,6 +108,7 @@ class RefineSettings:
     scale_sigma_mm: float | None = None
     max_iterations: int = 100
     clean_robust: str = "none"
+    min_improvement: float = 1.1
     match: MatchSettings = field(default_factory=MatchSettings)
 
     def __post_init__(self) -> None:
@@ -150,11 +157,17 @@ class RefinementReport:
     rms_before_px: float
     rms_after_px: float
     seconds: float
+    seconds_matching: float = 0.0
+    seconds_adjustment: float = 0.0
+    accepted: bool = True
+    coverage: float = 1.0
+    warnings: tuple[str, ...] = ()
 
     def metrics(self) -> dict:
         return {
             "refinement": {
-                "frames_used": self.frames_used, "stop_reason": self.stop_reason,
+                "frames_used": self.frames_used, "stop_reason": self.stop_reason, "accepted": self.accepted,
+                "coverage": self.coverage, "warnings": list(self.warnings),
                 "rms_before_px": self.rms_before_px, "rms_after_px": self.rms_after_px,
                 "frame_counts": list(self.frame_counts),
                 "stages": [{"name": s.name, "landmarks": s.landmarks, "rms_before_px": s.rms_before_px,
@@ -399,12 +412,15 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
     current = calib
     stop = "frames exhausted"
     used = 0
+    t_match = t_adjust = 0.0
     for f, images in enumerate(frames):
         if settings.max_frames is not None and f >= settings.max_frames:
             stop = f"max frames ({settings.max_frames})"
             break
+        t0 = time.perf_counter()
         tracks = track_chain(images, calib.grid, settings.match)
         kept, c = collect_tracks(current, tracks, settings.triangulation_filter)
+        t_match += time.perf_counter() - t0
         counts.append(c)
         pts = triangulate_dlt(current, kept.points_px, kept.valid)
         rms_now = _rms(reprojection_errors(current, pts, kept.points_px, kept.valid))
@@ -422,7 +438,9 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
         used += 1
         pixels = np.concatenate(pool_px, axis=1)
         valid = np.concatenate(pool_valid, axis=1)
+        t0 = time.perf_counter()
         current, frame_stages, kept_mask = refine_tracks(current, pixels, valid, settings, callback, say)
+        t_adjust += time.perf_counter() - t0
         stages = frame_stages  # the last pass over the whole pool is the result
     if used == 0:
         raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
@@ -431,7 +449,39 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
     valid = np.concatenate(pool_valid, axis=1)[:, kept_mask]
     before = _rms(reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid))
     after = _rms(reprojection_errors(current, triangulate_dlt(current, pixels, valid), pixels, valid))
+    warnings = []
+    coverage = track_coverage(calib, pixels, valid)
+    if coverage < COVERAGE_WARN:
+        warnings.append(f"tracks cover only {100 * coverage:.0f} % of the reference image ({COVERAGE_CELLS}x"
+                        f"{COVERAGE_CELLS} cells): rotations about the optical axis are weakly constrained; use "
+                        f"scenes with texture across the whole field of view")
+    detected = sum(c.get("detected", 0) for c in counts)
+    survived = sum(c.get("triangulation", 0) for c in counts)
+    if detected and survived / detected < MATCH_WARN:
+        warnings.append(f"only {survived} of {detected} features ({100 * survived / max(detected, 1):.0f} %) survived "
+                        f"tracking and the filters: matches are poor (repetitive or weak texture, occlusions)")
+    accepted = bool(after > 0 and before / after >= settings.min_improvement)
+    if not accepted:
+        warnings.append(f"the input calibration already fits ({before:.4f} px vs {after:.4f} px refined, less than "
+                        f"{settings.min_improvement:g}x better): kept unchanged")
+        current = calib
+    for w in warnings:
+        say(f"warning: {w}")
     report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(stages), used, stop, before, after,
-                              time.perf_counter() - t_start)
+                              time.perf_counter() - t_start, t_match, t_adjust, accepted, coverage, tuple(warnings))
     metrics = {**dict(current.metrics or {}), **report.metrics()}
     return current.replace(metrics=metrics, rectification=None), report
+
+
+def track_coverage(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, cells: int = 8) -> float:
+    """Share of an 8x8 grid of reference-image cells holding at least one kept track."""
+    ref = calib.grid.reference
+    w, h = calib.image_size_px
+    pts = pixels[ref][valid[ref]]
+    if not len(pts):
+        return 0.0
+    cx = np.clip((pts[:, 0] / w * cells).astype(int), 0, cells - 1)
+    cy = np.clip((pts[:, 1] / h * cells).astype(int), 0, cells - 1)
+    grid = np.zeros((cells, cells), dtype=bool)
+    grid[cy, cx] = True
+    return float(grid.mean())
