@@ -119,6 +119,8 @@ class CalibrationReport:
     optimization: OptimizationResult | None
     warnings: tuple[str, ...]
     seconds: dict[str, float] = field(default_factory=dict)
+    board_T_ref: np.ndarray | None = None  # (F, 4, 4) board poses used for the rig-consistent figures
+    residuals_px: np.ndarray | None = None  # (V, F, C, 2) observed minus reprojected, NaN where not observed
 
     def metrics(self) -> dict[str, Any]:
         """JSON-serialisable figures for ``calibration.json`` (None for what is not available)."""
@@ -570,6 +572,7 @@ def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper"
                                       _board_T_ref(paper.view_T_board, ref_T_view, obs.valid.sum(axis=2)))
         seconds["rig_fit"] = time.perf_counter() - t0
         res = rig_residuals(intrinsics, ref_T_view, board_T_ref, obs)
+        boards = board_T_ref
     else:
         if paper is not None:
             start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
@@ -583,6 +586,7 @@ def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper"
             f" -> {joint.optimization.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
         intrinsics, ref_T_view = joint.intrinsics, joint.ref_T_view  # noqa: N806
         res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
+        boards = joint.board_T_ref
     view_rms = np.asarray(_rms(res, axis=(1, 2)))
     frame_rms = np.asarray(_rms(res, axis=(0, 2)))
     rig_rms = float(_rms(res, axis=None))
@@ -601,7 +605,8 @@ def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper"
         coverage=cells.mean(axis=(1, 2)), coverage_cells=cells, frames_per_view=obs.seen.sum(axis=1),
         noise_sigma_px=None if joint is None else joint.noise_sigma_px,
         sigmas=None if joint is None else joint.sigmas,
-        optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds)
+        optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds,
+        board_T_ref=boards, residuals_px=res)
     calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, report.metrics())
     return calib, report
 

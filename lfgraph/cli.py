@@ -73,6 +73,20 @@ def _positive_float(text: str) -> float:
 LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs")
 
 
+def _check_rerun(args: argparse.Namespace) -> bool:
+    """Validate the rerun flags before any work; True when logging was asked for."""
+    from lfgraph.viz.rerun_log import check_save_path, wants_logging
+
+    if not wants_logging(args):
+        return False
+    if getattr(args, "save", None):
+        try:
+            check_save_path(args.save)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    return True
+
+
 def _jobs_default() -> int:
     return max(1, os.cpu_count() or 1)
 
@@ -196,6 +210,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise UsageError(f"-o {args.output} is a folder; give the calibration file's path")
     if not args.output.parent.exists():
         raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    logging = _check_rerun(args)
     start = time.perf_counter()
     capture = open_capture(args.input, grid, args.layout)
     print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
@@ -204,9 +219,25 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     seen = obs.seen
     print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} images "
           f"({time.perf_counter() - start:.1f} s)")
-    calib, report = calibrate(obs, method=args.method, init=args.init, settings=settings, focal_px=args.focal_px,
-                              pitch_m=None if args.pitch_mm is None else args.pitch_mm / 1000, log=print)
-    calib.save(args.output)
+    logger = None
+    if logging:
+        from lfgraph.viz.rerun_log import open_logger
+
+        logger = open_logger(args, grid)
+        logger.set_measurements(obs.num_observations)
+    try:
+        calib, report = calibrate(obs, method=args.method, init=args.init, settings=settings, focal_px=args.focal_px,
+                                  pitch_m=None if args.pitch_mm is None else args.pitch_mm / 1000, log=print,
+                                  callback=None if logger is None else logger.on_iteration)
+        calib.save(args.output)
+        if logger is not None:
+            logger.calibration_result(calib, obs, report, capture.load_frame(0))
+            logger.close()
+            print(f"rerun recording: {args.save or 'sent'}")
+    except BaseException:
+        if logger is not None:
+            logger.close(success=False)
+        raise
     print(calibration_report_text(calib, report))
     print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
     return EXIT_OK
@@ -260,9 +291,18 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    logging = _check_rerun(args)
     rect = compute_rectification(calib, args.crop)
     rectified = attach(calib, rect)
     print(rectification_text(calib, rect))
+    if logging:
+        from lfgraph.rectify import build_maps, remap_views
+        from lfgraph.viz.rerun_log import open_logger
+
+        logger = open_logger(args, calib.grid)
+        logger.rig(calib, capture.load_frame(0))
+        logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
+        logger.close()
     out_layout = "folders" if capture.layout == "pairs" else capture.layout
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -323,6 +363,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if not args.output.parent.exists():
         raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    logging = _check_rerun(args)
     calib = Calibration.load(args.calibration)
     if args.reference is not None:
         if not 0 <= args.reference < calib.num_views:
@@ -335,14 +376,37 @@ def cmd_refine(args: argparse.Namespace) -> int:
           f"triangulation filter {settings.triangulation_filter}, robust {settings.robust}")
     frames = (capture.load_frame(f) for f in range(n))
     bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
-    refined, report = refine(calib, bar, settings, log=None if args.quiet else bar.write)
-    refined.save(args.output)
+    logger = None
+    if logging:
+        from lfgraph.viz.rerun_log import open_logger
+
+        logger = open_logger(args, calib.grid)
+        logger.rig(calib, capture.load_frame(0))
+    try:
+        refined, report = refine(calib, bar, settings, log=None if args.quiet else bar.write,
+                                 callback=None if logger is None else logger.on_iteration,
+                                 events=None if logger is None else logger.refine_event)
+        refined.save(args.output)
+        if logger is not None:
+            logger.close()
+            print(f"rerun recording: {args.save or 'sent'}")
+    except BaseException:
+        if logger is not None:
+            logger.close(success=False)
+        raise
     print(refinement_text(calib, refined, report))
     print(f"wrote {args.output}")
     return EXIT_OK
 
 
 # --------------------------------------------------------------------------------------------- parser
+def _add_rerun_args(p: argparse.ArgumentParser) -> None:
+    group = p.add_argument_group("rerun visual debugging (nothing is logged without --save/--connect/--serve/--stdout)")
+    from lfgraph.viz.rerun_log import add_args
+
+    add_args(group)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lfgraph",
@@ -409,6 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--no-cache", action="store_true", help="re-detect even if INPUT/.lfgraph-detections.npz is valid")
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
+    _add_rerun_args(cal)
     cal.set_defaults(func=cmd_calibrate)
 
     ev = sub.add_parser("evaluate", help="compare a calibration with ground truth (e.g. a synthetic truth.json)")
@@ -426,6 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
     rc.add_argument("--jobs", type=_positive_int, default=_jobs_default())
     rc.add_argument("--quiet", action="store_true")
+    _add_rerun_args(rc)
     rc.set_defaults(func=cmd_rectify)
 
     ck = sub.add_parser("check", help="drift check: does the calibration still fit an ordinary capture? "
@@ -455,6 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
     rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
     rf.add_argument("--quiet", action="store_true")
+    _add_rerun_args(rf)
     rf.set_defaults(func=cmd_refine)
 
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")

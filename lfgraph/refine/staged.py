@@ -162,12 +162,14 @@ class RefinementReport:
     accepted: bool = True
     coverage: float = 1.0
     warnings: tuple[str, ...] = ()
+    total_iterations: int = 0  # LM iterations of every stage of every pass (the rerun ``iteration`` timeline)
 
     def metrics(self) -> dict:
         return {
             "refinement": {
                 "frames_used": self.frames_used, "stop_reason": self.stop_reason, "accepted": self.accepted,
                 "coverage": self.coverage, "warnings": list(self.warnings),
+                "total_iterations": self.total_iterations,
                 "rms_before_px": self.rms_before_px, "rms_after_px": self.rms_after_px,
                 "frame_counts": list(self.frame_counts),
                 "stages": [{"name": s.name, "landmarks": s.landmarks, "rms_before_px": s.rms_before_px,
@@ -338,11 +340,19 @@ def collect_tracks(calib: Calibration, tracks: Tracks, triangulation_filter: str
     return tracks.subset(keep), {**tracks.counts, "triangulation": int(keep.sum())}
 
 
+EventHook = Callable[[str, dict], None]  # (kind, data): "frame", "stage", "stage_done" — what lfgraph.viz subscribes to
+
+
 def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, settings: RefineSettings,
-                  callback: IterationCallback | None = None,
-                  log: Callable[[str], None] | None = None) -> tuple[Calibration, list[StageReport], np.ndarray]:
-    """Run the stage schedule over pooled tracks. Returns the calibration, stage reports and the kept-track mask."""
+                  callback: IterationCallback | None = None, log: Callable[[str], None] | None = None,
+                  events: EventHook | None = None) -> tuple[Calibration, list[StageReport], np.ndarray]:
+    """Run the stage schedule over pooled tracks. Returns the calibration, stage reports and the kept-track mask.
+
+    ``events`` receives ``("stage", {name, measurements})`` before and ``("stage_done", {name, calib, points,
+    pixels, valid, errors})`` after every stage.
+    """
     say = log or (lambda _m: None)
+    emit = events or (lambda _k, _d: None)
     keep = np.ones(valid.shape[1], dtype=bool)
     reports = []
     last_free = None
@@ -364,10 +374,13 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
             stage, spec = name, settings.robust
         rms_before = _rms(errors)
         before = calib
+        emit("stage", {"name": name, "measurements": int(ok.sum())})
         calib, points, iterations = run_stage(stage, calib, px, ok, points, spec, settings.scale_sigma_mm,
                                               settings.max_iterations, callback)
         errors = reprojection_errors(calib, points, px, ok)
         rms_after = _rms(errors)
+        emit("stage_done", {"name": name, "calib": calib, "points": points, "pixels": px, "valid": ok,
+                            "errors": errors})
         rot, pos, foc, pp = _changes(before, calib)
         reports.append(StageReport(name, int(ok.shape[1]), int(ok.sum()), rms_before, rms_after, iterations,
                                    time.perf_counter() - t0, rot, pos, foc, pp))
@@ -385,8 +398,8 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
 
 
 def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSettings | None = None,
-           callback: IterationCallback | None = None,
-           log: Callable[[str], None] | None = None) -> tuple[Calibration, RefinementReport]:
+           callback: IterationCallback | None = None, log: Callable[[str], None] | None = None,
+           events: EventHook | None = None) -> tuple[Calibration, RefinementReport]:
     """Refine a calibration from ordinary (textured) captures, frame after frame.
 
     Each frame's tracks (chain KLT + filters + the triangulation filter) join the pool; the schedule then runs over
@@ -413,10 +426,13 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
     stop = "frames exhausted"
     used = 0
     t_match = t_adjust = 0.0
+    total_iterations = 0
     for f, images in enumerate(frames):
         if settings.max_frames is not None and f >= settings.max_frames:
             stop = f"max frames ({settings.max_frames})"
             break
+        if events is not None:
+            events("frame", {"index": f, "images": images})
         t0 = time.perf_counter()
         tracks = track_chain(images, calib.grid, settings.match)
         kept, c = collect_tracks(current, tracks, settings.triangulation_filter)
@@ -439,8 +455,9 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
         pixels = np.concatenate(pool_px, axis=1)
         valid = np.concatenate(pool_valid, axis=1)
         t0 = time.perf_counter()
-        current, frame_stages, kept_mask = refine_tracks(current, pixels, valid, settings, callback, say)
+        current, frame_stages, kept_mask = refine_tracks(current, pixels, valid, settings, callback, say, events)
         t_adjust += time.perf_counter() - t0
+        total_iterations += sum(st.iterations for st in frame_stages)
         stages = frame_stages  # the last pass over the whole pool is the result
     if used == 0:
         raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
@@ -468,7 +485,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
     for w in warnings:
         say(f"warning: {w}")
     report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(stages), used, stop, before, after,
-                              time.perf_counter() - t_start, t_match, t_adjust, accepted, coverage, tuple(warnings))
+                              time.perf_counter() - t_start, t_match, t_adjust, accepted, coverage, tuple(warnings),
+                              total_iterations)
     metrics = {**dict(current.metrics or {}), **report.metrics()}
     return current.replace(metrics=metrics, rectification=None), report
 

@@ -1,0 +1,233 @@
+"""Rerun logging for visual debugging. The only module that imports rerun; the core offers hooks, this subscribes.
+
+Entity tree (a newcomer opening the ``.rrd`` gets the default blueprint: the rig in 3-D, the views in a grid, the
+optimiser's curves):
+
+- ``world/rig/view_rRR_cCC``: `Transform3D` (the view's pose in the reference frame) + `Pinhole` (K, image size),
+  with the view's image under ``.../image``;
+- ``world/boards/frame_FFF``: each board pose (`Transform3D`) with its corners (`Points3D`, board frame);
+- ``world/landmarks``: refinement landmarks (`Points3D`, coloured by mean reprojection error);
+- ``views/rRR_cCC``: 2-D space of a view: ``image``, ``observed`` and ``reprojected`` (`Points2D`), ``residuals``
+  (`Arrows2D` scaled by `RESIDUAL_ARROW_SCALE`, coloured by magnitude), ``outliers`` (`Points2D`, red);
+- ``optimizer/error`` and ``optimizer/rms_px`` (`Scalars` on the ``iteration`` timeline), ``optimizer/stages``
+  (`TextLog` at each stage's first iteration), ``rms/view_rRR_cCC`` (`Scalars`, per frame on the ``frame``
+  timeline during refinement);
+- ``rectified/rRR_cCC``: rectified views with horizontal guide lines (`LineStrips2D`) every `GUIDE_SPACING_PX`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from lfgraph.calibration import Calibration
+from lfgraph.grid import ViewGrid
+
+RESIDUAL_ARROW_SCALE = 50.0  # residual arrows are drawn this many times longer than they are (sub-pixel otherwise)
+RESIDUAL_COLOUR_MAX_PX = 1.0  # residual colour map saturates here
+GUIDE_SPACING_PX = 40
+OUTLIER_COLOUR = (255, 40, 40)
+APP_ID = "lfgraph"
+SINK_FLAGS = ("save", "connect", "serve", "stdout", "url")
+
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    """Rerun's standard script flags (``--save FILE.rrd``, ``--connect``, ``--serve``, ``--headless``, ...)."""
+    rr.script_add_args(parser)
+
+
+def wants_logging(args: argparse.Namespace) -> bool:
+    """True when a sink was asked for; without one nothing is logged and rerun is never initialised."""
+    return any(getattr(args, name, None) for name in SINK_FLAGS)
+
+
+def check_save_path(path: str | os.PathLike) -> None:
+    """Fail before any work when ``--save`` cannot be written (missing folder, not writable, a folder)."""
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"--save {p}: is a folder; give a file name such as {p / 'run.rrd'}")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"--save {p}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise ValueError(f"--save {p}: not writable")
+
+
+def _colour_by(values: np.ndarray, vmax: float) -> np.ndarray:
+    """(N,) values -> (N, 3) uint8 colours from green (0) through yellow to red (>= vmax)."""
+    t = np.clip(np.nan_to_num(values, nan=vmax) / vmax, 0.0, 1.0)
+    r = np.clip(2.0 * t, 0.0, 1.0)
+    g = np.clip(2.0 * (1.0 - t), 0.0, 1.0)
+    return (np.stack([r, g, np.zeros_like(t)], axis=1) * 255).astype(np.uint8)
+
+
+def default_blueprint(grid: ViewGrid) -> rrb.Blueprint:
+    """3-D view of the rig and landmarks, the 2-D views in the grid's layout, the optimiser's curves."""
+    views = [rrb.Spatial2DView(origin=f"views/{grid.name(v)}", name=grid.name(v)) for v in range(grid.num_views)]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(rrb.Spatial3DView(origin="world", name="rig, boards and landmarks"),
+                         rrb.TimeSeriesView(origin="optimizer", name="optimiser")),
+            rrb.Grid(*views, grid_columns=grid.cols, name="views"),
+            column_shares=[1, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+class RerunLogger:
+    """Logs lfgraph's data to one explicit `rr.RecordingStream` (never the global one)."""
+
+    def __init__(self, args: argparse.Namespace, grid: ViewGrid | None = None) -> None:
+        self.rec = rr.RecordingStream(APP_ID)
+        blueprint = None if grid is None else default_blueprint(grid)
+        self._final: Path | None = None
+        self._tmp: Path | None = None
+        if args.stdout:
+            self.rec.stdout(default_blueprint=blueprint)
+        elif args.serve:
+            self.rec.serve_grpc(default_blueprint=blueprint)
+        elif args.connect or args.url:
+            self.rec.connect_grpc(args.url, default_blueprint=blueprint)
+        elif args.save:
+            # written next to the target and renamed at the end: a failed run leaves no half-written .rrd
+            self._final = Path(args.save)
+            self._tmp = self._final.with_name(f".{self._final.name}.{os.getpid()}.tmp")
+            self.rec.save(str(self._tmp), default_blueprint=blueprint)
+        self.iteration = 0
+        self.rec.log("optimizer/error", rr.SeriesLines(names="graph error"), static=True)
+        self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px, from the error)"), static=True)
+        self._n_measurements = 0
+
+    # ------------------------------------------------------------------------------------------- optimiser
+    def set_measurements(self, n: int) -> None:
+        """Number of 2-D measurements of the graph being optimised (turns the error into an RMS in pixels)."""
+        self._n_measurements = int(n)
+
+    def on_iteration(self, _iteration: int, _before: float, after: float) -> None:
+        """`lfgraph.optimize` callback: one step on the ``iteration`` timeline per optimiser iteration."""
+        self.iteration += 1
+        self.rec.set_time("iteration", sequence=self.iteration)
+        self.rec.log("optimizer/error", rr.Scalars(after))
+        if self._n_measurements:
+            # graph error = 0.5 sum |r|^2 at 1 px sigma (priors are negligible): RMS per point = sqrt(2 e / N)
+            self.rec.log("optimizer/rms_px", rr.Scalars(float(np.sqrt(2.0 * after / self._n_measurements))))
+
+    def stage(self, name: str) -> None:
+        self.rec.set_time("iteration", sequence=self.iteration + 1)
+        self.rec.log("optimizer/stages", rr.TextLog(f"stage {name} starts", level="INFO"))
+
+    def frame(self, index: int) -> None:
+        self.rec.set_time("frame", sequence=index)
+
+    # ------------------------------------------------------------------------------------------- geometry
+    def rig(self, calib: Calibration, images: np.ndarray | None = None) -> None:
+        """Every view's pose, intrinsics and (optionally) an image, static."""
+        w, h = calib.image_size_px
+        for v in range(calib.num_views):
+            path = f"world/rig/view_{calib.grid.name(v)}"
+            pose = calib.ref_T_view[v]
+            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
+            self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
+                                          image_plane_distance=0.02), static=True)
+            if images is not None:
+                self.rec.log(f"{path}/image", rr.Image(images[v]), static=True)
+                self.rec.log(f"views/{calib.grid.name(v)}/image", rr.Image(images[v]), static=True)
+
+    def boards(self, ref_T_board: np.ndarray, object_points_m: np.ndarray) -> None:  # noqa: N803
+        for f, pose in enumerate(ref_T_board):
+            if not np.all(np.isfinite(pose)):
+                continue
+            path = f"world/boards/frame_{f:03d}"
+            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
+            self.rec.log(f"{path}/corners", rr.Points3D(object_points_m, radii=0.0008), static=True)
+
+    def landmarks(self, points_ref: np.ndarray, mean_error_px: np.ndarray) -> None:
+        ok = np.all(np.isfinite(points_ref), axis=1)
+        self.rec.log("world/landmarks", rr.Points3D(points_ref[ok], colors=_colour_by(mean_error_px[ok],
+                                                                                       RESIDUAL_COLOUR_MAX_PX),
+                                                    radii=0.01))
+
+    def observations(self, calib: Calibration, observed: np.ndarray, projected: np.ndarray, valid: np.ndarray,
+                     outliers: np.ndarray | None = None) -> None:
+        """Per view: observed and reprojected points and residual arrows. Arrays (V, N, 2) / (V, N)."""
+        for v in range(calib.num_views):
+            base = f"views/{calib.grid.name(v)}"
+            m = valid[v] & np.all(np.isfinite(observed[v]), axis=-1) & np.all(np.isfinite(projected[v]), axis=-1)
+            obs, proj = observed[v][m], projected[v][m]
+            res = obs - proj
+            mag = np.linalg.norm(res, axis=1)
+            self.rec.log(f"{base}/observed", rr.Points2D(obs, radii=1.0, colors=(80, 160, 255)))
+            self.rec.log(f"{base}/reprojected", rr.Points2D(proj, radii=0.8, colors=(255, 255, 255)))
+            self.rec.log(f"{base}/residuals", rr.Arrows2D(origins=proj, vectors=res * RESIDUAL_ARROW_SCALE,
+                                                          colors=_colour_by(mag, RESIDUAL_COLOUR_MAX_PX)))
+            if outliers is not None:
+                o = outliers[v] & np.all(np.isfinite(observed[v]), axis=-1)
+                self.rec.log(f"{base}/outliers", rr.Points2D(observed[v][o], radii=2.0, colors=OUTLIER_COLOUR))
+            rms = float(np.sqrt(np.mean(mag**2))) if mag.size else float("nan")
+            self.rec.log(f"rms/view_{calib.grid.name(v)}", rr.Scalars(rms))
+
+    def calibration_result(self, calib: Calibration, obs, report, images: np.ndarray | None = None) -> None:
+        """After `lfgraph.calibrate.calibrate`: rig, board poses, per-view corners, reprojections and residuals."""
+        from lfgraph.geometry import invert_T
+
+        self.rig(calib, images)
+        if report.board_T_ref is not None:
+            ref_T_board = np.stack([invert_T(T) if np.all(np.isfinite(T)) else np.full((4, 4), np.nan)  # noqa: N806
+                                    for T in report.board_T_ref])
+            self.boards(ref_T_board, obs.board.object_points())
+        if report.residuals_px is not None:
+            n = calib.num_views
+            observed = obs.corners_px.reshape(n, -1, 2)
+            projected = (obs.corners_px - report.residuals_px).reshape(n, -1, 2)
+            self.observations(calib, observed, projected, obs.valid.reshape(n, -1))
+
+    def refine_event(self, kind: str, data: dict) -> None:
+        """`lfgraph.refine.staged` event hook."""
+        from lfgraph.camera import project_world
+
+        if kind == "frame":
+            self.frame(data["index"])
+        elif kind == "stage":
+            self.stage(data["name"])
+            self.set_measurements(data["measurements"])
+        elif kind == "stage_done":
+            calib, points, pixels, valid = data["calib"], data["points"], data["pixels"], data["valid"]
+            errors = data["errors"]
+            with np.errstate(invalid="ignore"):
+                mean_err = np.nanmean(np.where(valid, errors, np.nan), axis=0)
+            self.landmarks(points, mean_err)
+            projected = np.stack([project_world(calib.intrinsics[v], calib.view_T_ref(v), points)
+                                  for v in range(calib.num_views)])
+            self.observations(calib, pixels, projected, valid)
+
+    def rectified(self, calib: Calibration, images: np.ndarray) -> None:
+        h, w = images.shape[1:3]
+        ys = np.arange(GUIDE_SPACING_PX, h, GUIDE_SPACING_PX, dtype=np.float32)
+        lines = [np.array([[0, y], [w - 1, y]], dtype=np.float32) for y in ys]
+        for v in range(calib.num_views):
+            base = f"rectified/{calib.grid.name(v)}"
+            self.rec.log(f"{base}/image", rr.Image(images[v]), static=True)
+            self.rec.log(f"{base}/guides", rr.LineStrips2D(lines, colors=(0, 255, 255), radii=0.5), static=True)
+
+    def close(self, success: bool = True) -> None:
+        """Flush and finish; with ``--save`` the file appears only now, and only when ``success``."""
+        self.rec.flush(timeout_sec=60.0)
+        self.rec.disconnect()
+        if self._tmp is not None:
+            if success:
+                os.replace(self._tmp, self._final)
+            else:
+                self._tmp.unlink(missing_ok=True)
+
+
+def open_logger(args: argparse.Namespace, grid: ViewGrid | None = None) -> RerunLogger | None:
+    """A logger when ``args`` ask for a sink, else None (and rerun stays uninitialised)."""
+    if not wants_logging(args):
+        return None
+    return RerunLogger(args, grid)
