@@ -399,6 +399,39 @@ def cmd_refine(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------------------- depth error
+def cmd_depth_error(args: argparse.Namespace) -> int:
+    import json
+
+    from lfgraph.depth import depth_error_m
+    from lfgraph.report import format_table
+
+    near, far = args.range_m
+    if not 0 < near <= far:
+        raise UsageError(f"--range-m needs 0 < NEAR <= FAR, got {near} {far}")
+    depths = np.linspace(near, far, args.steps)
+    errors = depth_error_m(args.focal_px, args.baseline_m, args.error_px, depths)
+    if args.json:
+        print(json.dumps({"focal_px": args.focal_px, "baseline_m": args.baseline_m, "error_px": args.error_px,
+                          "depth_m": depths.tolist(),
+                          "depth_error_m": [None if not np.isfinite(e) else float(e) for e in errors]}))
+    else:
+        print(f"depth error for f = {args.focal_px:g} px, b = {args.baseline_m:g} m, reprojection error "
+              f"{args.error_px:g} px (half the spread of the depths at disparity d - E and d + E):")
+        print(format_table(["depth_m", "disparity_px", "depth_error_m", "relative_%"],
+                           [[f"{z:.3f}", f"{args.focal_px * args.baseline_m / z:.3f}", f"{e:.4f}",
+                             f"{100 * e / z:.2f}"] for z, e in zip(depths, errors, strict=True)]))
+    if args.plot is not None:
+        from lfgraph.plot import line_plot
+
+        line_plot(args.plot, [(f"E = {args.error_px:g} px", depths, errors)],
+                  f"depth error, f = {args.focal_px:g} px, b = {args.baseline_m:g} m", "depth (m)",
+                  "depth error (m)")
+        if not args.json:
+            print(f"plot: {args.plot}")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------------------- parser
 def _add_rerun_args(p: argparse.ArgumentParser) -> None:
     group = p.add_argument_group("rerun visual debugging (nothing is logged without --save/--connect/--serve/--stdout)")
@@ -523,6 +556,17 @@ def build_parser() -> argparse.ArgumentParser:
     rf.add_argument("--quiet", action="store_true")
     _add_rerun_args(rf)
     rf.set_defaults(func=cmd_refine)
+
+    de = sub.add_parser("depth-error", help="the depth error a reprojection error causes (paper Section 5.1)")
+    de.add_argument("--focal-px", type=_positive_float, required=True, help="focal length in pixels")
+    de.add_argument("--baseline-m", type=_positive_float, required=True, help="baseline in metres")
+    de.add_argument("--error-px", type=_non_negative, required=True, help="reprojection (disparity) error, px")
+    de.add_argument("--range-m", type=_positive_float, nargs=2, metavar=("NEAR", "FAR"), default=(0.5, 2.0),
+                    help="depth range in metres (default 0.5 2.0)")
+    de.add_argument("--steps", type=_positive_int, default=7, help="depths in the table (default 7)")
+    de.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    de.add_argument("--plot", type=Path, help="write a PNG plot of depth error against depth")
+    de.set_defaults(func=cmd_depth_error)
 
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")
