@@ -20,11 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from lfgraph.calibrate import (
-    MONO_FLAGS,
     JointSettings,
     _board_T_ref,
     calibrate_joint,
@@ -32,12 +30,11 @@ from lfgraph.calibrate import (
     evaluate_calibration,
 )
 from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
-from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.peers import calibrate_multiview
 from lfgraph.report import format_table
 
 SEEDS = 20
@@ -54,33 +51,10 @@ TARGET_LOGGING_RATIO = 1.15  # issue 6: logging costs < 15 % of calibrate's run 
 
 
 def multiview(obs):
-    """cv2.calibrateMultiview (OpenCV 5) on the same corners; returns (intrinsics, ref_T_view, seconds)."""
-    n_views, n_frames = obs.num_views, obs.num_frames
-    mask = obs.seen.astype(np.uint8)
-    obj = [obs.board.object_points().astype(np.float32)] * n_frames
-    img = []
-    for v in range(n_views):
-        per = []
-        for f in range(n_frames):
-            pts = obs.corners_px[v, f].astype(np.float32) if mask[v, f] else \
-                np.full((obs.board.num_corners, 2), -1, np.float32)
-            per.append(pts)
-        img.append(per)
-    sizes = [obs.image_size_px] * n_views
-    models = np.full((n_views, 1), cv2.CALIB_MODEL_PINHOLE, np.uint8)
-    flags = np.full((n_views, 1), MONO_FLAGS, np.int32)
+    """cv2.calibrateMultiview on the same corners: (intrinsics, ref_T_view, seconds)."""
     t0 = time.perf_counter()
-    out = cv2.calibrateMultiview(obj, img, sizes, mask, models, None, None, None, None, flagsForIntrinsics=flags)
-    seconds = time.perf_counter() - t0
-    _, Ks, dists, Rs, Ts = out[:5]  # noqa: N806
-    intr = tuple(Intrinsics.from_opencv(K, np.concatenate([np.ravel(d)[:4], [0.0]]))
-                 for K, d in zip(Ks, dists, strict=True))
-    view_T_ref = [make_T(rotation_from_rotvec(np.ravel(R)) if np.size(R) == 3 else np.asarray(R), np.ravel(T))  # noqa: N806
-                  for R, T in zip(Rs, Ts, strict=True)]
-    ref = obs.grid.reference
-    poses = np.stack([invert_T(T) for T in view_T_ref])
-    poses = invert_T(poses[ref])[None] @ poses  # relative to our reference view
-    return intr, poses, seconds
+    intr, poses = calibrate_multiview(obs)
+    return intr, poses, time.perf_counter() - t0
 
 
 def errors(intr, poses, truth_calib):

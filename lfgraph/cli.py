@@ -432,6 +432,137 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------------------- studies
+def _floats(text: str) -> list[float]:
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not values or any(not np.isfinite(v) or v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers >= 0, got {text!r}")
+    return values
+
+
+def _ints(text: str) -> list[int]:
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated whole numbers, got {text!r}") from None
+    if not values or any(v < 1 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers >= 1, got {text!r}")
+    return values
+
+
+def _study_common(args: argparse.Namespace) -> None:
+    from lfgraph.executor import parse_executor
+
+    try:
+        parse_executor(args.executor)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if not args.output.parent.exists():
+        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+
+
+def cmd_study_shake(args: argparse.Namespace) -> int:
+    from lfgraph.datasets.scenes import get_scene
+    from lfgraph.factors.noise import parse_robust
+    from lfgraph.refine.staged import parse_stages
+    from lfgraph.study import (
+        SHAKE_COLUMNS,
+        make_shake_trials,
+        run_shake_trial,
+        run_study,
+        shake_plots,
+        shake_row_key,
+        shake_trial_rows,
+    )
+
+    _study_common(args)
+    try:
+        get_scene(args.scene)
+        stages = [s.strip() for s in args.stages.split(",")]
+        for name in stages:
+            parse_stages(name)
+        robust = [r.strip() for r in args.robust.split(",")]
+        for r in robust:
+            parse_robust(r)
+        trials = make_shake_trials(args.scene, args.rot_deg, args.trans_mm, args.trials, args.frames, stages,
+                                   robust, args.seed)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    logging = _check_rerun(args)
+    logger = None
+    if logging:
+        from lfgraph.viz.rerun_log import open_logger
+
+        logger = open_logger(args)
+    print(f"shake study on {args.scene}: {len(trials)} trials ({len(trials) // args.trials} levels x {args.trials} "
+          f"seeds), {len(stages) * len(robust)} configurations each, executor {args.executor}")
+    rows = run_study(trials, run_shake_trial, args.output, SHAKE_COLUMNS, shake_trial_rows, shake_row_key,
+                     args.executor, args.jobs, progress=not args.quiet,
+                     on_rows=None if logger is None else logger.study_rows)
+    if logger is not None:
+        logger.close()
+    plots = shake_plots(rows, args.output)
+    print(_shake_summary(rows))
+    print(f"wrote {args.output} and {', '.join(str(p) for p in plots)}")
+    return EXIT_OK
+
+
+def _shake_summary(rows) -> str:
+    from lfgraph.report import format_table
+    from lfgraph.study import summarise
+
+    metrics = ["transfer_before_px", "transfer_px", "rot_err_deg", "rms_after_px"]
+    summary = summarise(rows, ("stages", "robust"), "rot_deg", metrics)
+    table = []
+    for (stages, robust), d in sorted(summary.items()):
+        for i, x in enumerate(d["rot_deg"]):
+            table.append([stages, robust, f"{x:g}", *(f"{d[m][i]:.4f}" for m in metrics)])
+    return "mean over seeds:\n" + format_table(["stages", "robust", "rot_shake_deg", "transfer_before_px",
+                                                 "transfer_after_px", "rot_err_deg", "rms_after_px"], table)
+
+
+def cmd_study_calibration(args: argparse.Namespace) -> int:
+    from lfgraph.datasets.scenes import get_scene
+    from lfgraph.report import format_table
+    from lfgraph.study import (
+        CALIBRATION_COLUMNS,
+        CalibrationTrial,
+        calibration_plots,
+        calibration_row_key,
+        calibration_trial_rows,
+        run_calibration_trial,
+        run_study,
+        summarise,
+    )
+
+    _study_common(args)
+    try:
+        named = get_scene(args.scene)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if max(args.frames) > named.checkerboard.frames:
+        raise UsageError(f"--frames up to {named.checkerboard.frames} for {args.scene}, got {max(args.frames)}")
+    trials = [CalibrationTrial(args.scene, f, s, args.seed + i) for f in args.frames for s in args.sigma_px
+              for i in range(args.trials)]
+    print(f"calibration study on {args.scene}: {len(trials)} trials, executor {args.executor}")
+    rows = run_study(trials, run_calibration_trial, args.output, CALIBRATION_COLUMNS, calibration_trial_rows,
+                     calibration_row_key, args.executor, args.jobs, progress=not args.quiet)
+    plots = calibration_plots(rows, args.output)
+    metrics = ["fx_err_px", "pos_err_mm", "rot_err_deg"]
+    sq = [{**r, **{m: float(r[m]) ** 2 for m in metrics}} for r in rows]
+    table = []
+    for (method, sigma), d in sorted(summarise(sq, ("method", "sigma_px"), "frames", metrics).items()):
+        for i, f in enumerate(d["frames"]):
+            table.append([method, sigma, int(f), *(f"{np.sqrt(d[m][i]):.4g}" for m in metrics)])
+    print("RMS over seeds:")
+    print(format_table(["method", "sigma_px", "frames", "fx_err_px", "pos_err_mm", "rot_err_deg"], table))
+    print(f"wrote {args.output} and {len(plots)} plots ({plots[0].parent if plots else ''})")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------------------- parser
 def _add_rerun_args(p: argparse.ArgumentParser) -> None:
     group = p.add_argument_group("rerun visual debugging (nothing is logged without --save/--connect/--serve/--stdout)")
@@ -567,6 +698,42 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--json", action="store_true", help="print JSON instead of a table")
     de.add_argument("--plot", type=Path, help="write a PNG plot of depth error against depth")
     de.set_defaults(func=cmd_depth_error)
+
+    st = sub.add_parser("study", help="studies: the paper's shake experiment, calibration accuracy vs frames")
+    st_sub = st.add_subparsers(dest="study_command", required=True)
+
+    def common_study(p: argparse.ArgumentParser, default_scene: str, default_out: str) -> None:
+        p.add_argument("--scene", default=default_scene, help=f"named scene (default {default_scene})")
+        p.add_argument("--trials", type=_positive_int, default=3, help="seeded trials per level (default 3)")
+        p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+        p.add_argument("--executor", default="local",
+                       help="local (process pool, default), dask-local (a LocalCluster) or dask://HOST:PORT")
+        p.add_argument("--jobs", type=_positive_int, default=_jobs_default(), help="processes / Dask workers")
+        p.add_argument("-o", "--output", type=Path, default=Path(default_out),
+                       help=f"tidy CSV (default {default_out}); a re-run skips trials already in it")
+        p.add_argument("--quiet", action="store_true")
+
+    ss = st_sub.add_parser("shake", help="refine shaken rigs (the paper's Fig. avg_synth)")
+    common_study(ss, "paper-5x5", "shake_study.csv")
+    ss.add_argument("--rot-deg", type=_floats, default=[0.0, 0.25, 0.5, 1.0],
+                    help="rotation shake levels about each optical axis, deg (default 0,0.25,0.5,1)")
+    ss.add_argument("--trans-mm", type=_floats, default=[0.0, 1.0, 2.0, 5.0],
+                    help="translation shake levels paired with --rot-deg, mm per axis (default 0,1,2,5)")
+    ss.add_argument("--frames", type=_positive_int, default=1, help="scene frames per trial (default 1)")
+    ss.add_argument("--stages", default="paper,default", help="schedules to compare (default paper,default)")
+    ss.add_argument("--robust", default="none", help="robust kernels to compare, e.g. none,huber:1.345,cauchy:1.0")
+    _add_rerun_args(ss)
+    ss.set_defaults(func=cmd_study_shake)
+
+    sc2 = st_sub.add_parser("calibration", help="calibration accuracy vs frames and corner noise, three methods")
+    common_study(sc2, "paper-4x4", "calibration_study.csv")
+    sc2.add_argument("--frames", type=_ints, default=[5, 10, 20, 30, 40], help="frame counts (default 5,...,40)")
+    sc2.add_argument("--sigma-px", type=_floats, default=[0.1, 0.3], help="corner noise levels (default 0.1,0.3)")
+    sc2.set_defaults(func=cmd_study_calibration)
+
+    from lfgraph.interop_cli import add_parsers as add_interop_parsers
+
+    add_interop_parsers(sub, _positive_int)
 
     demo = sub.add_parser("demo", help="run the main job on the embedded synthetic default (paper-4x4)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")

@@ -102,7 +102,7 @@ COLMAP_CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
 }
 
-GridLike = ViewGrid | tuple[int, int] | Sequence[int] | None
+GridLike = ViewGrid | Sequence[int] | None
 PathLike = str | os.PathLike
 
 
@@ -199,17 +199,18 @@ def _whole(value: Any, path: PathLike, key: str, minimum: int = 1) -> int:
 
 
 def _array(values: Any, shape: tuple[int, ...], path: PathLike, key: str) -> np.ndarray:
-    """A finite float64 array of ``shape`` from nested lists or an array; raises naming the key."""
+    """A finite float64 array of ``shape`` from nested lists or an array; raises naming the key.
+
+    A vector may arrive as a row or a column (``1xN``, ``Nx1``): dimensions of length 1 are not compared.
+    """
+    want = "x".join(map(str, shape))
     try:
         arr = np.array(values, dtype=object)
     except ValueError:
-        raise _fail(path, key, f"must be a {'x'.join(map(str, shape))} array of numbers") from None
-    if arr.size != math.prod(shape) or arr.ndim != len(shape) and not (arr.ndim == 2 and 1 in arr.shape):
-        raise _fail(path, key, f"must have shape {'x'.join(map(str, shape))}, got {'x'.join(map(str, arr.shape))}")
-    if arr.shape != shape and arr.ndim != len(shape):  # a row or column vector stored as 1xN or Nx1
-        arr = arr.reshape(shape)
-    if arr.shape != shape:
-        raise _fail(path, key, f"must have shape {'x'.join(map(str, shape))}, got {'x'.join(map(str, arr.shape))}")
+        raise _fail(path, key, f"must be a {want} array of numbers") from None
+    squeeze = tuple(d for d in arr.shape if d != 1)
+    if arr.size != math.prod(shape) or squeeze != tuple(d for d in shape if d != 1):
+        raise _fail(path, key, f"must have shape {want}, got {'x'.join(map(str, arr.shape)) or 'a scalar'}")
     return np.array([_finite(v, path, key) for v in arr.ravel()]).reshape(shape)
 
 
@@ -311,6 +312,8 @@ def _write_opencv_yaml(calib: Calibration, path: Path) -> None:
         if "K_r" not in rect or not isinstance(views, Sequence) or len(views) != calib.num_views:
             raise ValueError(f"calibration's rectification must hold K_r and {calib.num_views} views to be exported")
         for i, view in enumerate(views):
+            if not isinstance(view, Mapping) or "R_rect_from_view" not in view or "P" not in view:
+                raise ValueError(f"rectification.views[{i}] must hold R_rect_from_view and P to be exported")
             R = np.asarray(view["R_rect_from_view"], dtype=np.float64)  # noqa: N806
             P = np.asarray(view["P"], dtype=np.float64)  # noqa: N806
             if R.shape != (3, 3) or P.shape != (3, 4):
@@ -369,7 +372,7 @@ def _read_opencv_yaml(path: Path, grid: GridLike) -> Calibration:
                 raise _fail(path, key, "must be a number")
             return _whole(n.real(), path, key, minimum)
 
-        def matrix(key: str, shape: tuple[int, ...]) -> np.ndarray:
+        def matrix(key: str, shape: tuple[int, ...] | None) -> np.ndarray:
             n = node(key)
             try:
                 m = n.mat() if n.isMap() else None
@@ -377,7 +380,8 @@ def _read_opencv_yaml(path: Path, grid: GridLike) -> Calibration:
                 m = None
             if m is None:
                 raise _fail(path, key, "must be an !!opencv-matrix")
-            return _array(np.asarray(m, dtype=np.float64), shape, path, key)
+            m = np.asarray(m, dtype=np.float64)
+            return _array(m, shape or (m.size,), path, key)
 
         rows, cols = integer("grid_rows", 1), integer("grid_cols", 1)
         reference = integer("reference", 0)
@@ -393,8 +397,8 @@ def _read_opencv_yaml(path: Path, grid: GridLike) -> Calibration:
         intrinsics, poses = [], []
         for i in range(num_views):
             K = matrix(f"K_{i}", (3, 3))  # noqa: N806
-            d = matrix(f"D_{i}", (1, int(node(f"D_{i}").mat().size)))
-            intrinsics.append(_intrinsics(path, f"D_{i}" if d.size < 4 else f"K_{i}", K, d.ravel()))
+            dist = matrix(f"D_{i}", None)  # 4, 5 or more coefficients; those past p2 must be 0
+            intrinsics.append(_intrinsics(path, f"K_{i}, D_{i}", K, dist))
             R = _rotation(matrix(f"R_{i}", (3, 3)), path, f"R_{i}")  # noqa: N806
             view_T_ref = make_T(R, matrix(f"T_{i}", (3, 1)).ravel())  # noqa: N806
             if i == reference:
@@ -558,7 +562,7 @@ def _parse_simple_yaml(text: str, path: PathLike) -> dict[str, Any]:
 
 def _read_kalibr(path: Path, grid: GridLike) -> Calibration:
     data = _parse_simple_yaml(_read_text(path), path)
-    cams = sorted((int(k[3:]) for k in data if re.fullmatch(r"cam\d+", k)))
+    cams = sorted(int(k[3:]) for k in data if re.fullmatch(r"cam\d+", k))
     if not cams:
         raise _fail(path, "cam0", "is missing (no camN entries)")
     n = len(cams)

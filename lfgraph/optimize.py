@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import gtsam
@@ -41,6 +44,27 @@ class OptimizationResult:
     error_history: tuple[float, ...]
 
 
+@contextmanager
+def _native_stdout_muted() -> Iterator[None]:
+    """Silence what GTSAM's C++ prints to standard output (e.g. "CheiralityException: Landmark l3 behind Camera x1"
+    for every point that a bad step puts behind a camera — the factor already handles it). Python output inside
+    the block (iteration callbacks) is muted too, so callbacks must not print."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # captured or replaced stdout: nothing native reaches it
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+            yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
 def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings: OptimizerSettings | None = None,
              callback: IterationCallback | None = None) -> OptimizationResult:
     """Run Levenberg–Marquardt on ``graph`` from ``initial``.
@@ -75,7 +99,8 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
     try:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
         initial_error = graph.error(initial)
-        values = optimizer.optimize()
+        with _native_stdout_muted():
+            values = optimizer.optimize()
     except RuntimeError as exc:
         raise RuntimeError(f"optimisation failed: {exc}") from exc
     seconds = time.perf_counter() - start

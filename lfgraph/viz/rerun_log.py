@@ -206,6 +206,17 @@ class RerunLogger:
                                   for v in range(calib.num_views)])
             self.observations(calib, pixels, projected, valid)
 
+    def study_rows(self, rows: list[dict]) -> None:
+        """Study results as scalars: ``study/<stages>_<robust>/<metric>`` on the ``level`` timeline."""
+        for r in rows:
+            name = f"{r['stages']}_{r['robust']}".replace(":", "_").replace(",", "_")
+            self.rec.set_time("level", sequence=int(r["level"]))
+            self.rec.set_time("seed", sequence=int(r["seed"]))
+            for metric in ("transfer_px", "rot_err_deg", "rms_after_px"):
+                value = float(r[metric])
+                if np.isfinite(value):
+                    self.rec.log(f"study/{name}/{metric}", rr.Scalars(value))
+
     def rectified(self, calib: Calibration, images: np.ndarray) -> None:
         h, w = images.shape[1:3]
         ys = np.arange(GUIDE_SPACING_PX, h, GUIDE_SPACING_PX, dtype=np.float32)
