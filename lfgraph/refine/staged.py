@@ -94,6 +94,9 @@ class RefineSettings:
             simpler scheme, which pulls positions back and biases rotations by ~position error / depth).
         max_iterations: LM cap per stage.
         clean_robust: kernel of the ``clean`` stage's repeat (the prototype's ``cauchy:0.1`` measured worse here).
+        max_landmarks: cap of the pooled tracks (a seeded random subset is kept when frames bring more): memory and
+            time of the adjustment grow with them (~200 MB and ~0.5 s per 1000 landmarks of a 5x5 rig) while the
+            accuracy has stopped improving well before (measured in `benchmarks/refine.py`). None: no cap.
         min_improvement: keep the input calibration unless the refined one lowers the RMS of the kept tracks by at
             least this factor — with no real drift, a refit only chases the tracks' own small biases (1 = always
             accept).
@@ -109,6 +112,7 @@ class RefineSettings:
     max_iterations: int = 100
     clean_robust: str = "none"
     min_improvement: float = 1.1
+    max_landmarks: int | None = 2000
     match: MatchSettings = field(default_factory=MatchSettings)
 
     def __post_init__(self) -> None:
@@ -123,6 +127,8 @@ class RefineSettings:
                              f"got {self.triangulation_filter!r}")
         if self.max_frames is not None and self.max_frames < 1:
             raise ValueError(f"max_frames must be >= 1, got {self.max_frames}")
+        if self.max_landmarks is not None and self.max_landmarks < 10:
+            raise ValueError(f"max_landmarks must be >= 10, got {self.max_landmarks}")
         if self.scale_sigma_mm is not None and self.scale_sigma_mm <= 0:
             raise ValueError(f"scale_sigma_mm must be positive, got {self.scale_sigma_mm}")
 
@@ -454,6 +460,10 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], settings: RefineSet
         used += 1
         pixels = np.concatenate(pool_px, axis=1)
         valid = np.concatenate(pool_valid, axis=1)
+        if settings.max_landmarks is not None and pixels.shape[1] > settings.max_landmarks:
+            pick = np.sort(np.random.default_rng(used).choice(pixels.shape[1], settings.max_landmarks, replace=False))
+            pixels, valid = pixels[:, pick], valid[:, pick]
+            pool_px, pool_valid = [pixels], [valid]
         t0 = time.perf_counter()
         current, frame_stages, kept_mask = refine_tracks(current, pixels, valid, settings, callback, say, events)
         t_adjust += time.perf_counter() - t0
