@@ -97,6 +97,8 @@ class RefineSettings:
         max_landmarks: cap of the pooled tracks (a seeded random subset is kept when frames bring more): memory and
             time of the adjustment grow with them (~200 MB and ~0.5 s per 1000 landmarks of a 5x5 rig) while the
             accuracy has stopped improving well before (measured in `benchmarks/refine.py`). None: no cap.
+        min_view_observations: a view with fewer kept observations is held where it is (its pose alone is too
+            weakly determined: on the Middlebury ring, views with 3-9 observations drifted by 10-35 degrees).
         min_improvement: keep the input calibration unless the refined one lowers the RMS of the kept tracks by at
             least this factor — with no real drift, a refit only chases the tracks' own small biases (1 = always
             accept).
@@ -113,6 +115,7 @@ class RefineSettings:
     clean_robust: str = "none"
     min_improvement: float = 1.1
     max_landmarks: int | None = 2000
+    min_view_observations: int = 30
     match: MatchSettings = field(default_factory=MatchSettings)
 
     def __post_init__(self) -> None:
@@ -241,11 +244,13 @@ def _changes(before: Calibration, after: Calibration) -> tuple[np.ndarray, ...]:
 # --------------------------------------------------------------------------------------------- one stage
 def run_stage(name: str, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
               robust_spec: str, scale_sigma_mm: float | None, max_iterations: int,
-              callback: IterationCallback | None = None) -> tuple[Calibration, np.ndarray, int]:
+              callback: IterationCallback | None = None,
+              held_views: frozenset[int] = frozenset()) -> tuple[Calibration, np.ndarray, int]:
     """Run one free-variable stage (``points``, ``intrinsics``, ``poses`` or ``all``) as a GTSAM graph.
 
     Args:
         pixels: (V, N, 2) observations; valid: (V, N); points: (N, 3) initial landmarks (reference frame).
+        held_views: views whose pose and intrinsics stay where they are (too few observations to refine them).
 
     Returns:
         the updated calibration, (N, 3) landmarks, LM iterations.
@@ -272,16 +277,18 @@ def run_stage(name: str, calib: Calibration, pixels: np.ndarray, valid: np.ndarr
             if v == calib.grid.reference:
                 graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(calib.ref_T_view[v]),
                                                  gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))  # the gauge
-            elif poses_free:
+            elif poses_free and v not in held_views:
                 if scale_sigma_mm is not None:  # optional weak priors on every position (they bias rotations)
                     graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(calib.ref_T_view[v]),
                                                      pose_noise(1.0, scale_sigma_mm * 1e-3)))
             else:
                 graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(calib.ref_T_view[v]),
                                                  pose_noise(HELD_SIGMA, HELD_SIGMA)))
-        if poses_free and scale_sigma_mm is None:
+        free_views = [v for v in range(n_views) if v != calib.grid.reference and v not in held_views]
+        if poses_free and scale_sigma_mm is None and free_views and len(held_views) == 0:
             # scale is unobservable from a scene: one range (reference to the farthest view) fixes it without
-            # pulling any direction; the solution is rescaled to the calibrated baselines afterwards
+            # pulling any direction; the solution is rescaled to the calibrated baselines afterwards (a held view
+            # fixes scale by itself)
             far = int(np.argmax(np.linalg.norm(calib.ref_T_view[:, :3, 3], axis=1)))
             # a pure gauge: nothing else observes scale, so any sigma keeps the range exactly at its value; a
             # loose one keeps the system well conditioned (1e-6 m made every LM step fail on a 14 mm baseline)
@@ -295,7 +302,7 @@ def run_stage(name: str, calib: Calibration, pixels: np.ndarray, valid: np.ndarr
                 hold = gauge[1] if gauge is not None and gauge[0] == v else None
                 # the reference view's intrinsics are held: with nearly parallel views a common zoom and shift of
                 # every view's fx, fy, cx, cy (with the landmarks' depths) is as unobservable as the pose gauge
-                free = v != calib.grid.reference
+                free = v != calib.grid.reference and v not in held_views
                 graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), calib.intrinsics[v].to_gtsam(),
                                                    _intrinsics_prior(calib.intrinsics[v], free, hold)))
             for v, j, uv in zip(vs.tolist(), js.tolist(), meas, strict=True):
@@ -314,7 +321,7 @@ def run_stage(name: str, calib: Calibration, pixels: np.ndarray, valid: np.ndarr
     ref = calib.grid.reference
     poses = np.linalg.inv(poses[ref])[None] @ poses  # exactly relative to the reference again
     poses[ref] = np.eye(4)
-    if name in ("poses", "all") and scale_sigma_mm is None:
+    if name in ("poses", "all") and scale_sigma_mm is None and len(held_views) == 0:
         # the similarity that best keeps the calibrated baselines: s = argmin sum |s c_new - c_old|^2
         c_old, c_new = calib.ref_T_view[:, :3, 3], poses[:, :3, 3]
         denom = float(np.sum(c_new * c_new))
@@ -381,8 +388,13 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
         rms_before = _rms(errors)
         before = calib
         emit("stage", {"name": name, "measurements": int(ok.sum())})
+        per_view = ok.sum(axis=1)
+        held = frozenset(int(v) for v in np.nonzero(per_view < settings.min_view_observations)[0])
+        if held and stage != "points":
+            say(f"stage {name}: views {', '.join(calib.grid.name(v) for v in sorted(held))} have fewer than "
+                f"{settings.min_view_observations} observations and are held")
         calib, points, iterations = run_stage(stage, calib, px, ok, points, spec, settings.scale_sigma_mm,
-                                              settings.max_iterations, callback)
+                                              settings.max_iterations, callback, held)
         errors = reprojection_errors(calib, points, px, ok)
         rms_after = _rms(errors)
         emit("stage_done", {"name": name, "calib": calib, "points": points, "pixels": px, "valid": ok,

@@ -1,0 +1,107 @@
+"""Tracks for views that do not form a grid (a ring, a loose set): SIFT features matched between chosen view pairs,
+fundamental-matrix RANSAC per pair, tracks by union-find. The staged refinement then runs unchanged on them
+(`lfgraph.refine.staged.refine_tracks` takes any (V, N, 2) tracks with a mask); nothing here assumes a grid.
+
+KLT along the grid chain needs small steps between neighbours; wide-baseline sets (22.5° between ring views) need
+descriptors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from lfgraph.refine.matching import Tracks
+
+RATIO_TEST = 0.75  # Lowe's ratio test
+RANSAC_THRESHOLD_PX = 1.0
+MIN_PAIR_MATCHES = 15
+SIFT_CONTRAST = 0.01  # below OpenCV's 0.04: plaster and other low-contrast objects give 3-5x more features
+
+
+def ring_pairs(n_views: int, reach: int = 2, closed: bool = True) -> list[tuple[int, int]]:
+    """Pairs (i, i + k) for k = 1..reach along a ring (wrapping around when ``closed``)."""
+    pairs = []
+    for k in range(1, reach + 1):
+        for i in range(n_views):
+            j = i + k
+            if j >= n_views:
+                if not closed:
+                    continue
+                j -= n_views
+            if i != j and (j, i) not in pairs:
+                pairs.append((i, j))
+    return pairs
+
+
+def _find(parent: np.ndarray, x: int) -> int:
+    while parent[x] != x:
+        parent[x] = parent[parent[x]]
+        x = parent[x]
+    return x
+
+
+def match_unordered(images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]], max_features: int = 4000,
+                    min_views: int = 3) -> Tracks:
+    """Tracks over arbitrary views from SIFT matches on ``pairs``.
+
+    Args:
+        images: (H, W) grayscale views.
+        pairs: view pairs to match.
+        max_features: SIFT features per view.
+        min_views: keep tracks seen in at least this many views.
+
+    Returns:
+        `Tracks` with a partial mask; counts ``detected`` (features of the first view), ``matches`` (pairwise,
+        after RANSAC), ``tracks`` (after union-find, conflicts and ``min_views``).
+    """
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=SIFT_CONTRAST)
+    keypoints, descriptors = [], []
+    for img in images:
+        kp, des = sift.detectAndCompute(img, None)
+        keypoints.append(np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2))
+        descriptors.append(des if des is not None else np.zeros((0, 128), np.float32))
+    offsets = np.concatenate([[0], np.cumsum([len(k) for k in keypoints])])
+    parent = np.arange(offsets[-1])
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    n_matches = 0
+    for a, b in pairs:
+        if len(descriptors[a]) < 2 or len(descriptors[b]) < 2:
+            continue
+        knn = matcher.knnMatch(descriptors[a], descriptors[b], k=2)
+        good = [m[0] for m in knn if len(m) == 2 and m[0].distance < RATIO_TEST * m[1].distance]
+        if len(good) < MIN_PAIR_MATCHES:
+            continue
+        ia = np.array([m.queryIdx for m in good])
+        ib = np.array([m.trainIdx for m in good])
+        _, mask = cv2.findFundamentalMat(keypoints[a][ia], keypoints[b][ib], cv2.FM_RANSAC, RANSAC_THRESHOLD_PX,
+                                         0.999)
+        if mask is None:
+            continue
+        keep = mask.ravel() == 1
+        n_matches += int(keep.sum())
+        for x, y in zip(ia[keep] + offsets[a], ib[keep] + offsets[b], strict=True):
+            rx, ry = _find(parent, int(x)), _find(parent, int(y))
+            if rx != ry:
+                parent[ry] = rx
+    roots = np.array([_find(parent, i) for i in range(len(parent))])
+    view_of = np.repeat(np.arange(len(images)), np.diff(offsets))
+    unique_roots, track_of = np.unique(roots, return_inverse=True)
+    n_tracks = len(unique_roots)
+    counts = np.zeros((n_tracks, len(images)), dtype=int)
+    np.add.at(counts, (track_of, view_of), 1)
+    consistent = np.all(counts <= 1, axis=1)  # a track may not hold two features of one view
+    seen = (counts > 0).sum(axis=1)
+    keep_track = consistent & (seen >= min_views)
+    index = -np.ones(n_tracks, dtype=int)
+    index[keep_track] = np.arange(keep_track.sum())
+    pts = np.full((len(images), int(keep_track.sum()), 2), np.nan)
+    valid = np.zeros((len(images), int(keep_track.sum())), dtype=bool)
+    all_pts = np.concatenate(keypoints) if offsets[-1] else np.zeros((0, 2))
+    sel = keep_track[track_of]
+    pts[view_of[sel], index[track_of[sel]]] = all_pts[sel]
+    valid[view_of[sel], index[track_of[sel]]] = True
+    return Tracks(pts, valid, {"detected": len(keypoints[0]) if keypoints else 0, "matches": n_matches,
+                               "tracks": int(keep_track.sum())})
