@@ -54,6 +54,7 @@ OUTLIER_FLOOR_PX = 0.5  # ... and > 0.5 px
 CLEAN_FACTOR = 3.0  # the clean stage: worst residual > 3x the median track's ...
 CLEAN_FLOOR_PX = 0.3  # ... and > 0.3 px (the prototype's threshold)
 COVERAGE_CELLS = 8
+MIN_BASELINE_M = 1e-6  # a track needs observing centres at least this far apart
 COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells
 MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive tracking and the filters
 
@@ -230,6 +231,24 @@ def _intrinsics_prior(intr: Intrinsics, free: bool, hold_index: int | None) -> g
     return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
 
 
+def in_front(calib: Calibration, points_ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(N,) finite points in front of every view that observes them, seen from at least two distinct centres
+    (views that share a centre — the Middlebury rings hold such pairs, one turned by 180° — give no depth)."""
+    ok = np.all(np.isfinite(points_ref), axis=1)
+    centres = calib.ref_T_view[:, :3, 3]
+    lo = np.where(valid[..., None], centres[:, None, :], np.inf).min(axis=0)
+    hi = np.where(valid[..., None], centres[:, None, :], -np.inf).max(axis=0)
+    ok &= np.max(hi - lo, axis=1) > MIN_BASELINE_M
+    for v in range(calib.num_views):
+        m = valid[v] & ok
+        if m.any():
+            T = calib.view_T_ref(v)  # noqa: N806
+            depth = points_ref[m] @ T[2, :3] + T[2, 3]
+            bad = np.nonzero(m)[0][~(depth > 0)]
+            ok[bad] = False
+    return ok
+
+
 def _changes(before: Calibration, after: Calibration) -> tuple[np.ndarray, ...]:
     rot = np.asarray(rotation_angle_deg(np.swapaxes(before.ref_T_view[:, :3, :3], 1, 2)
                                         @ after.ref_T_view[:, :3, :3]))
@@ -371,6 +390,11 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
     last_free = None
     for name in settings.stages:
         t0 = time.perf_counter()
+        # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
+        # linear system singular and LM give up at once — guard cheirality before building the graph
+        front = in_front(calib, triangulate_dlt(calib, pixels[:, keep], valid[:, keep]), valid[:, keep])
+        idx = np.nonzero(keep)[0]
+        keep[idx[~front]] = False
         px, ok = pixels[:, keep], valid[:, keep]
         points = triangulate_dlt(calib, px, ok)
         errors = reprojection_errors(calib, points, px, ok)

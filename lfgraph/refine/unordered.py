@@ -36,6 +36,24 @@ def ring_pairs(n_views: int, reach: int = 2, closed: bool = True) -> list[tuple[
     return pairs
 
 
+def nearest_pairs(ref_T_view: np.ndarray, k: int = 2) -> list[tuple[int, int]]:  # noqa: N803
+    """Each view paired with its ``k`` nearest views by the angle between optical axes (then centre distance).
+
+    For sets whose file order is not their spatial order (the Middlebury rings jump by up to 165° between files).
+    """
+    axes = ref_T_view[:, :3, 2]
+    centres = ref_T_view[:, :3, 3]
+    angle = np.degrees(np.arccos(np.clip(axes @ axes.T, -1.0, 1.0)))
+    dist = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    score = angle + 1e-3 * dist / max(float(dist.max()), 1e-12)
+    np.fill_diagonal(score, np.inf)
+    pairs = set()
+    for i in range(len(ref_T_view)):
+        for j in np.argsort(score[i])[:k]:
+            pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
 def _find(parent: np.ndarray, x: int) -> int:
     while parent[x] != x:
         parent[x] = parent[parent[x]]
