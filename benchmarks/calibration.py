@@ -163,8 +163,9 @@ def end_to_end(images: Path | None) -> list[str]:
                            check=True, stdout=subprocess.DEVNULL)
         out = Path(tmp) / "calibration.json"
         cmd = [sys.executable, "-c", "import resource, sys; from lfgraph.cli import main; code = main(sys.argv[1:]); "
-               "print('PEAK_MB', max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
-               "resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024); sys.exit(code)",
+               "hwm = [int(x.split()[1]) for x in open('/proc/self/status') if x.startswith('VmHWM')][0]; "
+               "print('PEAK_MB', max(hwm, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024); "
+               "sys.exit(code)",
                "calibrate", str(images), "--grid", "4x4", "--board", "11x8", "--square-mm", "20", "--quiet",
                "--no-cache", "-o", str(out)]
         t0 = time.perf_counter()

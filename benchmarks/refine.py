@@ -137,9 +137,11 @@ def main() -> int:
     # memory and wall time of the whole command on MEMORY_FRAMES frames, in a fresh process (rendering excluded)
     big = dataset(args.cache, 1.0, 5.0, MEMORY_FRAMES)
     out_json = args.cache / "refined-memory-run.json"
-    code = ("import resource, sys, time; from lfgraph.cli import main; t = time.perf_counter(); "
+    code = ("import sys, time; from lfgraph.cli import main; t = time.perf_counter(); "
             "c = main(sys.argv[1:]); print('WALL', time.perf_counter() - t); "
-            "print('PEAK_MB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024); sys.exit(c)")
+            "hwm = [int(x.split()[1]) for x in open('/proc/self/status') if x.startswith('VmHWM')][0]; "
+            "print('PEAK_MB', hwm / 1024); sys.exit(c)")
+    # (VmHWM, not ru_maxrss: Linux keeps ru_maxrss across fork+exec, so a child would report this process's peak)
     proc = subprocess.run([sys.executable, "-c", code, "refine", str(big / "original.json"), str(big), "-o",
                            str(out_json), "--quiet"], capture_output=True, text=True, check=False)
     if proc.returncode != 0:
