@@ -433,24 +433,22 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------- studies
-def _floats(text: str) -> list[float]:
+def _number_list(text: str, kind: type, minimum: float, what: str) -> list:
     try:
-        values = [float(x) for x in text.split(",") if x.strip()]
+        values = [kind(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-    if not values or any(not np.isfinite(v) or v < 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
+    if not values or any(not np.isfinite(v) or v < minimum for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what} >= {minimum:g}, got {text!r}")
     return values
+
+
+def _floats(text: str) -> list[float]:
+    return _number_list(text, float, 0.0, "numbers")
 
 
 def _ints(text: str) -> list[int]:
-    try:
-        values = [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated whole numbers, got {text!r}") from None
-    if not values or any(v < 1 for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers >= 1, got {text!r}")
-    return values
+    return _number_list(text, int, 1, "whole numbers")
 
 
 def _study_common(args: argparse.Namespace) -> None:
