@@ -9,7 +9,8 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -219,25 +220,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     seen = obs.seen
     print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} images "
           f"({time.perf_counter() - start:.1f} s)")
-    logger = None
-    if logging:
-        from lfgraph.viz.rerun_log import open_logger
-
-        logger = open_logger(args, grid)
-        logger.set_measurements(obs.num_observations)
-    try:
+    with _rerun_session(args, grid, logging) as logger:
+        if logger is not None:
+            logger.set_measurements(obs.num_observations)
         calib, report = calibrate(obs, method=args.method, init=args.init, settings=settings, focal_px=args.focal_px,
                                   pitch_m=None if args.pitch_mm is None else args.pitch_mm / 1000, log=print,
                                   callback=None if logger is None else logger.on_iteration)
         calib.save(args.output)
         if logger is not None:
             logger.calibration_result(calib, obs, report, capture.load_frame(0))
-            logger.close()
-            print(f"rerun recording: {args.save or 'sent'}")
-    except BaseException:
-        if logger is not None:
-            logger.close(success=False)
-        raise
     print(calibration_report_text(calib, report))
     print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
     return EXIT_OK
@@ -295,14 +286,12 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     rect = compute_rectification(calib, args.crop)
     rectified = attach(calib, rect)
     print(rectification_text(calib, rect))
-    if logging:
-        from lfgraph.rectify import build_maps, remap_views
-        from lfgraph.viz.rerun_log import open_logger
+    with _rerun_session(args, calib.grid, logging) as logger:
+        if logger is not None:
+            from lfgraph.rectify import build_maps, remap_views
 
-        logger = open_logger(args, calib.grid)
-        logger.rig(calib, capture.load_frame(0))
-        logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
-        logger.close()
+            logger.rig(calib, capture.load_frame(0))
+            logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
     out_layout = "folders" if capture.layout == "pairs" else capture.layout
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -376,24 +365,13 @@ def cmd_refine(args: argparse.Namespace) -> int:
           f"triangulation filter {settings.triangulation_filter}, robust {settings.robust}")
     frames = (capture.load_frame(f) for f in range(n))
     bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
-    logger = None
-    if logging:
-        from lfgraph.viz.rerun_log import open_logger
-
-        logger = open_logger(args, calib.grid)
-        logger.rig(calib, capture.load_frame(0))
-    try:
+    with _rerun_session(args, calib.grid, logging) as logger:
+        if logger is not None:
+            logger.rig(calib, capture.load_frame(0))
         refined, report = refine(calib, bar, settings, log=None if args.quiet else bar.write,
                                  callback=None if logger is None else logger.on_iteration,
                                  events=None if logger is None else logger.refine_event)
         refined.save(args.output)
-        if logger is not None:
-            logger.close()
-            print(f"rerun recording: {args.save or 'sent'}")
-    except BaseException:
-        if logger is not None:
-            logger.close(success=False)
-        raise
     print(refinement_text(calib, refined, report))
     print(f"wrote {args.output}")
     return EXIT_OK
@@ -490,18 +468,12 @@ def cmd_study_shake(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     logging = _check_rerun(args)
-    logger = None
-    if logging:
-        from lfgraph.viz.rerun_log import open_logger
-
-        logger = open_logger(args)
     print(f"shake study on {args.scene}: {len(trials)} trials ({len(trials) // args.trials} levels x {args.trials} "
           f"seeds), {len(stages) * len(robust)} configurations each, executor {args.executor}")
-    rows = run_study(trials, run_shake_trial, args.output, SHAKE_COLUMNS, shake_trial_rows, shake_row_key,
-                     args.executor, args.jobs, progress=not args.quiet,
-                     on_rows=None if logger is None else logger.study_rows)
-    if logger is not None:
-        logger.close()
+    with _rerun_session(args, None, logging) as logger:
+        rows = run_study(trials, run_shake_trial, args.output, SHAKE_COLUMNS, shake_trial_rows, shake_row_key,
+                         args.executor, args.jobs, progress=not args.quiet,
+                         on_rows=None if logger is None else logger.study_rows)
     plots = shake_plots(rows, args.output)
     print(_shake_summary(rows))
     print(f"wrote {args.output} and {', '.join(str(p) for p in plots)}")
@@ -562,6 +534,18 @@ def cmd_study_calibration(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------- parser
+@contextmanager
+def _rerun_session(args: argparse.Namespace, grid, logging: bool) -> Iterator:
+    """rerun's logger for a ``with`` block when ``logging``, else None (no recording is created)."""
+    if not logging:
+        yield None
+        return
+    from lfgraph.viz.rerun_log import rerun_session
+
+    with rerun_session(args, grid) as logger:
+        yield logger
+
+
 def _add_rerun_args(p: argparse.ArgumentParser) -> None:
     group = p.add_argument_group("rerun visual debugging (nothing is logged without --save/--connect/--serve/--stdout)")
     from lfgraph.viz.rerun_log import add_args

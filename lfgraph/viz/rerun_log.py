@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -242,3 +244,18 @@ def open_logger(args: argparse.Namespace, grid: ViewGrid | None = None) -> Rerun
     if not wants_logging(args):
         return None
     return RerunLogger(args, grid)
+
+
+@contextmanager
+def rerun_session(args: argparse.Namespace, grid: ViewGrid | None = None) -> Iterator[RerunLogger | None]:
+    """`open_logger` for a ``with`` block: closed at the end; a failure discards a ``--save`` file."""
+    logger = open_logger(args, grid)
+    try:
+        yield logger
+    except BaseException:
+        if logger is not None:
+            logger.close(success=False)
+        raise
+    if logger is not None:
+        logger.close()
+        print(f"rerun recording: {args.save or 'sent'}")
