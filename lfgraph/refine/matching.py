@@ -29,7 +29,8 @@ class MatchSettings:
         forward_backward_px: track each step back and drop points that do not return within this distance
             (None: off). Chain tracking through 24 steps of an occluding scene otherwise keeps ~1/3 wrong tracks.
         anchor_px: after the chain, re-track every view from the reference patch (started at the chain's
-            estimate) and drop points that move more than this (None: keep the chained positions).
+            estimate) and drop points that move more than this (None: keep the chained positions). Measured on
+            paper-5x5 (4 frames): transfer error at infinity 0.024-0.035 px with it, 0.015-0.089 px without.
     """
 
     max_features: int = 2000
