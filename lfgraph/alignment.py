@@ -24,6 +24,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
 from lfgraph.rectify import INFINITY_SAMPLES, Rectification, rectify_points
+from lfgraph.refine.triangulate import triangulate_dlt
 
 
 @dataclass(frozen=True)
@@ -143,37 +144,6 @@ def infinity_alignment(calib: Calibration, rect: Rectification, seen_by: Calibra
     return Alignment(row_px, col_px, disp_px, n_row, n_col, int(valid.all(axis=0).sum()))
 
 
-def triangulate(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(N, 3) reference-frame points closest to the rays of (V, N, 2) original pixels (midpoint, vectorised).
-
-    NaN where fewer than two views see a point or the rays are parallel.
-    """
-    n_views, n = valid.shape
-    A = np.zeros((n, 3, 3))  # noqa: N806
-    b = np.zeros((n, 3))
-    count = np.zeros(n)
-    for i in range(n_views):
-        m = valid[i] & np.all(np.isfinite(pixels[i]), axis=-1)
-        if not m.any():
-            continue
-        xy = calib.intrinsics[i].undistort(pixels[i][m])
-        d = np.column_stack([xy, np.ones(len(xy))]) @ calib.ref_T_view[i][:3, :3].T
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        ok = np.all(np.isfinite(d), axis=1)
-        idx = np.nonzero(m)[0][ok]
-        d = d[ok]
-        proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-        c = calib.ref_T_view[i][:3, 3]
-        A[idx] += proj
-        b[idx] += proj @ c
-        count[idx] += 1
-    out = np.full((n, 3), np.nan)
-    good = count >= 2
-    good &= np.abs(np.linalg.det(A)) > 1e-18
-    out[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0]
-    return out
-
-
 def off_grid_parallax(calib: Calibration, rect: Rectification, points_ref: np.ndarray) -> np.ndarray:
     """(V, N, 2) rectified position of each point from each view's real centre minus from its ideal grid centre."""
     grid = calib.grid
@@ -214,7 +184,7 @@ def align_points(calib: Calibration, rect: Rectification, pixels: np.ndarray,
         m = valid[i]
         if m.any():
             rect_px[i, m] = rectify_points(calib, rect, i, pixels[i, m])
-    points = triangulate(calib, pixels, valid)
+    points = triangulate_dlt(calib, pixels, valid)
     parallax = off_grid_parallax(calib, rect, points)
     ok = valid & np.all(np.isfinite(parallax), axis=-1)
     before = point_alignment(grid, rect, pixels, valid)

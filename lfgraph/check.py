@@ -8,14 +8,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgraph.alignment import PointAlignmentReport, align_points, triangulate
+from lfgraph.alignment import PointAlignmentReport, align_points
 from lfgraph.calibration import Calibration
-from lfgraph.camera import project_world
 from lfgraph.rectify import Rectification
 from lfgraph.refine.matching import MatchSettings, Tracks, track_chain
+from lfgraph.refine.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
 
 TRACK_OUTLIER_FACTOR = 4.0  # a track whose largest residual exceeds 4x the median track's is a mismatch
 TRACK_OUTLIER_MIN_PX = 0.5  # ... and exceeds this (so a perfect calibration does not reject its noise)
+# (the same rule as the refinement's `worst` triangulation filter)
 
 
 @dataclass(frozen=True)
@@ -38,26 +39,10 @@ class DriftReport:
     frames: int
 
 
-def reprojection_residuals(calib: Calibration, tracks: Tracks) -> tuple[np.ndarray, np.ndarray]:
-    """Triangulate tracks with ``calib`` and return ((V, N) residual norms in px, (N, 3) points)."""
-    points = triangulate(calib, tracks.points_px, tracks.valid)
-    res = np.full(tracks.valid.shape, np.nan)
-    for v in range(calib.num_views):
-        m = tracks.valid[v] & np.all(np.isfinite(points), axis=1)
-        if m.any():
-            proj = project_world(calib.intrinsics[v], calib.view_T_ref(v), points[m])
-            res[v, m] = np.linalg.norm(proj - tracks.points_px[v, m], axis=1)
-    return res, points
-
-
-def triangulation_filter(residuals: np.ndarray) -> np.ndarray:
-    """Keep tracks whose largest residual is within `TRACK_OUTLIER_FACTOR` x the median track's."""
-    worst = np.nanmax(np.where(np.isfinite(residuals), residuals, -np.inf), axis=0)
-    finite = np.isfinite(worst) & (worst >= 0)
-    if not finite.any():
-        return finite
-    limit = max(TRACK_OUTLIER_FACTOR * float(np.median(worst[finite])), TRACK_OUTLIER_MIN_PX)
-    return finite & (worst <= limit)
+def reprojection_residuals(calib: Calibration, tracks: Tracks) -> np.ndarray:
+    """(V, N) residual norms (px) of tracks triangulated with ``calib``."""
+    points = triangulate_dlt(calib, tracks.points_px, tracks.valid)
+    return reprojection_errors(calib, points, tracks.points_px, tracks.valid)
 
 
 def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.ndarray],
@@ -66,8 +51,8 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     pixels, valid, counts, n_frames = [], [], {}, 0
     for images in frames:
         tracks = track_chain(images, calib.grid, settings)
-        res, _ = reprojection_residuals(calib, tracks)
-        keep = triangulation_filter(res)
+        res = reprojection_residuals(calib, tracks)
+        keep = worst_error_filter(res, TRACK_OUTLIER_FACTOR, TRACK_OUTLIER_MIN_PX)
         tracks_counts = {**tracks.counts, "triangulation": int(keep.sum())}
         for k, n in tracks_counts.items():
             counts[k] = counts.get(k, 0) + n
@@ -81,7 +66,7 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     if ok.shape[1] == 0:
         raise ValueError("no feature could be tracked through every view; the scene has too little texture "
                          "(or the views do not overlap)")
-    res, _ = reprojection_residuals(calib, Tracks(px, ok))
+    res = reprojection_residuals(calib, Tracks(px, ok))
     rms = float(np.sqrt(np.nanmean(res**2)))
     view_rms = np.sqrt(np.nanmean(res**2, axis=1))
     return DriftReport(rms, view_rms, counts, align_points(calib, rect, px, ok), n_frames)
