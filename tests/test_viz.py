@@ -39,6 +39,7 @@ def test_calibrate_save_rrd(board_capture, tmp_path):
     rig = {c.split(":")[0] for c in columns if c.startswith("/world/rig/view_") and "Transform3D" in c}
     assert rig == {f"/world/rig/view_{n}" for n in names}
     assert any(c.startswith("/world/rig/view_r00_c00:Pinhole") for c in columns)
+    assert any(c.startswith("/views/r00_c00/outliers:Points2D") for c in columns)  # corners of outlier frames
     boards = {c.split(":")[0] for c in columns if c.startswith("/world/boards/frame_") and "Transform3D" in c}
     assert len(boards) == 10
     # one residual arrow per detected corner, per view
@@ -68,6 +69,7 @@ def test_refine_save_rrd(tmp_path):
     landmarks = by_time["/world/landmarks:Points3D:positions"].dropna()
     assert len(landmarks.iloc[-1]) == m["stages"][-1]["landmarks"]
     assert any(c.startswith("/views/r01_c01/residuals:Arrows2D") for c in columns)
+    assert any(c.startswith("/views/r01_c01/outliers:Points2D") for c in columns)  # filtered tracks, in red
     assert any(c.startswith("/rms/view_r00_c01:Scalars") for c in columns)
 
 

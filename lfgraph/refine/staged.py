@@ -372,7 +372,7 @@ def collect_tracks(calib: Calibration, tracks: Tracks, triangulation_filter: str
     return tracks.subset(keep), {**tracks.counts, "triangulation": int(keep.sum())}
 
 
-EventHook = Callable[[str, dict], None]  # (kind, data): "frame", "stage", "stage_done" — what lfgraph.viz subscribes to
+EventHook = Callable[[str, dict], None]  # (kind, data): "frame", "stage", "stage_done", "outliers" — for lfgraph.viz
 
 
 def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, settings: RefineSettings,
@@ -381,7 +381,8 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
     """Run the stage schedule over pooled tracks. Returns the calibration, stage reports and the kept-track mask.
 
     ``events`` receives ``("stage", {name, measurements})`` before and ``("stage_done", {name, calib, points,
-    pixels, valid, errors})`` after every stage.
+    pixels, valid, errors})`` and ``("outliers", {name, pixels, valid})`` (the tracks the stage's outlier rejection
+    dropped) after every stage.
     """
     say = log or (lambda _m: None)
     emit = events or (lambda _k, _d: None)
@@ -436,6 +437,9 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
             good = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
             idx = np.nonzero(keep)[0]
             keep[idx[~good]] = False
+        else:
+            good = np.ones(px.shape[1], dtype=bool)
+        emit("outliers", {"name": name, "pixels": px[:, ~good], "valid": ok[:, ~good]})
     return calib, reports, keep
 
 

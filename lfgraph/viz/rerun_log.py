@@ -102,6 +102,7 @@ class RerunLogger:
             self._tmp = self._final.with_name(f".{self._final.name}.{os.getpid()}.tmp")
             self.rec.save(str(self._tmp), default_blueprint=blueprint)
         self.iteration = 0
+        self._calib: Calibration | None = None  # the latest refined calibration (for naming views of outliers)
         self.rec.log("optimizer/error", rr.SeriesLines(names="graph error"), static=True)
         self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px, from the error)"), static=True)
         self._n_measurements = 0
@@ -187,7 +188,9 @@ class RerunLogger:
             n = calib.num_views
             observed = obs.corners_px.reshape(n, -1, 2)
             projected = (obs.corners_px - report.residuals_px).reshape(n, -1, 2)
-            self.observations(calib, observed, projected, obs.valid.reshape(n, -1))
+            outliers = np.zeros(obs.valid.shape, dtype=bool)
+            outliers[:, list(report.outlier_frames)] = obs.valid[:, list(report.outlier_frames)]
+            self.observations(calib, observed, projected, obs.valid.reshape(n, -1), outliers.reshape(n, -1))
 
     def refine_event(self, kind: str, data: dict) -> None:
         """`lfgraph.refine.staged` event hook."""
@@ -207,6 +210,12 @@ class RerunLogger:
             projected = np.stack([project_world(calib.intrinsics[v], calib.view_T_ref(v), points)
                                   for v in range(calib.num_views)])
             self.observations(calib, pixels, projected, valid)
+            self._calib = calib
+        elif kind == "outliers" and self._calib is not None:
+            pixels, valid = data["pixels"], data["valid"]
+            for v in range(self._calib.num_views):
+                self.rec.log(f"views/{self._calib.grid.name(v)}/outliers",
+                             rr.Points2D(pixels[v][valid[v]], radii=2.0, colors=OUTLIER_COLOUR))
 
     def study_rows(self, rows: list[dict]) -> None:
         """Study results as scalars: ``study/<stages>_<robust>/<metric>`` on the ``level`` timeline."""
