@@ -67,7 +67,8 @@ def _pm(value: float, sigma: float | None, fmt: str) -> str:
 def calibration_report_text(calib: Calibration, report) -> str:  # report: lfgraph.calibrate.CalibrationReport
     """The ``lfgraph calibrate`` printout: figures of merit, per-view table with 1-sigma, per-frame RMS, warnings."""
     lines = []
-    head = [f"method {report.method}" + (f" (started from the {report.init} route)" if report.init else "")]
+    start = {"paper": " (started from the paper route)", "design": " (started from design values)"}
+    head = [f"method {report.method}" + start.get(report.init or "", "")]
     if report.e_mono_px is not None:
         head.append(f"E_mono {report.e_mono_px:.4f} px")
     if report.e_pnp_px is not None:

@@ -76,6 +76,9 @@ def test_paper_method_and_design_init(rendered, tmp_path, capsys):
     code, text = run_calibrate(rendered, tmp_path / "d.json", "--init", "design", "--focal-px", "280",
                                "--robust", "huber:1.0", capsys=capsys)
     assert code == 0, text.err
+    assert "started from design values" in text.out
+    code, text = run_calibrate(rendered, tmp_path / "g.json", "--init", "design", "--pitch-mm", "10", capsys=capsys)
+    assert code == 0, text.err  # the ideal grid as the start (focal length from the image size)
     design = Calibration.load(tmp_path / "d.json")
     joint_from_paper = run_calibrate(rendered, tmp_path / "j.json", capsys=capsys)[0] == 0
     assert joint_from_paper
