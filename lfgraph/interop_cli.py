@@ -15,16 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from lfgraph.cli import _grid  # the main CLI's RxC parser (lfgraph.cli imports this module lazily)
 from lfgraph.interop import EXPORT_FORMATS, IMPORT_FORMATS
-
-
-def _grid_arg(text: str) -> tuple[int, int]:
-    from lfgraph.grid import parse_grid
-
-    try:
-        return parse_grid(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _view_index(text: str) -> int:
@@ -96,7 +88,7 @@ def add_parsers(sub: Any, positive_int: Callable[[str], int]) -> None:
     im.add_argument("source", type=Path, metavar="PATH",
                     help="input file (colmap: the model folder; middlebury, hci: the file or its scene folder)")
     im.add_argument("--from", dest="fmt", required=True, choices=IMPORT_FORMATS, help="input format")
-    im.add_argument("--grid", type=_grid_arg, metavar="RxC",
+    im.add_argument("--grid", type=_grid, metavar="RxC",
                     help="view grid ROWSxCOLS, views row-major; required for kalibr (and colmap models not written "
                          "by lfgraph), otherwise checked against the file")
     im.add_argument("--reference", type=_view_index, metavar="N",

@@ -393,11 +393,11 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, set
         t0 = time.perf_counter()
         # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
         # linear system singular and LM give up at once — guard cheirality before building the graph
-        front = in_front(calib, triangulate_dlt(calib, pixels[:, keep], valid[:, keep]), valid[:, keep])
+        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep])
+        front = in_front(calib, points, valid[:, keep])
         idx = np.nonzero(keep)[0]
         keep[idx[~front]] = False
-        px, ok = pixels[:, keep], valid[:, keep]
-        points = triangulate_dlt(calib, px, ok)
+        px, ok, points = pixels[:, keep], valid[:, keep], points[front]
         errors = reprojection_errors(calib, points, px, ok)
         if name == "clean":
             if last_free is None:
