@@ -20,7 +20,7 @@ from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_o
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
-from lfgraph.rectify import build_maps, compute_rectification, remap_views
+from lfgraph.rectification import build_maps, compute_rectification, remap_views
 from lfgraph.report import alignment_table, format_table
 
 REPEATS = 10

@@ -21,12 +21,12 @@ import numpy as np
 from lfgraph.alignment import transfer_error_at_infinity
 from lfgraph.calibrate import evaluate_calibration
 from lfgraph.calibration import Calibration
-from lfgraph.datasets.loaders import open_capture
+from lfgraph.capture import open_capture
 from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.refine.staged import RefineSettings, refine
-from lfgraph.refine.triangulate import reprojection_errors, triangulate_dlt
+from lfgraph.refinement.staged import RefineSettings, refine
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.report import format_table
 
 SHAKES = [(0.0, 0.0), (0.25, 1.0), (0.5, 2.0), (1.0, 5.0)]
@@ -70,8 +70,8 @@ def evaluate(refined: Calibration, truth: Calibration, report) -> dict[str, floa
 
 def noise_floor(truth: Calibration, refined: Calibration, frames: list[np.ndarray], settings: RefineSettings) -> float:
     """Final RMS / RMS of the same tracks under the true cameras (tracks re-made here, as refine makes them)."""
-    from lfgraph.refine.matching import track_chain
-    from lfgraph.refine.staged import collect_tracks
+    from lfgraph.refinement.matching import track_chain
+    from lfgraph.refinement.staged import collect_tracks
 
     ratios_num, ratios_den = [], []
     for images in frames:

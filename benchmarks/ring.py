@@ -2,7 +2,7 @@
 
 The ground-truth poses are perturbed (0.5° about a random axis and 1 % of the neighbour baseline in a random
 direction, per non-reference view); tracks come from SIFT matches between neighbours chosen by viewing direction
-under the perturbed calibration (`lfgraph.refine.unordered`); the staged refinement runs unchanged. Prints how
+under the perturbed calibration (`lfgraph.refinement.unordered`); the staged refinement runs unchanged. Prints how
 far each configuration comes back. Exit code 1 when no configuration brings the views closer to the truth than
 the perturbed start.
 """
@@ -19,9 +19,9 @@ from lfgraph.calibrate import evaluate_calibration
 from lfgraph.calibration import Calibration
 from lfgraph.datasets.middlebury import load_mview
 from lfgraph.geometry import make_T, rotation_from_rotvec
-from lfgraph.refine.staged import RefineSettings, refine_tracks
-from lfgraph.refine.triangulate import reprojection_errors, triangulate_dlt
-from lfgraph.refine.unordered import match_unordered, nearest_pairs
+from lfgraph.refinement.staged import RefineSettings, refine_tracks
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
+from lfgraph.refinement.unordered import match_unordered, nearest_pairs
 from lfgraph.report import format_table
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_mview_sparsering" / "templeSparseRing"

@@ -23,8 +23,8 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
-from lfgraph.rectify import INFINITY_SAMPLES, Rectification, rectify_points
-from lfgraph.refine.triangulate import triangulate_dlt
+from lfgraph.rectification import INFINITY_SAMPLES, Rectification, rectify_points
+from lfgraph.refinement.triangulate import triangulate_dlt
 
 
 @dataclass(frozen=True)

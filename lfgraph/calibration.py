@@ -43,7 +43,7 @@ class Calibration:
         image_size_px: (width, height) of every view in pixels.
         intrinsics: one `Intrinsics` per view, row-major.
         ref_T_view: (V, 4, 4) pose of each view in the reference view's frame (metres); identity for the reference.
-        rectification: the stored rectification (see lfgraph.rectify), or None.
+        rectification: the stored rectification (see lfgraph.rectification), or None.
         metrics: figures of merit (``e_mono_px``, ``e_pnp_px``, ``rig_rms_px``, sigmas, ...), JSON-serialisable.
     """
 

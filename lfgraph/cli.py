@@ -196,7 +196,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from lfgraph.board import BoardSpec
     from lfgraph.calibrate import JointSettings, calibrate
-    from lfgraph.datasets.loaders import open_capture
+    from lfgraph.capture import open_capture
     from lfgraph.detections import detect_capture
     from lfgraph.grid import ViewGrid
     from lfgraph.report import calibration_report_text
@@ -256,8 +256,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def _rectify_frame_task(task: tuple) -> int:
     capture, frame, calib_json, crop, out_dir, out_layout = task
     from lfgraph.calibration import Calibration
-    from lfgraph.datasets.loaders import write_frame
-    from lfgraph.rectify import build_maps, remap_views, stored_rectification
+    from lfgraph.capture import write_frame
+    from lfgraph.rectification import build_maps, remap_views, stored_rectification
 
     calib = Calibration.from_dict(calib_json)
     maps = build_maps(calib, stored_rectification(calib))
@@ -271,9 +271,9 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     import tempfile
 
     from lfgraph.calibration import Calibration
-    from lfgraph.datasets.loaders import open_capture
+    from lfgraph.capture import open_capture
     from lfgraph.parallel import run_tasks
-    from lfgraph.rectify import attach, check_compatible, compute_rectification
+    from lfgraph.rectification import attach, check_compatible, compute_rectification
     from lfgraph.report import rectification_text
 
     out = args.output
@@ -288,7 +288,7 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     print(rectification_text(calib, rect))
     with _rerun_session(args, calib.grid, logging) as logger:
         if logger is not None:
-            from lfgraph.rectify import build_maps, remap_views
+            from lfgraph.rectification import build_maps, remap_views
 
             logger.rig(calib, capture.load_frame(0))
             logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
@@ -315,9 +315,9 @@ EXIT_DRIFT = 2
 
 def cmd_check(args: argparse.Namespace) -> int:
     from lfgraph.calibration import Calibration
-    from lfgraph.check import check_capture
-    from lfgraph.datasets.loaders import open_capture
-    from lfgraph.rectify import check_compatible, compute_rectification, stored_rectification
+    from lfgraph.capture import open_capture
+    from lfgraph.drift import check_capture
+    from lfgraph.rectification import check_compatible, compute_rectification, stored_rectification
     from lfgraph.report import drift_text
 
     calib = Calibration.load(args.calibration)
@@ -340,9 +340,9 @@ def cmd_refine(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from lfgraph.calibration import Calibration
-    from lfgraph.datasets.loaders import open_capture
-    from lfgraph.rectify import check_compatible
-    from lfgraph.refine.staged import RefineSettings, refine, with_reference
+    from lfgraph.capture import open_capture
+    from lfgraph.rectification import check_compatible
+    from lfgraph.refinement.staged import RefineSettings, refine, with_reference
     from lfgraph.report import refinement_text
 
     try:
@@ -443,7 +443,7 @@ def _study_common(args: argparse.Namespace) -> None:
 def cmd_study_shake(args: argparse.Namespace) -> int:
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.factors.noise import parse_robust
-    from lfgraph.refine.staged import parse_stages
+    from lfgraph.refinement.staged import parse_stages
     from lfgraph.study import (
         SHAKE_COLUMNS,
         make_shake_trials,

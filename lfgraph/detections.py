@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from lfgraph.board import BoardSpec, detect_board
-from lfgraph.datasets.loaders import CaptureSet
+from lfgraph.capture import CaptureSet
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks

@@ -132,7 +132,7 @@ def evaluation_table(errors, truth_name: str = "truth") -> str:  # errors: lfgra
         ["view", "d_fx_px", "d_fy_px", "d_cx_px", "d_cy_px", "d_k1", "d_k2", "d_pos_mm", "d_rot_deg"], rows)
 
 
-def rectification_text(calib: Calibration, rect) -> str:  # rect: lfgraph.rectify.Rectification
+def rectification_text(calib: Calibration, rect) -> str:  # rect: lfgraph.rectification.Rectification
     """K_r, crop, pitch and the grid-deviation table (how far the real array is from the ideal one)."""
     k = rect.K_r
     lines = [f"rectified views {rect.image_size_px[0]}x{rect.image_size_px[1]} px (crop {rect.crop}, "
@@ -158,7 +158,7 @@ def alignment_table(named: Sequence[tuple[str, object]]) -> str:
     return format_table(["", "row_px", "col_px", "proportionality_px", "points"], rows)
 
 
-def drift_text(calib: Calibration, report) -> str:  # report: lfgraph.check.DriftReport
+def drift_text(calib: Calibration, report) -> str:  # report: lfgraph.drift.DriftReport
     counts = ", ".join(f"{k} {v}" for k, v in report.counts.items())
     lines = [f"{report.frames} frame(s); tracks after each filter: {counts}",
              f"reprojection RMS {report.rms_px:.4f} px; per view:",
@@ -172,7 +172,7 @@ def drift_text(calib: Calibration, report) -> str:  # report: lfgraph.check.Drif
     return "\n".join(lines)
 
 
-def refinement_text(before: Calibration, after: Calibration, report) -> str:  # lfgraph.refine.staged.RefinementReport
+def refinement_text(before: Calibration, after: Calibration, report) -> str:  # a RefinementReport
     """Per-frame track counts, per-stage RMS and the per-view changes the refinement made."""
     lines = [f"{report.frames_used} frame(s) used ({report.stop_reason}); reprojection RMS of all kept tracks "
              f"{report.rms_before_px:.4f} px with the input calibration -> {report.rms_after_px:.4f} px refined "

@@ -122,7 +122,7 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
     from lfgraph.datasets.scenes import get_scene
-    from lfgraph.refine.staged import RefineSettings, refine
+    from lfgraph.refinement.staged import RefineSettings, refine
 
     named = get_scene(trial.scene)
     original = make_rig(named.rig, np.random.default_rng([trial.seed, 0]))

@@ -23,7 +23,7 @@ from lfgraph.interop import (
     import_calibration,
 )
 from lfgraph.interop_cli import add_parsers
-from lfgraph.rectify import attach, compute_rectification
+from lfgraph.rectification import attach, compute_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
 CHAIN_TOLERANCE = 1e-12  # m, unitless rotation entries: composing 4x4 transforms costs a few ulps per step

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.datasets.loaders import CaptureError, open_capture, split_mosaic, tile_mosaic, write_frame
+from lfgraph.capture import CaptureError, open_capture, split_mosaic, tile_mosaic, write_frame
 from lfgraph.grid import ViewGrid
 
 GRID = ViewGrid(2, 2)

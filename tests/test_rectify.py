@@ -22,7 +22,7 @@ from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.geometry import make_T
-from lfgraph.rectify import (
+from lfgraph.rectification import (
     RectificationError,
     attach,
     build_maps,

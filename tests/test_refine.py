@@ -9,13 +9,13 @@ from lfgraph.alignment import transfer_error_at_infinity
 from lfgraph.calibrate import evaluate_calibration
 from lfgraph.calibration import Calibration
 from lfgraph.camera import project_world
+from lfgraph.capture import open_capture
 from lfgraph.cli import EXIT_BAD_INPUT, main
-from lfgraph.datasets.loaders import open_capture
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, ideal_ref_T_view, make_rig, shake_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.refine.matching import track_chain
-from lfgraph.refine.staged import RefineSettings, parse_stages, refine, refine_tracks, run_stage
-from lfgraph.refine.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.matching import track_chain
+from lfgraph.refinement.staged import RefineSettings, parse_stages, refine, refine_tracks, run_stage
+from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
 
 EXACT_M = 1e-9  # noise-free triangulation
 REFINED_TRANSFER_PX = 0.1  # issue 5: transfer error at infinity after refinement (small rig here)
@@ -189,7 +189,7 @@ def test_tracks_follow_the_grid(shaken_scene):
 def test_unordered_matching_on_the_middlebury_ring(shared_data):
     """Tracks for views that are not a grid (16 views on a ring, 22.5° apart) agree with the published cameras."""
     from lfgraph.datasets.middlebury import load_mview
-    from lfgraph.refine.unordered import match_unordered, ring_pairs
+    from lfgraph.refinement.unordered import match_unordered, ring_pairs
 
     truth, images = load_mview(shared_data / "middlebury_mview_sparsering" / "templeSparseRing")
     tracks = match_unordered(images, ring_pairs(truth.num_views, 2), min_views=3)

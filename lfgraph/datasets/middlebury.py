@@ -10,7 +10,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
-from lfgraph.datasets.loaders import CaptureError
+from lfgraph.capture import CaptureError
 from lfgraph.geometry import invert_T, make_T
 from lfgraph.grid import ViewGrid
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
-from lfgraph.datasets.loaders import write_frame
+from lfgraph.capture import write_frame
 from lfgraph.geometry import rotation_from_rotvec
 from lfgraph.parallel import run_tasks
 

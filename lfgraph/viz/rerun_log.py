@@ -193,7 +193,7 @@ class RerunLogger:
             self.observations(calib, observed, projected, obs.valid.reshape(n, -1), outliers.reshape(n, -1))
 
     def refine_event(self, kind: str, data: dict) -> None:
-        """`lfgraph.refine.staged` event hook."""
+        """`lfgraph.refinement.staged` event hook."""
         from lfgraph.camera import project_world
 
         if kind == "frame":

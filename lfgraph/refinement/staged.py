@@ -39,8 +39,8 @@ from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import MIN_SIGMA, parse_robust, pixel_noise, pose_noise, robust
 from lfgraph.geometry import from_pose3, rotation_angle_deg, to_pose3
 from lfgraph.optimize import IterationCallback, OptimizerSettings, optimize
-from lfgraph.refine.matching import MatchSettings, Tracks, track_chain
-from lfgraph.refine.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.matching import MatchSettings, Tracks, track_chain
+from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
 
 STAGES = ("points", "intrinsics", "poses", "all", "clean")
 SCHEDULES = {"paper": ("points", "intrinsics", "all"), "default": ("points", "poses", "clean")}

@@ -1,6 +1,6 @@
 """Tracks for views that do not form a grid (a ring, a loose set): SIFT features matched between chosen view pairs,
 fundamental-matrix RANSAC per pair, tracks by union-find. The staged refinement then runs unchanged on them
-(`lfgraph.refine.staged.refine_tracks` takes any (V, N, 2) tracks with a mask); nothing here assumes a grid.
+(`lfgraph.refinement.staged.refine_tracks` takes any (V, N, 2) tracks with a mask); nothing here assumes a grid.
 
 KLT along the grid chain needs small steps between neighbours; wide-baseline sets (22.5° between ring views) need
 descriptors.
@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from lfgraph.refine.matching import Tracks
+from lfgraph.refinement.matching import Tracks
 
 RATIO_TEST = 0.75  # Lowe's ratio test
 RANSAC_THRESHOLD_PX = 1.0

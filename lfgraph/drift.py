@@ -10,9 +10,9 @@ import numpy as np
 
 from lfgraph.alignment import PointAlignmentReport, align_points
 from lfgraph.calibration import Calibration
-from lfgraph.rectify import Rectification
-from lfgraph.refine.matching import MatchSettings, Tracks, track_chain
-from lfgraph.refine.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.rectification import Rectification
+from lfgraph.refinement.matching import MatchSettings, Tracks, track_chain
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
 
 TRACK_OUTLIER_FACTOR = 4.0  # a track whose largest residual exceeds 4x the median track's is a mismatch
 TRACK_OUTLIER_MIN_PX = 0.5  # ... and exceeds this (so a perfect calibration does not reject its noise)
