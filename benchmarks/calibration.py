@@ -22,18 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibrate import (
-    JointSettings,
-    _board_T_ref,
-    calibrate_joint,
-    calibrate_paper,
-    evaluate_calibration,
-)
 from lfgraph.calibration import Calibration
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
+from lfgraph.evaluation import evaluate_calibration
+from lfgraph.pattern import JointSettings, calibrate_joint, calibrate_paper
+from lfgraph.pattern.initial import initial_board_T_ref
 from lfgraph.peers import calibrate_multiview
 from lfgraph.report import format_table
 
@@ -91,7 +87,7 @@ def monte_carlo(seeds: int) -> tuple[list[list], list[str], dict]:
     c, v = make_corner_observations(truth, 0.1, np.random.default_rng(0))
     warm = observations_from_arrays(truth.board, truth_calib.grid, truth_calib.image_size_px, c, v)
     p = calibrate_paper(warm)
-    calibrate_joint(warm, p.intrinsics, p.ref_T_view, _board_T_ref(p.view_T_board, p.ref_T_view,
+    calibrate_joint(warm, p.intrinsics, p.ref_T_view, initial_board_T_ref(p.view_T_board, p.ref_T_view,
                                                                        warm.valid.sum(axis=2)), settings_nomarg)
     for sigma, n_frames in CONDITIONS:
         acc = {m: {k: [] for k in keys} for m in ("paper", "joint", "multiview", "floor")}
@@ -103,7 +99,7 @@ def monte_carlo(seeds: int) -> tuple[list[list], list[str], dict]:
             t0 = time.perf_counter()
             paper = calibrate_paper(obs)
             secs["paper"].append(time.perf_counter() - t0)
-            start_boards = _board_T_ref(paper.view_T_board, paper.ref_T_view, obs.valid.sum(axis=2))
+            start_boards = initial_board_T_ref(paper.view_T_board, paper.ref_T_view, obs.valid.sum(axis=2))
             t0 = time.perf_counter()
             joint_fast = calibrate_joint(obs, paper.intrinsics, paper.ref_T_view, start_boards, settings_nomarg)
             secs["joint"].append(time.perf_counter() - t0)

@@ -15,11 +15,11 @@ import cv2
 import numpy as np
 
 from lfgraph.alignment import infinity_alignment
-from lfgraph.calibrate import calibrate
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
+from lfgraph.pattern import calibrate
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
 from lfgraph.report import alignment_table, format_table
 

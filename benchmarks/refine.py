@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.calibrate import evaluate_calibration
 from lfgraph.calibration import Calibration
 from lfgraph.capture import open_capture
 from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
+from lfgraph.evaluation import evaluate_calibration
 from lfgraph.refinement.staged import RefineSettings, refine
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.report import format_table

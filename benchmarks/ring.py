@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibrate import evaluate_calibration
 from lfgraph.calibration import Calibration
 from lfgraph.datasets.middlebury import load_mview
+from lfgraph.evaluation import evaluate_calibration
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.refinement.staged import RefineSettings, refine_tracks
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt

@@ -195,10 +195,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------------- calibrate
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from lfgraph.board import BoardSpec
-    from lfgraph.calibrate import JointSettings, calibrate
     from lfgraph.capture import open_capture
     from lfgraph.detections import detect_capture
     from lfgraph.grid import ViewGrid
+    from lfgraph.pattern import JointSettings, calibrate
     from lfgraph.report import calibration_report_text
 
     try:
@@ -237,8 +237,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from lfgraph.calibrate import evaluate_calibration
     from lfgraph.calibration import Calibration
+    from lfgraph.evaluation import evaluate_calibration
     from lfgraph.report import evaluation_table
 
     estimate = Calibration.load(args.calibration)

@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from lfgraph.alignment import align_points, infinity_alignment, transfer_error_at_infinity
-from lfgraph.calibrate import calibrate, evaluate_calibration
 from lfgraph.capture import open_capture, write_frame
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, write_checkerboard_dataset
 from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import detect_capture
+from lfgraph.evaluation import evaluate_calibration
+from lfgraph.pattern import calibrate
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
 from lfgraph.refinement.staged import refine
 from lfgraph.report import (

@@ -11,10 +11,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from lfgraph.calibrate import MONO_FLAGS
 from lfgraph.camera import Intrinsics
 from lfgraph.detections import BoardObservations
 from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.pattern.paper import MONO_FLAGS
 
 
 def calibrate_multiview(obs: BoardObservations) -> tuple[tuple[Intrinsics, ...], np.ndarray]:

@@ -118,10 +118,10 @@ def shake_trial_rows(t: ShakeTrial) -> set[tuple]:
 def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     """Render the trial's frames with a shaken rig (in memory) and refine from the original with every config."""
     from lfgraph.alignment import transfer_error_at_infinity
-    from lfgraph.calibrate import evaluate_calibration
     from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
     from lfgraph.datasets.scenes import get_scene
+    from lfgraph.evaluation import evaluate_calibration
     from lfgraph.refinement.staged import RefineSettings, refine
 
     named = get_scene(trial.scene)
@@ -240,12 +240,14 @@ def calibration_trial_rows(t: CalibrationTrial) -> set[tuple]:
 
 def run_calibration_trial(trial: CalibrationTrial) -> list[dict[str, Any]]:
     """Corner-only data: the paper route, the joint graph (+ its Cramér–Rao floor) and cv2.calibrateMultiview."""
-    from lfgraph.calibrate import _board_T_ref, calibrate_joint, calibrate_paper, evaluate_calibration
     from lfgraph.calibration import Calibration
     from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
     from lfgraph.datasets.rig import make_rig
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.detections import observations_from_arrays
+    from lfgraph.evaluation import evaluate_calibration
+    from lfgraph.pattern import calibrate_joint, calibrate_paper
+    from lfgraph.pattern.initial import initial_board_T_ref
     from lfgraph.peers import calibrate_multiview
 
     named = get_scene(trial.scene)
@@ -271,7 +273,7 @@ def run_calibration_trial(trial: CalibrationTrial) -> list[dict[str, Any]]:
     rows = []
     paper = calibrate_paper(obs)
     rows.append({**base, "method": "paper", **errors(paper.intrinsics, paper.ref_T_view)})
-    start = _board_T_ref(paper.view_T_board, paper.ref_T_view, obs.valid.sum(axis=2))
+    start = initial_board_T_ref(paper.view_T_board, paper.ref_T_view, obs.valid.sum(axis=2))
     joint = calibrate_joint(obs, paper.intrinsics, paper.ref_T_view, start)
     rows.append({**base, "method": "joint", **errors(joint.intrinsics, joint.ref_T_view)})
     s = joint.sigmas

@@ -5,18 +5,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lfgraph.calibrate import (
-    CalibrationInputError,
-    JointSettings,
-    calibrate,
-    calibrate_paper,
-    evaluate_calibration,
-)
 from lfgraph.camera import Intrinsics
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
+from lfgraph.evaluation import evaluate_calibration
+from lfgraph.pattern import CalibrationInputError, JointSettings, calibrate, calibrate_paper
 
 EXACT_RELATIVE = 1e-6  # noise-free: every parameter to 1e-6 of its scale (issue 3)
 FOCAL_SCALE_PX = 300.0  # small-2x2 focal length: the scale of fx, fy, cx, cy errors

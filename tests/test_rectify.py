@@ -9,7 +9,6 @@ import pytest
 
 from lfgraph.alignment import align_points, infinity_alignment
 from lfgraph.board import BoardSpec, detect_board
-from lfgraph.calibrate import calibrate
 from lfgraph.calibration import Calibration
 from lfgraph.cli import EXIT_BAD_INPUT, main
 from lfgraph.datasets.checkerboard import (
@@ -22,6 +21,7 @@ from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.geometry import make_T
+from lfgraph.pattern import calibrate
 from lfgraph.rectification import (
     RectificationError,
     attach,

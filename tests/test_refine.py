@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.calibrate import evaluate_calibration
 from lfgraph.calibration import Calibration
 from lfgraph.camera import project_world
 from lfgraph.capture import open_capture
 from lfgraph.cli import EXIT_BAD_INPUT, main
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, ideal_ref_T_view, make_rig, shake_rig
 from lfgraph.datasets.scenes import get_scene
+from lfgraph.evaluation import evaluate_calibration
 from lfgraph.refinement.matching import track_chain
 from lfgraph.refinement.staged import RefineSettings, parse_stages, refine, refine_tracks, run_stage
 from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter

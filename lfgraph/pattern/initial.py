@@ -1,0 +1,142 @@
+"""Starting values of pattern calibration: input checks, per-frame PnP, relative poses through a
+maximum spanning tree of shared frames, board poses, design values."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.detections import BoardObservations
+from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
+
+MIN_FRAMES_PER_VIEW = 3  # Zhang's method needs >= 3 board poses for fx, fy, cx, cy, k1, k2
+
+
+class CalibrationInputError(ValueError):
+    """Observations that cannot be calibrated; the message names the view (and file) and what is missing."""
+
+
+# ------------------------------------------------------------------------------------------------- checks
+def check_observations(obs: BoardObservations) -> None:
+    """Refuse observations that cannot calibrate every view.
+
+    Raises:
+        CalibrationInputError: a view that never saw the board, or saw it in fewer than `MIN_FRAMES_PER_VIEW`
+            frames — the message names the view and its files.
+    """
+    seen = obs.seen
+    counts = seen.sum(axis=1)
+    problems = []
+    for v in np.nonzero(counts < MIN_FRAMES_PER_VIEW)[0]:
+        files = ""
+        if obs.sources:
+            first = obs.sources[0]
+            files = f" (e.g. {first[v] if len(first) == obs.num_views else first[0]})"
+        what = "no board detected in any frame" if counts[v] == 0 else \
+            f"the board in only {counts[v]} frame(s), at least {MIN_FRAMES_PER_VIEW} are needed"
+        problems.append(f"{obs.describe(int(v))}{files}: {what}")
+    if problems:
+        raise CalibrationInputError(
+            f"cannot calibrate the {obs.grid} array with the {obs.board} board: " + "; ".join(problems)
+            + ". Check the board size (--board, inner corners) and that the board is inside these views.")
+
+
+# ------------------------------------------------------------------------------------------------- helpers
+def masked_object_points(obs: BoardObservations, mask: np.ndarray) -> np.ndarray:
+    return obs.board.object_points()[mask].astype(np.float32)
+
+
+def mean_rotation(rotations: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of (N, 3, 3) rotations (projection of the sum onto SO(3))."""
+    u, _, vt = np.linalg.svd(np.sum(rotations, axis=0))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def mean_pose(poses: np.ndarray) -> np.ndarray:
+    return make_T(mean_rotation(poses[:, :3, :3]), poses[:, :3, 3].mean(axis=0))
+
+
+def pnp_all(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...]) -> np.ndarray:
+    """(V, F, 4, 4) ``view_T_board`` from PnP in every seen view-frame (NaN elsewhere)."""
+    out = np.full((obs.num_views, obs.num_frames, 4, 4), np.nan)
+    seen = obs.seen
+    for v, f in zip(*np.nonzero(seen), strict=True):
+        mask = obs.valid[v, f]
+        ok, rvec, tvec = cv2.solvePnP(masked_object_points(obs, mask), obs.corners_px[v, f][mask].astype(np.float32),
+                                      intrinsics[v].K, intrinsics[v].dist_cv, flags=cv2.SOLVEPNP_ITERATIVE)
+        if ok:
+            out[v, f] = make_T(rotation_from_rotvec(rvec.ravel()), tvec.ravel())
+    return out
+
+
+def relative_poses(view_T_board: np.ndarray, reference: int) -> tuple[np.ndarray, np.ndarray]:  # noqa: N803
+    """``ref_T_view`` of every view from per-frame board poses, through a tree of most-shared frames.
+
+    Views that share frames with the reference get the average over those frames; others are linked through the
+    view they share most frames with (a maximum spanning tree grown from the reference).
+
+    Returns:
+        (V, 4, 4) ``ref_T_view`` and (V,) the view each was linked through (itself for the reference).
+    """
+    n_views = view_T_board.shape[0]
+    have = np.all(np.isfinite(view_T_board.reshape(n_views, view_T_board.shape[1], -1)), axis=-1)
+    shared = (have[:, None, :] & have[None, :, :]).sum(axis=-1)
+    ref_T_view = np.full((n_views, 4, 4), np.nan)  # noqa: N806
+    ref_T_view[reference] = np.eye(4)
+    parent = np.full(n_views, -1)
+    parent[reference] = reference
+    while np.any(parent < 0):
+        linked = parent >= 0
+        score = np.where(linked[:, None] & ~linked[None, :], shared, 0)
+        a, b = np.unravel_index(np.argmax(score), score.shape)
+        if score[a, b] == 0:
+            break
+        frames = np.nonzero(have[a] & have[b])[0]
+        # a_T_b = a_T_board @ board_T_b, averaged over the shared frames
+        a_T_b = mean_pose(np.stack([view_T_board[a, f] @ invert_T(view_T_board[b, f]) for f in frames]))  # noqa: N806
+        ref_T_view[b] = ref_T_view[a] @ a_T_b
+        parent[b] = a
+    return ref_T_view, parent
+
+
+def initial_board_T_ref(view_T_board: np.ndarray, ref_T_view: np.ndarray, counts: np.ndarray) -> np.ndarray:  # noqa: N802, N803
+    """(F, 4, 4) per frame ``board_T_ref`` from the view that saw the most corners of it."""
+    n_frames = view_T_board.shape[1]
+    out = np.full((n_frames, 4, 4), np.nan)
+    for f in range(n_frames):
+        order = np.argsort(-counts[:, f], kind="stable")
+        for v in order:
+            if counts[v, f] == 0 or not np.all(np.isfinite(view_T_board[v, f])) \
+                    or not np.all(np.isfinite(ref_T_view[v])):
+                continue
+            out[f] = invert_T(view_T_board[v, f]) @ invert_T(ref_T_view[v])
+            break
+    return out
+
+
+
+# ------------------------------------------------------------------------------------------------- design start
+def design_initial(obs: BoardObservations, focal_px: float | None = None,
+                   pitch_m: float | None = None) -> tuple[tuple[Intrinsics, ...], np.ndarray, np.ndarray]:
+    """Design values: focal length (given, or the larger image side), centred principal point, no distortion;
+    poses from the ideal grid (``pitch_m``) or, without it, PnP averages under the design intrinsics.
+
+    Returns:
+        intrinsics, ``ref_T_view`` (V, 4, 4) and ``view_T_board`` (V, F, 4, 4) from PnP.
+    """
+    w, h = obs.image_size_px
+    f = float(focal_px) if focal_px is not None else float(max(w, h))
+    design = Intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0)
+    intrinsics = (design,) * obs.num_views
+    view_T_board = pnp_all(obs, intrinsics)  # noqa: N806
+    if pitch_m is not None:
+        ref_T_view = np.stack([make_T(np.eye(3), np.array([*obs.grid.offset(v)[::-1], 0.0]) * pitch_m)  # noqa: N806
+                               for v in range(obs.num_views)])
+    else:
+        ref_T_view, parent = relative_poses(view_T_board, obs.grid.reference)  # noqa: N806
+        if np.any(parent < 0):
+            bad = [obs.describe(v) for v in np.nonzero(parent < 0)[0]]
+            raise CalibrationInputError(f"no chain of shared frames links {', '.join(bad)} to the reference view")
+    return intrinsics, ref_T_view, view_T_board

@@ -1,0 +1,111 @@
+"""The joint route: one GTSAM factor graph over all views and frames (`lfgraph.factors.board_graph`),
+started from the paper route or design values; 1-sigma uncertainties from `gtsam.Marginals`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.detections import BoardObservations
+from lfgraph.factors import board_graph
+from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, view_pose_key
+from lfgraph.factors.noise import parse_robust, pixel_noise, robust
+from lfgraph.geometry import from_pose3
+from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSettings, optimize
+from lfgraph.pattern.config import JointSettings
+from lfgraph.pattern.scoring import rig_residuals
+
+SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below this (noise-free synthetic data)
+
+
+@dataclass(frozen=True)
+class JointResult:
+    intrinsics: tuple[Intrinsics, ...]
+    ref_T_view: np.ndarray
+    board_T_ref: np.ndarray
+    object_points_m: np.ndarray
+    optimization: OptimizationResult
+    noise_sigma_px: float
+    sigmas: tuple[dict[str, Any], ...] | None
+
+
+def _intrinsics_from_values(values: gtsam.Values, v: int, tangential: bool) -> Intrinsics:
+    cal = values.atCal3DS2(calib_key(v))
+    k = cal.k()
+    # skew and (unless estimated) p1, p2 are pinned at 0 by priors; clear their ~1e-13 round-off
+    p1, p2 = (float(k[2]), float(k[3])) if tangential else (0.0, 0.0)
+    return Intrinsics(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), p1, p2)
+
+
+def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
+                     ref_T_view: np.ndarray) -> tuple[dict[str, Any], ...]:  # noqa: N803
+    marginals = gtsam.Marginals(graph, values)
+    keys = gtsam.KeyVector([calib_key(v) for v in range(n_views)] + [view_pose_key(v) for v in range(n_views)])
+    joint = marginals.jointMarginalCovariance(keys)
+    out = []
+    for v in range(n_views):
+        kc = np.sqrt(np.maximum(np.diag(joint.at(calib_key(v), calib_key(v))), 0.0)) * scale
+        pc = np.asarray(joint.at(view_pose_key(v), view_pose_key(v))) * scale**2
+        R = ref_T_view[v][:3, :3]  # noqa: N806  Pose3 covariance is in the body frame, rotation first
+        pos_cov = R @ pc[3:, 3:] @ R.T
+        rot_cov = R @ pc[:3, :3] @ R.T
+        out.append({
+            "fx_px": float(kc[0]), "fy_px": float(kc[1]), "cx_px": float(kc[3]), "cy_px": float(kc[4]),
+            "k1": float(kc[5]), "k2": float(kc[6]),
+            "position_mm": [float(x) for x in 1e3 * np.sqrt(np.maximum(np.diag(pos_cov), 0.0))],
+            "rotation_deg": [float(x) for x in np.degrees(np.sqrt(np.maximum(np.diag(rot_cov), 0.0)))],
+        })
+    return tuple(out)
+
+
+def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray,  # noqa: N803
+                    board_T_ref: np.ndarray, settings: JointSettings | None = None,  # noqa: N803
+                    callback: IterationCallback | None = None) -> JointResult:
+    """One GTSAM graph over all views and frames (see `lfgraph.factors.board_graph`).
+
+    Args:
+        obs: the corners.
+        intrinsics, ref_T_view, board_T_ref: the start (from `calibrate_paper` or `design_initial`).
+        settings: options; `JointSettings()` by default.
+        callback: optimiser iteration hook.
+    """
+    settings = settings or JointSettings()
+    frames = [f for f in range(obs.num_frames) if np.all(np.isfinite(board_T_ref[f]))]
+    valid = obs.valid.copy()
+    valid[:, [f for f in range(obs.num_frames) if f not in frames]] = False
+    kernel, threshold = parse_robust(settings.robust)
+    noise = robust(pixel_noise(settings.corner_sigma_px), kernel, threshold)
+    graph = gtsam.NonlinearFactorGraph()
+    n_obs = board_graph.add_board_observations(graph, obs.corners_px, valid, noise)
+    obj = obs.board.object_points()
+    board_sigma_m = board_graph.RIGID_BOARD_SIGMA_M if settings.board_sigma_mm is None \
+        else settings.board_sigma_mm * 1e-3
+    board_graph.add_corner_priors(graph, obj, board_sigma_m)
+    board_graph.add_gauge_prior(graph, obs.grid.reference)
+    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential)
+    values = gtsam.Values()
+    board_graph.insert_rig_values(values, intrinsics, ref_T_view)
+    board_graph.insert_board_values(values, board_T_ref, obj, frames)
+    result = optimize(graph, values, OptimizerSettings(max_iterations=settings.max_iterations), callback)
+    est = result.values
+    n_views = obs.num_views
+    intr = tuple(_intrinsics_from_values(est, v, settings.tangential) for v in range(n_views))
+    poses = np.stack([from_pose3(est.atPose3(view_pose_key(v))) for v in range(n_views)])
+    poses[obs.grid.reference] = np.eye(4)  # the gauge prior holds it to 1e-8; make it exact for the file
+    boards = np.full((obs.num_frames, 4, 4), np.nan)
+    for f in frames:
+        boards[f] = from_pose3(est.atPose3(board_pose_key(f)))
+    corners = np.stack([np.asarray(est.atPoint3(board_corner_key(j))) for j in range(len(obj))])
+    res = rig_residuals(intr, poses, boards, obs, corners)
+    n_params = n_views * (8 if settings.tangential else 6) + 6 * (n_views - 1) + 6 * len(frames)
+    dof = max(2 * n_obs - n_params, 1)
+    noise_sigma = float(np.sqrt(np.nansum(res**2) / dof))
+    sigmas = None
+    if settings.marginals:
+        scale = max(noise_sigma, SIGMA_FLOOR_PX) / settings.corner_sigma_px
+        sigmas = _marginal_sigmas(graph, est, n_views, scale, poses)
+    return JointResult(intr, poses, boards, corners, result, noise_sigma, sigmas)

@@ -1,0 +1,115 @@
+"""`calibrate`: the whole array from board observations, by the paper's route or the joint graph, scored the
+same way (the **rig-consistent RMS** reprojects every observation through the one rig, board poses re-fitted with
+the rig fixed, so inconsistency between views cannot hide in per-view figures)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.detections import BoardObservations
+from lfgraph.optimize import IterationCallback
+from lfgraph.pattern.config import INITS, METHODS, JointSettings
+from lfgraph.pattern.initial import check_observations, design_initial, initial_board_T_ref
+from lfgraph.pattern.joint import calibrate_joint
+from lfgraph.pattern.paper import calibrate_paper
+from lfgraph.pattern.scoring import (
+    CalibrationReport,
+    coverage_map,
+    coverage_warnings,
+    fit_board_poses,
+    outlier_frames,
+    rig_residuals,
+    rms_px,
+)
+
+
+def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper",
+              settings: JointSettings | None = None, focal_px: float | None = None, pitch_m: float | None = None,
+              callback: IterationCallback | None = None,
+              log: Callable[[str], None] | None = None) -> tuple[Calibration, CalibrationReport]:
+    """Calibrate the array from board observations.
+
+    Args:
+        obs: corners of every view and frame.
+        method: ``joint`` (default) or ``paper``.
+        init: start of the joint route: ``paper`` (the paper route's result) or ``design`` (focal length
+            ``focal_px`` or the image size, centred principal point, zero distortion, ideal grid of ``pitch_m``
+            or PnP-averaged poses).
+        settings: joint-route options.
+        focal_px, pitch_m: design values for ``init="design"``.
+        callback: optimiser iteration hook (joint route).
+        log: receives one line per stage (the CLI prints them).
+
+    Returns:
+        the calibration (its ``metrics`` hold the report's figures) and the report.
+
+    Raises:
+        CalibrationInputError: views without enough board detections, views that share no frames with others.
+        ValueError: unknown method or init.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if init not in INITS:
+        raise ValueError(f"unknown init {init!r}; choose from {', '.join(INITS)}")
+    say = log or (lambda _msg: None)
+    check_observations(obs)
+    seconds: dict[str, float] = {}
+    warnings: list[str] = []
+    n_views = obs.num_views
+    paper = None
+    if method == "paper" or init == "paper":
+        t0 = time.perf_counter()
+        paper = calibrate_paper(obs)
+        seconds["paper"] = time.perf_counter() - t0
+        warnings += paper.warnings
+        say(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
+            f"{'-' if paper.e_pnp_px is None else f'{paper.e_pnp_px:.4f}'} px ({seconds['paper']:.1f} s)")
+    joint = None
+    if method == "paper":
+        intrinsics, ref_T_view = paper.intrinsics, paper.ref_T_view  # noqa: N806
+        t0 = time.perf_counter()
+        board_T_ref = fit_board_poses(intrinsics, ref_T_view, obs,  # noqa: N806
+                                      initial_board_T_ref(paper.view_T_board, ref_T_view, obs.valid.sum(axis=2)))
+        seconds["rig_fit"] = time.perf_counter() - t0
+        res = rig_residuals(intrinsics, ref_T_view, board_T_ref, obs)
+        boards = board_T_ref
+    else:
+        if paper is not None:
+            start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
+        else:
+            start_intr, start_poses, view_T_board = design_initial(obs, focal_px, pitch_m)  # noqa: N806
+        start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
+        t0 = time.perf_counter()
+        joint = calibrate_joint(obs, start_intr, start_poses, start_boards, settings, callback)
+        seconds["joint"] = time.perf_counter() - t0
+        say(f"joint route: {joint.optimization.iterations} LM iterations, error {joint.optimization.initial_error:.4g}"
+            f" -> {joint.optimization.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
+        intrinsics, ref_T_view = joint.intrinsics, joint.ref_T_view  # noqa: N806
+        res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
+        boards = joint.board_T_ref
+    view_rms = np.asarray(rms_px(res, axis=(1, 2)))
+    frame_rms = np.asarray(rms_px(res, axis=(0, 2)))
+    rig_rms = float(rms_px(res, axis=None))
+    outliers = outlier_frames(frame_rms)
+    if outliers:
+        warnings.append("frames with outlying reprojection error (check these images for a mis-detected board): "
+                        + ", ".join(f"{obs.frame_names[f]} ({frame_rms[f]:.3f} px)" for f in outliers))
+    cells = coverage_map(obs)
+    warnings += coverage_warnings(obs, cells)
+    report = CalibrationReport(
+        method=method, init=None if method == "paper" else init,
+        e_mono_px=None if paper is None else paper.e_mono_px, e_pnp_px=None if paper is None else paper.e_pnp_px,
+        view_e_mono_px=np.full(n_views, np.nan) if paper is None else paper.view_e_mono_px,
+        view_e_pnp_px=np.full(n_views, np.nan) if paper is None else paper.view_e_pnp_px,
+        rig_rms_px=rig_rms, view_rms_px=view_rms, frame_rms_px=frame_rms, outlier_frames=tuple(outliers),
+        coverage=cells.mean(axis=(1, 2)), coverage_cells=cells, frames_per_view=obs.seen.sum(axis=1),
+        noise_sigma_px=None if joint is None else joint.noise_sigma_px,
+        sigmas=None if joint is None else joint.sigmas,
+        optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds,
+        board_T_ref=boards, residuals_px=res)
+    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, report.metrics())
+    return calib, report
