@@ -28,7 +28,7 @@ from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.evaluation import evaluate_calibration
-from lfgraph.pattern import JointSettings, calibrate_joint, calibrate_paper
+from lfgraph.pattern import CalibrateConfig, calibrate_joint, calibrate_paper
 from lfgraph.pattern.initial import initial_board_T_ref
 from lfgraph.peers import calibrate_multiview
 from lfgraph.report import format_table
@@ -82,7 +82,7 @@ def monte_carlo(seeds: int) -> tuple[list[list], list[str], dict]:
     truth = make_checkerboard_truth(truth_calib, scene.checkerboard, rng)
     keys = ["fx", "cx", "k1", "k2", "pos", "rot"]
     rows, failures, timing = [], [], {}
-    settings_nomarg = JointSettings(marginals=False)
+    settings_nomarg = CalibrateConfig(marginals=False)
     # warm up GTSAM once so the first timed solve does not pay the import/allocation cost
     c, v = make_corner_observations(truth, 0.1, np.random.default_rng(0))
     warm = observations_from_arrays(truth.board, truth_calib.grid, truth_calib.image_size_px, c, v)

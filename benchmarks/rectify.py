@@ -19,7 +19,7 @@ from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_o
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
-from lfgraph.pattern import calibrate
+from lfgraph.pattern import CalibrateConfig, calibrate
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
 from lfgraph.report import alignment_table, format_table
 
@@ -82,7 +82,7 @@ def main() -> int:
     corners, valid = make_corner_observations(truth, 0.1, np.random.default_rng(1))
     est, _ = calibrate(observations_from_arrays(truth.board, calib.grid, calib.image_size_px, corners, valid))
     est_paper, _ = calibrate(observations_from_arrays(truth.board, calib.grid, calib.image_size_px, corners, valid),
-                             method="paper")
+                             CalibrateConfig(method="paper"))
     print("misalignment at infinity (true cameras, rectified with each calibration; corner noise 0.1 px):")
     print(alignment_table([
         ("true calibration", infinity_alignment(calib, rect)),

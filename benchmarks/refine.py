@@ -25,7 +25,7 @@ from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.evaluation import evaluate_calibration
-from lfgraph.refinement.staged import RefineSettings, refine
+from lfgraph.refinement import RefineConfig, refine
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.report import format_table
 
@@ -68,10 +68,10 @@ def evaluate(refined: Calibration, truth: Calibration, report) -> dict[str, floa
             "transfer": float(np.sqrt(np.mean(te**2)))}
 
 
-def noise_floor(truth: Calibration, refined: Calibration, frames: list[np.ndarray], settings: RefineSettings) -> float:
+def noise_floor(truth: Calibration, refined: Calibration, frames: list[np.ndarray], settings: RefineConfig) -> float:
     """Final RMS / RMS of the same tracks under the true cameras (tracks re-made here, as refine makes them)."""
     from lfgraph.refinement.matching import track_chain
-    from lfgraph.refinement.staged import collect_tracks
+    from lfgraph.refinement.tracks import collect_tracks
 
     ratios_num, ratios_den = [], []
     for images in frames:
@@ -102,7 +102,7 @@ def main() -> int:
         rows.append([f"{rot:g} deg / {trans:g} mm", "input (original)", f"{before['rot']:.4f}",
                      f"{before['transfer']:.3f}", f"{before['pos']:.3f}", "-", "-"])
         for schedule in ("paper", "default"):
-            settings = RefineSettings(stages=schedule)
+            settings = RefineConfig(stages=schedule)
             refined, report = refine(original, frames, settings)
             r = evaluate(refined, truth, report)
             floor = noise_floor(truth, refined, frames, settings)

@@ -19,7 +19,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.datasets.middlebury import load_mview
 from lfgraph.evaluation import evaluate_calibration
 from lfgraph.geometry import make_T, rotation_from_rotvec
-from lfgraph.refinement.staged import RefineSettings, refine_tracks
+from lfgraph.refinement import RefineConfig, refine_tracks
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.unordered import match_unordered, nearest_pairs
 from lfgraph.report import format_table
@@ -53,7 +53,7 @@ def main() -> int:
     for k, tr in tracks.items():
         gt = reprojection_errors(truth, triangulate_dlt(truth, tr.points_px, tr.valid), tr.points_px, tr.valid)
         for robust in ("none", "cauchy:3", "huber:1"):
-            refined, stages, _ = refine_tracks(perturbed, tr.points_px, tr.valid, RefineSettings(robust=robust))
+            refined, stages, _ = refine_tracks(perturbed, tr.points_px, tr.valid, RefineConfig(robust=robust))
             rot, pos = errs(refined)
             best = min(best, rot)
             rows.append([f"tracks in >= {k} views ({tr.num_tracks}; GT median residual "

@@ -1,0 +1,99 @@
+"""lfgraph: calibrate, rectify and auto-refine light-field cameras built as camera arrays, with GTSAM factor graphs.
+
+The public API (``import lfgraph as lf``)::
+
+    calib = lf.Calibration.load("calibration.json")
+    capture = lf.open_capture("scene/", calib.grid)
+    refined, report = lf.refine(calib, capture.frames(), lf.RefineConfig(robust="cauchy:0.5"))
+    refined.save("refined.json")
+
+Names are loaded on first use, so ``import lfgraph`` (and ``lfgraph --help``) does not import GTSAM, OpenCV or
+rerun.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+__version__ = "0.2.0"
+
+# public name -> module that defines it
+_EXPORTS = {
+    "Calibration": "lfgraph.calibration",
+    "CalibrationFileError": "lfgraph.calibration",
+    "Intrinsics": "lfgraph.camera",
+    "ViewGrid": "lfgraph.grid",
+    "BoardSpec": "lfgraph.board",
+    "BoardObservations": "lfgraph.detections",
+    "detect_capture": "lfgraph.detections",
+    "CaptureSet": "lfgraph.capture",
+    "CaptureError": "lfgraph.capture",
+    "open_capture": "lfgraph.capture",
+    "calibrate": "lfgraph.pattern.pipeline",
+    "CalibrateConfig": "lfgraph.pattern.config",
+    "Method": "lfgraph.pattern.config",
+    "Init": "lfgraph.pattern.config",
+    "CalibrationReport": "lfgraph.pattern.scoring",
+    "CalibrationInputError": "lfgraph.pattern.initial",
+    "rectify": "lfgraph.rectification",
+    "refine": "lfgraph.refinement.schedule",
+    "RefineConfig": "lfgraph.refinement.config",
+    "Stage": "lfgraph.refinement.config",
+    "TriangulationFilter": "lfgraph.refinement.config",
+    "RefinementReport": "lfgraph.refinement.report",
+    "check": "lfgraph.drift",
+    "DriftReport": "lfgraph.drift",
+    "evaluate": "lfgraph.evaluation",
+    "CalibrationErrors": "lfgraph.evaluation",
+    "RobustKernel": "lfgraph.factors.noise",
+    "GraphContext": "lfgraph.factors.hooks",
+    "Observer": "lfgraph.observer",
+    "BaseObserver": "lfgraph.observer",
+    "Observers": "lfgraph.observer",
+    "StageEnd": "lfgraph.observer",
+}
+_SUBMODULES = ("viz", "factors", "datasets", "pattern", "refinement")
+
+__all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
+           "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
+           "CaptureSet", "DriftReport", "GraphContext", "Init", "Intrinsics", "Method", "Observer", "Observers",
+           "RefineConfig", "RefinementReport", "RobustKernel", "Stage", "StageEnd", "TriangulationFilter",
+           "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "open_capture", "rectify", "refine",
+           "viz", "factors", "datasets", "pattern", "refinement"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    if name in _SUBMODULES:
+        return importlib.import_module(f"lfgraph.{name}")
+    raise AttributeError(f"module 'lfgraph' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return __all__
+
+
+if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazily above
+    from lfgraph.board import BoardSpec
+    from lfgraph.calibration import Calibration, CalibrationFileError
+    from lfgraph.camera import Intrinsics
+    from lfgraph.capture import CaptureError, CaptureSet, open_capture
+    from lfgraph.detections import BoardObservations, detect_capture
+    from lfgraph.drift import DriftReport, check
+    from lfgraph.evaluation import CalibrationErrors, evaluate
+    from lfgraph.factors.hooks import GraphContext
+    from lfgraph.factors.noise import RobustKernel
+    from lfgraph.grid import ViewGrid
+    from lfgraph.observer import BaseObserver, Observer, Observers, StageEnd
+    from lfgraph.pattern.config import CalibrateConfig, Init, Method
+    from lfgraph.pattern.initial import CalibrationInputError
+    from lfgraph.pattern.pipeline import calibrate
+    from lfgraph.pattern.scoring import CalibrationReport
+    from lfgraph.rectification import rectify
+    from lfgraph.refinement.config import RefineConfig, Stage, TriangulationFilter
+    from lfgraph.refinement.report import RefinementReport
+    from lfgraph.refinement.schedule import refine

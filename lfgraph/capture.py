@@ -95,6 +95,12 @@ class CaptureSet:
     def __len__(self) -> int:
         return len(self.frame_names)
 
+    def frames(self, limit: int | None = None, grayscale: bool = True) -> Iterator[np.ndarray]:
+        """Each frame's (V, H, W) images in order, loaded lazily (at most ``limit`` frames)."""
+        n = len(self) if limit is None else min(len(self), limit)
+        for f in range(n):
+            yield self.load_frame(f, grayscale)
+
     def paths(self, frame: int) -> tuple[Path, ...]:
         return self.files[frame]
 

@@ -19,9 +19,10 @@ from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import detect_capture
 from lfgraph.evaluation import evaluate_calibration
-from lfgraph.pattern import calibrate
+from lfgraph.observer import BaseObserver
+from lfgraph.pattern import CalibrateConfig, calibrate
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
-from lfgraph.refinement.staged import refine
+from lfgraph.refinement import refine
 from lfgraph.report import (
     alignment_table,
     calibration_report_text,
@@ -33,6 +34,13 @@ from lfgraph.report import (
 
 DEMO_SCENE = "paper-4x4"
 DEMO_SEED = 0
+
+
+class _Indented(BaseObserver):
+    """Prints the calibration's log lines indented under the demo's step."""
+
+    def log(self, message: str) -> None:
+        print(f"      {message}")
 
 
 def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_SCENE,
@@ -58,8 +66,8 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     det_rms = float(np.sqrt(np.mean(np.sum((obs.corners_px[both] - truth.corners_px[both]) ** 2, axis=-1))))
     print(f"      board found in {obs.seen.sum()} of {obs.seen.size} images; detected corners are "
           f"{det_rms:.4f} px RMS from the true projections")
-    paper, _ = calibrate(obs, method="paper")
-    joint, report = calibrate(obs, method="joint", log=lambda m: print(f"      {m}"))
+    paper, _ = calibrate(obs, CalibrateConfig(method="paper"))
+    joint, report = calibrate(obs, observer=_Indented())
     out_json = out / "calibration.json"
     joint.save(out_json)
     print(calibration_report_text(joint, report))

@@ -45,6 +45,22 @@ def reprojection_residuals(calib: Calibration, tracks: Tracks) -> np.ndarray:
     return reprojection_errors(calib, points, tracks.points_px, tracks.valid)
 
 
+def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSettings | None = None) -> DriftReport:
+    """The drift check: does the calibration still fit these ordinary (textured) frames?
+
+    Tracks features through the grid, triangulates them with the calibration, drops mismatches and reports the
+    reprojection RMS per view and the alignment figures (with the stored rectification, or one computed here).
+
+    Args:
+        calib: the calibration to check.
+        frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size.
+    """
+    from lfgraph.rectification import compute_rectification, stored_rectification
+
+    rect = stored_rectification(calib) or compute_rectification(calib)
+    return check_capture(calib, rect, frames, settings)
+
+
 def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.ndarray],
                   settings: MatchSettings | None = None) -> DriftReport:
     """Run the drift check over (V, H, W) grayscale frames."""

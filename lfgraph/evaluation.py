@@ -36,6 +36,11 @@ class CalibrationErrors:
         return out
 
 
+def evaluate(estimate: Calibration, truth: Calibration) -> CalibrationErrors:
+    """Per-parameter errors of ``estimate`` against ``truth`` (alias of `evaluate_calibration`)."""
+    return evaluate_calibration(estimate, truth)
+
+
 def evaluate_calibration(estimate: Calibration, truth: Calibration) -> CalibrationErrors:
     """Per-parameter errors of ``estimate`` against ``truth``.
 

@@ -303,7 +303,23 @@ def attach(calib: Calibration, rect: Rectification) -> Calibration:
     return calib.replace(rectification=rect.to_dict())
 
 
+def rectify(calib: Calibration, crop: str = "valid") -> Calibration:
+    """The paper's rectification (Section 3.3) computed and stored in the calibration.
+
+    Rectify images with ``maps = build_maps(calib, stored_rectification(calib))`` and ``remap_views(images, maps)``.
+
+    Args:
+        calib: a calibration of at least two views.
+        crop: ``valid`` (the rectangle every view fills) or ``full`` (the source size).
+
+    Raises:
+        RectificationError: unknown crop mode, a grid of one view, views with no common region.
+    """
+    return attach(calib, compute_rectification(calib, crop))
+
+
 def stored_rectification(calib: Calibration) -> Rectification | None:
+    """The rectification stored in ``calib`` (by `rectify` or a file), or None."""
     if calib.rectification is None:
         return None
     return Rectification.from_dict(calib.rectification, calib.num_views)

@@ -122,7 +122,7 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.evaluation import evaluate_calibration
-    from lfgraph.refinement.staged import RefineSettings, refine
+    from lfgraph.refinement import RefineConfig, refine
 
     named = get_scene(trial.scene)
     original = make_rig(named.rig, np.random.default_rng([trial.seed, 0]))
@@ -148,7 +148,7 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     rows = []
     for stages, robust in trial.configs:
         try:
-            refined, report = refine(original, frames, RefineSettings(stages=stages, robust=robust))
+            refined, report = refine(original, frames, RefineConfig(stages=stages, robust=robust))
             e = evaluate_calibration(refined, truth)
             result = {"landmarks": report.stages[-1].landmarks if report.stages else 0,
                       "rms_before_px": report.rms_before_px, "rms_after_px": report.rms_after_px,

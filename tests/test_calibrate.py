@@ -11,7 +11,7 @@ from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.evaluation import evaluate_calibration
-from lfgraph.pattern import CalibrationInputError, JointSettings, calibrate, calibrate_paper
+from lfgraph.pattern import CalibrateConfig, CalibrationInputError, calibrate, calibrate_paper
 
 EXACT_RELATIVE = 1e-6  # noise-free: every parameter to 1e-6 of its scale (issue 3)
 FOCAL_SCALE_PX = 300.0  # small-2x2 focal length: the scale of fx, fy, cx, cy errors
@@ -51,7 +51,7 @@ def max_relative_errors(est, true_calib):
 def test_joint_recovers_noise_free_rig_exactly(init):
     calib, truth = small_rig()
     obs = observations(calib, truth, 0.0)
-    est, report = calibrate(obs, "joint", init, focal_px=320.0 if init == "design" else None)
+    est, report = calibrate(obs, CalibrateConfig(init=init, focal_px=320.0 if init == "design" else None))
     for name, rel in max_relative_errors(est, calib).items():
         assert rel < EXACT_RELATIVE, f"{name} error {rel:.2e} relative"
     assert report.rig_rms_px < 1e-4
@@ -62,7 +62,7 @@ def test_joint_with_partial_boards_and_tangential_distortion():
     calib, truth = small_rig(tangential=True)
     obs = observations(calib, truth, 0.0, full_boards_only=False)
     assert obs.valid.sum() > observations(calib, truth, 0.0).valid.sum()  # partial boards are really there
-    est, _ = calibrate(obs, "joint", "design", settings=JointSettings(tangential=True), focal_px=300.0)
+    est, _ = calibrate(obs, CalibrateConfig(init="design", tangential=True, focal_px=300.0))
     for v in range(calib.num_views):
         assert est.intrinsics[v].p1 == pytest.approx(calib.intrinsics[v].p1, abs=1e-8)
         assert est.intrinsics[v].p2 == pytest.approx(calib.intrinsics[v].p2, abs=1e-8)
@@ -72,15 +72,15 @@ def test_joint_with_partial_boards_and_tangential_distortion():
 
 def test_tangential_held_at_zero_by_default():
     calib, truth = small_rig()
-    est, _ = calibrate(observations(calib, truth, 0.1), "joint")
+    est, _ = calibrate(observations(calib, truth, 0.1))
     assert all(i.p1 == 0.0 and i.p2 == 0.0 for i in est.intrinsics)
 
 
 def test_noisy_joint_errors_match_marginals_and_beat_the_paper_route():
     calib, truth = small_rig(frames=16)
     obs = observations(calib, truth, SIGMA_PX)
-    est, report = calibrate(obs, "joint")
-    paper, paper_report = calibrate(obs, "paper")
+    est, report = calibrate(obs)
+    paper, paper_report = calibrate(obs, CalibrateConfig(method="paper"))
     err = evaluate_calibration(est, calib)
     assert report.noise_sigma_px == pytest.approx(SIGMA_PX, rel=0.15)  # the residuals estimate the true noise
     for v in range(calib.num_views):
@@ -121,8 +121,8 @@ def test_robust_kernel_resists_a_corrupted_frame_and_the_frame_is_flagged():
     bad_frame = int(np.nonzero(obs.seen[1])[0][2])
     corners[1, bad_frame] += np.array([4.0, -3.0])  # a view's corners mis-assigned by a few pixels in one frame
     bad = dataclasses.replace(obs, corners_px=corners)
-    plain, plain_report = calibrate(bad, "joint")
-    robust, _ = calibrate(bad, "joint", settings=JointSettings(robust="cauchy:0.3"))
+    plain, plain_report = calibrate(bad)
+    robust, _ = calibrate(bad, CalibrateConfig(robust="cauchy:0.3"))
     assert bad_frame in plain_report.outlier_frames
     assert any("outlying" in w for w in plain_report.warnings)
     e_plain = evaluate_calibration(plain, calib).summary()
@@ -136,7 +136,7 @@ def test_coverage_warning_names_the_empty_region():
     obs = observations(calib, truth, SIGMA_PX)
     w, _ = calib.image_size_px
     valid = obs.valid & (np.nan_to_num(obs.corners_px[..., 0], nan=w) < 0.5 * w)  # only the left half is seen
-    _, report = calibrate(dataclasses.replace(obs, valid=valid), "joint", "design", focal_px=300.0)
+    _, report = calibrate(dataclasses.replace(obs, valid=valid), CalibrateConfig(init="design", focal_px=300.0))
     assert np.all(report.coverage < 0.6)
     view0 = [m for m in report.warnings if "view 0 (r00_c00)" in m]
     assert view0
@@ -159,12 +159,10 @@ def test_view_without_enough_frames_is_named():
 
 
 def test_unknown_method_or_kernel_is_refused():
-    calib, truth = small_rig()
-    obs = observations(calib, truth, SIGMA_PX)
     with pytest.raises(ValueError, match="unknown method"):
-        calibrate(obs, "bundle")
+        CalibrateConfig(method="bundle")
     with pytest.raises(ValueError, match="unknown robust kernel"):
-        JointSettings(robust="hubber:1")
+        CalibrateConfig(robust="hubber:1")
 
 
 def test_evaluate_refuses_a_different_grid():
@@ -200,8 +198,8 @@ def test_board_flatness_option_estimates_a_warped_board():
             corners[v, f] = calib.intrinsics[v].project(pts)
     valid = truth.corner_valid & truth.board_visible[..., None]
     obs = observations_from_arrays(truth.board, calib.grid, calib.image_size_px, corners, valid)
-    rigid, rigid_report = calibrate(obs, "joint")
-    flexible, flexible_report = calibrate(obs, "joint", settings=JointSettings(board_sigma_mm=1.0))
+    rigid, rigid_report = calibrate(obs)
+    flexible, flexible_report = calibrate(obs, CalibrateConfig(board_sigma_mm=1.0))
     e_rigid = evaluate_calibration(rigid, calib).summary()
     e_flex = evaluate_calibration(flexible, calib).summary()
     assert flexible_report.rig_rms_px < 0.2 * rigid_report.rig_rms_px

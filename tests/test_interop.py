@@ -1,4 +1,4 @@
-"""Calibration import/export (lfgraph.interop, lfgraph.interop_cli): round trips, file layouts, real Middlebury
+"""Calibration import/export (lfgraph.interop, lfgraph.cli.interop): round trips, file layouts, real Middlebury
 files, and every validation error."""
 
 import argparse
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lfgraph.calibration import Calibration, CalibrationFileError
+from lfgraph.cli.interop import add_parsers
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.geometry import invert_T, make_T
 from lfgraph.grid import ViewGrid
@@ -22,7 +23,6 @@ from lfgraph.interop import (
     export_calibration,
     import_calibration,
 )
-from lfgraph.interop_cli import add_parsers
 from lfgraph.rectification import attach, compute_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
@@ -498,7 +498,7 @@ def test_colmap_reads_simpler_camera_models(tmp_path):
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="command", required=True)
-    add_parsers(sub, int)
+    add_parsers(sub)
     return p
 
 

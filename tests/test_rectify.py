@@ -10,7 +10,7 @@ import pytest
 from lfgraph.alignment import align_points, infinity_alignment
 from lfgraph.board import BoardSpec, detect_board
 from lfgraph.calibration import Calibration
-from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.cli import EXIT_BAD_INPUT, EXIT_DRIFT, main
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
     make_checkerboard_truth,
@@ -21,7 +21,7 @@ from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.geometry import make_T
-from lfgraph.pattern import calibrate
+from lfgraph.pattern import CalibrateConfig, calibrate
 from lfgraph.rectification import (
     RectificationError,
     attach,
@@ -67,7 +67,7 @@ def test_estimated_calibration_aligns_at_infinity_within_its_accuracy(paper_rig)
     assert a.row_px <= ESTIMATED_INFINITY_PX and a.col_px <= ESTIMATED_INFINITY_PX
     assert a.proportionality_px <= ESTIMATED_INFINITY_PX
     # the paper's route is far less accurate: its rig shows up at infinity
-    paper, _ = calibrate(obs, method="paper")
+    paper, _ = calibrate(obs, CalibrateConfig(method="paper"))
     assert infinity_alignment(paper, compute_rectification(paper), seen_by=calib).row_px > a.row_px
 
 
@@ -229,7 +229,7 @@ def test_check_command_flags_a_shaken_rig(tmp_path, capsys):
                  "0.5", "--shake-trans-mm", "1", "--jobs", "2", "--quiet"]) == 0
     assert main(["check", str(scene_dir / "truth.json"), str(scene_dir)]) == 0
     good = capsys.readouterr().out
-    assert main(["check", str(scene_dir / "original.json"), str(scene_dir)]) == 2
+    assert main(["check", str(scene_dir / "original.json"), str(scene_dir)]) == EXIT_DRIFT
     bad = capsys.readouterr().out
     assert "OK" in good and "DRIFT" in bad and "parallax removed" in good
 

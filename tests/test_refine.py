@@ -13,8 +13,10 @@ from lfgraph.cli import EXIT_BAD_INPUT, main
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, ideal_ref_T_view, make_rig, shake_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.evaluation import evaluate_calibration
+from lfgraph.factors.noise import RobustKernel
+from lfgraph.refinement import RefineConfig, Stage, parse_stages, refine, refine_tracks
 from lfgraph.refinement.matching import track_chain
-from lfgraph.refinement.staged import RefineSettings, parse_stages, refine, refine_tracks, run_stage
+from lfgraph.refinement.stages import run_stage
 from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
 
 EXACT_M = 1e-9  # noise-free triangulation
@@ -73,7 +75,7 @@ def test_hidden_intrinsics_gauge_exists_and_is_held():
     np.testing.assert_allclose(pix2, pix, atol=1e-9)  # the images cannot tell the two apart
     # start the 'all' stage from the gauge-shifted rig: the held cx keeps the solution where it started
     valid = np.ones(pix.shape[:2], dtype=bool)
-    out, _, _ = run_stage("all", moved, pix, valid, pts2, "none", None, 50)
+    out, _, _ = run_stage(Stage.ALL, moved, pix, valid, pts2, RobustKernel("none"), max_iterations=50)
     assert abs(out.intrinsics[1].cx - moved.intrinsics[1].cx) < 1e-6
     assert abs(out.intrinsics[2].cx - moved.intrinsics[2].cx) < 1e-3
 
@@ -84,7 +86,7 @@ def test_staged_refinement_on_exact_tracks_recovers_a_shaken_rig():
     shaken = shake_rig(truth, ShakeConfig(rot_deg=1.0, trans_mm=5.0), np.random.default_rng(1))
     pix = np.stack([project_world(shaken.intrinsics[v], shaken.view_T_ref(v), pts) for v in range(9)])
     noisy = pix + 0.05 * np.random.default_rng(2).standard_normal(pix.shape)
-    refined, stages, keep = refine_tracks(original, noisy, valid, RefineSettings())
+    refined, stages, keep = refine_tracks(original, noisy, valid, RefineConfig())
     e = evaluate_calibration(refined, shaken)
     assert np.sqrt(np.mean(e.rotation_deg**2)) < 0.005
     assert np.sqrt(np.mean(transfer_error_at_infinity(refined, shaken) ** 2)) < 0.05
@@ -98,8 +100,8 @@ def test_stage_schedules_parse_and_refuse_nonsense():
     for bad in ("points,bundle", "clean,poses", ""):
         with pytest.raises(ValueError):
             parse_stages(bad)
-    assert RefineSettings(stages="paper").triangulation_filter == "median"
-    assert RefineSettings().triangulation_filter == "worst"
+    assert RefineConfig(stages="paper").triangulation_filter == "median"
+    assert RefineConfig().triangulation_filter == "worst"
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +141,7 @@ def test_refine_without_shake_changes_nothing_measurable(tmp_path):
     assert not report.accepted and any("already fits" in w for w in report.warnings)
     np.testing.assert_array_equal(refined.ref_T_view, truth.ref_T_view)
     # what the refit alone would have done (always accepting) stays small too
-    forced, _ = refine(truth, frames, RefineSettings(min_improvement=1.0))
+    forced, _ = refine(truth, frames, RefineConfig(min_improvement=1.0))
     e = evaluate_calibration(forced, truth)
     assert np.max(e.rotation_deg) < NO_SHAKE_ROTATION_DEG
     assert np.max(np.linalg.norm(e.position_mm, axis=1)) < 0.5

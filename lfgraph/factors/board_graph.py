@@ -15,12 +15,10 @@ import numpy as np
 
 from lfgraph.camera import Intrinsics
 from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, view_pose_key
-from lfgraph.factors.noise import MIN_SIGMA, calibration_noise, point_noise
+from lfgraph.factors.noise import FREE_SIGMA, GAUGE_SIGMA, MIN_SIGMA, calibration_noise, point_noise
 from lfgraph.geometry import to_pose3
 
-GAUGE_SIGMA = 1e-8  # rad and m: the reference view's pose is the identity by definition (Isotropic stays fast)
 RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
-FREE_SIGMA = 1e8  # "no information" sigma for Cal3DS2 components that the data determine (a pull of 1e-16 per unit²)
 
 
 def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
@@ -93,21 +91,3 @@ def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[
         noise = calibration_noise(FREE_SIGMA, FREE_SIGMA, radial=FREE_SIGMA, tangential=FREE_SIGMA if tangential
                                   else MIN_SIGMA, skew_px=MIN_SIGMA)
         graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, noise))
-
-
-def insert_board_values(values: gtsam.Values, board_T_ref: np.ndarray, object_points_m: np.ndarray,  # noqa: N803
-                        frames: Sequence[int] | None = None) -> None:
-    """Initial board poses (one per frame) and corners."""
-    frames = range(len(board_T_ref)) if frames is None else frames
-    for f in frames:
-        values.insert(board_pose_key(f), to_pose3(board_T_ref[f]))
-    for j, p in enumerate(np.asarray(object_points_m, dtype=np.float64)):
-        values.insert(board_corner_key(j), p)
-
-
-def insert_rig_values(values: gtsam.Values, intrinsics: Sequence[Intrinsics],
-                      ref_T_view: np.ndarray) -> None:  # noqa: N803
-    """Initial per-view intrinsics and poses."""
-    for v, intr in enumerate(intrinsics):
-        values.insert(calib_key(v), intr.to_gtsam())
-        values.insert(view_pose_key(v), to_pose3(ref_T_view[v]))

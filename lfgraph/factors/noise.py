@@ -7,11 +7,15 @@ and forces a QR solver (~100x slower). Every factory here clamps sigmas to ``MIN
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
 MIN_SIGMA = 1e-7  # keep well above GTSAM's 1e-8 "constrained" threshold
+FREE_SIGMA = 1e8  # "no information" sigma for what the data determine (a pull of 1e-16 per unit²)
+HELD_SIGMA = 1e-6  # tight prior for what a stage holds (px, -, rad, m); >= 1e-8 keeps GTSAM's fast solver
+GAUGE_SIGMA = 1e-8  # rad and m: the reference view's pose is the identity by definition (Isotropic stays fast)
 
 # Cal3DS2 tangent order (its vector()): fx, fy, s, u0, v0, k1, k2, p1, p2
 CAL3DS2_FIELDS = ("fx", "fy", "s", "cx", "cy", "k1", "k2", "p1", "p2")
@@ -55,6 +59,24 @@ def pose_noise(rot_sigma_rad: float | Sequence[float], trans_sigma_m: float | Se
     return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(np.concatenate([rot, trans])))
 
 
+def gauge_pose_noise() -> gtsam.noiseModel.Base:
+    """The reference view's pose prior: the identity by definition (an Isotropic model stays on the fast solver)."""
+    return gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)
+
+
+def range_noise(sigma_m: float) -> gtsam.noiseModel.Base:
+    """1-D range noise in metres."""
+    return gtsam.noiseModel.Isotropic.Sigma(1, float(_sigmas([sigma_m])[0]))
+
+
+def cal3ds2_noise(sigmas: Sequence[float]) -> gtsam.noiseModel.Base:
+    """Cal3DS2 prior noise from nine sigmas in its tangent order (fx, fy, s, u0, v0, k1, k2, p1, p2)."""
+    s = _sigmas(sigmas)
+    if s.shape != (9,):
+        raise ValueError(f"Cal3DS2 needs 9 sigmas (fx fy s cx cy k1 k2 p1 p2), got {s.shape}")
+    return gtsam.noiseModel.Diagonal.Sigmas(s)
+
+
 def calibration_noise(focal_px: float, principal_px: float, radial: float | Sequence[float],
                       tangential: float = MIN_SIGMA, skew_px: float = MIN_SIGMA) -> gtsam.noiseModel.Base:
     """Cal3DS2 prior noise in its tangent order (fx, fy, s, u0, v0, k1, k2, p1, p2).
@@ -71,32 +93,95 @@ def calibration_noise(focal_px: float, principal_px: float, radial: float | Sequ
         _sigmas([focal_px, focal_px, skew_px, principal_px, principal_px, k[0], k[1], tangential, tangential]))
 
 
-def parse_robust(spec: str | None) -> tuple[str, float | None]:
-    """``"huber:1.345"`` -> ("huber", 1.345); ``"cauchy"`` -> ("cauchy", default); ``"none"``/None -> ("none", None).
+@dataclass(frozen=True)
+class RobustKernel:
+    """An M-estimator by name, with its threshold in units of the measurement sigma (pixels when it is 1 px).
+
+    ``RobustKernel.parse("huber:1.345")``; ``RobustKernel("cauchy")`` takes the kernel's default threshold;
+    ``RobustKernel("none")`` is plain least squares. Studies swap kernels by building these (or by name).
+    """
+
+    name: str = "none"
+    threshold: float | None = None
+
+    def __post_init__(self) -> None:
+        name = self.name.strip().lower()
+        if name not in KERNEL_NAMES:
+            raise ValueError(f"unknown robust kernel {self.name!r}; choose from {', '.join(KERNEL_NAMES)} "
+                             f"(optionally NAME:THRESHOLD, e.g. huber:1.345)")
+        object.__setattr__(self, "name", name)
+        if name == "none":
+            object.__setattr__(self, "threshold", None)
+            return
+        threshold = DEFAULT_THRESHOLDS[name] if self.threshold is None else self.threshold
+        if not (isinstance(threshold, int | float) and np.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"robust kernel threshold must be a positive number, got {threshold!r} for {name}")
+        object.__setattr__(self, "threshold", float(threshold))
+
+    @classmethod
+    def parse(cls, spec: str | None) -> RobustKernel:
+        """``"huber:1.345"``, ``"cauchy"`` (default threshold), ``"none"``/``""``/None.
+
+        Raises:
+            ValueError: unknown kernel name or a threshold that is not a positive number.
+        """
+        if spec is None or spec.strip().lower() in ("", "none"):
+            return cls("none")
+        name, _, value = spec.strip().partition(":")
+        if not value:
+            return cls(name)
+        try:
+            threshold = float(value)
+        except ValueError:
+            raise ValueError(f"robust kernel threshold must be a number, got {value!r} in {spec!r}") from None
+        return cls(name, threshold)
+
+    def estimator(self) -> gtsam.noiseModel.mEstimator.Base | None:
+        """GTSAM's M-estimator object (None for ``none``)."""
+        return None if self.name == "none" else _KERNELS[self.name](self.threshold)
+
+    def __str__(self) -> str:
+        return self.name if self.threshold is None else f"{self.name}:{self.threshold:g}"
+
+
+# What a user may pass wherever a measurement noise is asked for: a kernel name ("cauchy:0.5"), a RobustKernel, a
+# GTSAM M-estimator (wrapped around the isotropic pixel noise of the configured sigma) or a full GTSAM noise model
+# (used as it is; the sigma setting is then ignored).
+NoiseSpec = str | RobustKernel | gtsam.noiseModel.mEstimator.Base | gtsam.noiseModel.Base | None
+Noise = RobustKernel | gtsam.noiseModel.mEstimator.Base | gtsam.noiseModel.Base
+
+
+def as_noise(spec: NoiseSpec) -> Noise:
+    """Normalise a `NoiseSpec` once, at the edge (strings are parsed here and nowhere else).
 
     Raises:
-        ValueError: unknown kernel name or a threshold that is not a positive number.
+        ValueError: a bad kernel string; TypeError: an object that is none of the accepted kinds.
     """
-    if spec is None or spec.strip().lower() in ("", "none"):
-        return "none", None
-    name, _, value = spec.strip().lower().partition(":")
-    if name not in _KERNELS:
-        raise ValueError(f"unknown robust kernel {name!r}; choose from {', '.join(KERNEL_NAMES)} "
-                         f"(optionally NAME:THRESHOLD, e.g. huber:1.345)")
-    if not value:
-        return name, DEFAULT_THRESHOLDS[name]
-    try:
-        threshold = float(value)
-    except ValueError:
-        raise ValueError(f"robust kernel threshold must be a number, got {value!r} in {spec!r}") from None
-    if not (np.isfinite(threshold) and threshold > 0):
-        raise ValueError(f"robust kernel threshold must be positive, got {threshold} in {spec!r}")
-    return name, threshold
+    if spec is None or isinstance(spec, str):
+        return RobustKernel.parse(spec)
+    if isinstance(spec, RobustKernel | gtsam.noiseModel.mEstimator.Base | gtsam.noiseModel.Base):
+        return spec
+    raise TypeError(f"a noise model must be a kernel name such as 'cauchy:0.5', a RobustKernel, a "
+                    f"gtsam.noiseModel.mEstimator object or a gtsam noise model; got {type(spec).__name__}")
 
 
-def robust(base: gtsam.noiseModel.Base, kernel: str = "huber", threshold: float | None = None) -> gtsam.noiseModel.Base:
-    """Wrap ``base`` in an M-estimator chosen by name (``none`` returns ``base``). Threshold is in sigmas."""
-    name, default = parse_robust(kernel if threshold is None else f"{kernel}:{threshold}")
-    if name == "none":
-        return base
-    return gtsam.noiseModel.Robust.Create(_KERNELS[name](default), base)
+def describe_noise(noise: Noise) -> str:
+    """Short text for logs and reports."""
+    if isinstance(noise, RobustKernel):
+        return str(noise)
+    return type(noise).__name__
+
+
+def measurement_noise(noise: Noise, sigma_px: float, dim: int = 2) -> gtsam.noiseModel.Base:
+    """The noise model of one image measurement: isotropic ``sigma_px`` wrapped in the kernel, or the user's model.
+
+    Raises:
+        ValueError: a full GTSAM model of the wrong dimension.
+    """
+    if isinstance(noise, gtsam.noiseModel.Base):
+        if noise.dim() != dim:
+            raise ValueError(f"the measurement noise model must have dimension {dim}, got {noise.dim()}")
+        return noise
+    base = gtsam.noiseModel.Isotropic.Sigma(dim, float(_sigmas([sigma_px])[0]))
+    estimator = noise if isinstance(noise, gtsam.noiseModel.mEstimator.Base) else noise.estimator()
+    return base if estimator is None else gtsam.noiseModel.Robust.Create(estimator, base)

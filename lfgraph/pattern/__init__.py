@@ -5,13 +5,13 @@ Modules: `config` (options), `initial` (checks and starting values), `paper` (Zh
 `pipeline` (`calibrate`, the entry point).
 """
 
-from lfgraph.pattern.config import INITS, METHODS, JointSettings
+from lfgraph.pattern.config import CalibrateConfig, Init, Method
 from lfgraph.pattern.initial import CalibrationInputError, check_observations, design_initial
 from lfgraph.pattern.joint import JointResult, calibrate_joint
 from lfgraph.pattern.paper import PaperResult, calibrate_paper
 from lfgraph.pattern.pipeline import calibrate
 from lfgraph.pattern.scoring import CalibrationReport, fit_board_poses, rig_residuals
 
-__all__ = ["INITS", "METHODS", "CalibrationInputError", "CalibrationReport", "JointResult", "JointSettings",
+__all__ = ["CalibrateConfig", "CalibrationInputError", "CalibrationReport", "Init", "JointResult", "Method",
            "PaperResult", "calibrate", "calibrate_joint", "calibrate_paper", "check_observations", "design_initial",
            "fit_board_poses", "rig_residuals"]

@@ -12,11 +12,21 @@ import numpy as np
 from lfgraph.camera import Intrinsics
 from lfgraph.detections import BoardObservations
 from lfgraph.factors import board_graph
-from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, view_pose_key
-from lfgraph.factors.noise import parse_robust, pixel_noise, robust
-from lfgraph.geometry import from_pose3
+from lfgraph.factors.hooks import GraphContext, run_hooks
+from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.noise import measurement_noise
+from lfgraph.factors.values import (
+    insert_board_corners,
+    insert_board_poses,
+    insert_intrinsics,
+    insert_view_poses,
+    read_board_corners,
+    read_board_poses,
+    read_intrinsics,
+    read_view_poses,
+)
 from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSettings, optimize
-from lfgraph.pattern.config import JointSettings
+from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.scoring import rig_residuals
 
 SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below this (noise-free synthetic data)
@@ -31,14 +41,6 @@ class JointResult:
     optimization: OptimizationResult
     noise_sigma_px: float
     sigmas: tuple[dict[str, Any], ...] | None
-
-
-def _intrinsics_from_values(values: gtsam.Values, v: int, tangential: bool) -> Intrinsics:
-    cal = values.atCal3DS2(calib_key(v))
-    k = cal.k()
-    # skew and (unless estimated) p1, p2 are pinned at 0 by priors; clear their ~1e-13 round-off
-    p1, p2 = (float(k[2]), float(k[3])) if tangential else (0.0, 0.0)
-    return Intrinsics(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), p1, p2)
 
 
 def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
@@ -63,22 +65,21 @@ def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_
 
 
 def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray,  # noqa: N803
-                    board_T_ref: np.ndarray, settings: JointSettings | None = None,  # noqa: N803
+                    board_T_ref: np.ndarray, config: CalibrateConfig | None = None,  # noqa: N803
                     callback: IterationCallback | None = None) -> JointResult:
     """One GTSAM graph over all views and frames (see `lfgraph.factors.board_graph`).
 
     Args:
         obs: the corners.
         intrinsics, ref_T_view, board_T_ref: the start (from `calibrate_paper` or `design_initial`).
-        settings: options; `JointSettings()` by default.
+        config: options; `CalibrateConfig()` by default.
         callback: optimiser iteration hook.
     """
-    settings = settings or JointSettings()
+    settings = config or CalibrateConfig()
     frames = [f for f in range(obs.num_frames) if np.all(np.isfinite(board_T_ref[f]))]
     valid = obs.valid.copy()
     valid[:, [f for f in range(obs.num_frames) if f not in frames]] = False
-    kernel, threshold = parse_robust(settings.robust)
-    noise = robust(pixel_noise(settings.corner_sigma_px), kernel, threshold)
+    noise = measurement_noise(settings.noise, settings.corner_sigma_px)
     graph = gtsam.NonlinearFactorGraph()
     n_obs = board_graph.add_board_observations(graph, obs.corners_px, valid, noise)
     obj = obs.board.object_points()
@@ -88,18 +89,20 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     board_graph.add_gauge_prior(graph, obs.grid.reference)
     board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential)
     values = gtsam.Values()
-    board_graph.insert_rig_values(values, intrinsics, ref_T_view)
-    board_graph.insert_board_values(values, board_T_ref, obj, frames)
+    insert_intrinsics(values, intrinsics)
+    insert_view_poses(values, ref_T_view)
+    insert_board_poses(values, board_T_ref, frames)
+    insert_board_corners(values, obj)
+    run_hooks(settings.graph_hooks, GraphContext("calibration", None, graph, values, obs.num_views))
     result = optimize(graph, values, OptimizerSettings(max_iterations=settings.max_iterations), callback)
     est = result.values
     n_views = obs.num_views
-    intr = tuple(_intrinsics_from_values(est, v, settings.tangential) for v in range(n_views))
-    poses = np.stack([from_pose3(est.atPose3(view_pose_key(v))) for v in range(n_views)])
+    # skew and (unless estimated) p1, p2 are pinned at 0 by priors: read_intrinsics clears their round-off
+    intr = read_intrinsics(est, n_views, tangential=settings.tangential)
+    poses = read_view_poses(est, n_views)
     poses[obs.grid.reference] = np.eye(4)  # the gauge prior holds it to 1e-8; make it exact for the file
-    boards = np.full((obs.num_frames, 4, 4), np.nan)
-    for f in frames:
-        boards[f] = from_pose3(est.atPose3(board_pose_key(f)))
-    corners = np.stack([np.asarray(est.atPoint3(board_corner_key(j))) for j in range(len(obj))])
+    boards = read_board_poses(est, obs.num_frames, frames)
+    corners = read_board_corners(est, len(obj))
     res = rig_residuals(intr, poses, boards, obs, corners)
     n_params = n_views * (8 if settings.tangential else 6) + 6 * (n_views - 1) + 6 * len(frames)
     dof = max(2 * n_obs - n_params, 1)

@@ -5,14 +5,13 @@ the rig fixed, so inconsistency between views cannot hide in per-view figures)."
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.detections import BoardObservations
-from lfgraph.optimize import IterationCallback
-from lfgraph.pattern.config import INITS, METHODS, JointSettings
+from lfgraph.observer import Observer, resolve
+from lfgraph.pattern.config import CalibrateConfig, Init, Method
 from lfgraph.pattern.initial import check_observations, design_initial, initial_board_T_ref
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.paper import calibrate_paper
@@ -27,49 +26,40 @@ from lfgraph.pattern.scoring import (
 )
 
 
-def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper",
-              settings: JointSettings | None = None, focal_px: float | None = None, pitch_m: float | None = None,
-              callback: IterationCallback | None = None,
-              log: Callable[[str], None] | None = None) -> tuple[Calibration, CalibrationReport]:
+def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
+              observer: Observer | None = None) -> tuple[Calibration, CalibrationReport]:
     """Calibrate the array from board observations.
 
     Args:
-        obs: corners of every view and frame.
-        method: ``joint`` (default) or ``paper``.
-        init: start of the joint route: ``paper`` (the paper route's result) or ``design`` (focal length
-            ``focal_px`` or the image size, centred principal point, zero distortion, ideal grid of ``pitch_m``
-            or PnP-averaged poses).
-        settings: joint-route options.
-        focal_px, pitch_m: design values for ``init="design"``.
-        callback: optimiser iteration hook (joint route).
-        log: receives one line per stage (the CLI prints them).
+        obs: corners of every view and frame (`lfgraph.detect_capture`).
+        config: method, start and options (`CalibrateConfig()` by default: the joint graph started from the paper
+            route).
+        observer: hears one log line per route and every optimiser iteration (`lfgraph.observer`); default: log
+            lines go to `logging`.
 
     Returns:
         the calibration (its ``metrics`` hold the report's figures) and the report.
 
     Raises:
         CalibrationInputError: views without enough board detections, views that share no frames with others.
-        ValueError: unknown method or init.
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    if init not in INITS:
-        raise ValueError(f"unknown init {init!r}; choose from {', '.join(INITS)}")
-    say = log or (lambda _msg: None)
+    config = config or CalibrateConfig()
+    say = resolve(observer)
+    method, init = config.method, config.init
     check_observations(obs)
     seconds: dict[str, float] = {}
     warnings: list[str] = []
     n_views = obs.num_views
     paper = None
-    if method == "paper" or init == "paper":
+    if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()
         paper = calibrate_paper(obs)
         seconds["paper"] = time.perf_counter() - t0
         warnings += paper.warnings
-        say(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
+        say.log(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
             f"{'-' if paper.e_pnp_px is None else f'{paper.e_pnp_px:.4f}'} px ({seconds['paper']:.1f} s)")
     joint = None
-    if method == "paper":
+    if method == Method.PAPER:
         intrinsics, ref_T_view = paper.intrinsics, paper.ref_T_view  # noqa: N806
         t0 = time.perf_counter()
         board_T_ref = fit_board_poses(intrinsics, ref_T_view, obs,  # noqa: N806
@@ -81,13 +71,14 @@ def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper"
         if paper is not None:
             start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
         else:
-            start_intr, start_poses, view_T_board = design_initial(obs, focal_px, pitch_m)  # noqa: N806
+            start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
         start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
         t0 = time.perf_counter()
-        joint = calibrate_joint(obs, start_intr, start_poses, start_boards, settings, callback)
+        joint = calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration)
         seconds["joint"] = time.perf_counter() - t0
-        say(f"joint route: {joint.optimization.iterations} LM iterations, error {joint.optimization.initial_error:.4g}"
-            f" -> {joint.optimization.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
+        opt = joint.optimization
+        say.log(f"joint route: {opt.iterations} LM iterations, error {opt.initial_error:.4g} -> "
+                f"{opt.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
         intrinsics, ref_T_view = joint.intrinsics, joint.ref_T_view  # noqa: N806
         res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
         boards = joint.board_T_ref
@@ -101,7 +92,7 @@ def calibrate(obs: BoardObservations, method: str = "joint", init: str = "paper"
     cells = coverage_map(obs)
     warnings += coverage_warnings(obs, cells)
     report = CalibrationReport(
-        method=method, init=None if method == "paper" else init,
+        method=str(method), init=None if method == Method.PAPER else str(init),
         e_mono_px=None if paper is None else paper.e_mono_px, e_pnp_px=None if paper is None else paper.e_pnp_px,
         view_e_mono_px=np.full(n_views, np.nan) if paper is None else paper.view_e_mono_px,
         view_e_pnp_px=np.full(n_views, np.nan) if paper is None else paper.view_e_pnp_px,

@@ -12,9 +12,9 @@ import numpy as np
 from lfgraph.camera import Intrinsics
 from lfgraph.detections import BoardObservations
 from lfgraph.factors import board_graph
-from lfgraph.factors.keys import board_pose_key
 from lfgraph.factors.noise import pixel_noise
-from lfgraph.geometry import from_pose3, invert_T
+from lfgraph.factors.values import insert_board_corners, insert_board_poses, read_board_poses
+from lfgraph.geometry import invert_T
 from lfgraph.optimize import OptimizationResult, OptimizerSettings, optimize
 from lfgraph.pattern.initial import pnp_all
 
@@ -125,12 +125,10 @@ def fit_board_poses(intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray, 
     board_graph.add_fixed_rig_observations(graph, obs.corners_px, valid, intrinsics, ref_T_view, pixel_noise(1.0))
     board_graph.add_corner_priors(graph, obs.board.object_points(), board_graph.RIGID_BOARD_SIGMA_M)
     values = gtsam.Values()
-    board_graph.insert_board_values(values, initial_board_T_ref, obs.board.object_points(), frames)
+    insert_board_poses(values, initial_board_T_ref, frames)
+    insert_board_corners(values, obs.board.object_points())
     result = optimize(graph, values, OptimizerSettings(max_iterations=50))
-    out = np.full((obs.num_frames, 4, 4), np.nan)
-    for f in frames:
-        out[f] = from_pose3(result.values.atPose3(board_pose_key(f)))
-    return out
+    return read_board_poses(result.values, obs.num_frames, frames)
 
 
 def rms_px(residuals: np.ndarray, axis: tuple[int, ...] | int | None = None) -> np.ndarray | float:

@@ -17,11 +17,9 @@ optimiser's curves):
 
 from __future__ import annotations
 
-import argparse
 import os
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
+from types import TracebackType
 
 import numpy as np
 import rerun as rr
@@ -29,35 +27,23 @@ import rerun.blueprint as rrb
 
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
+from lfgraph.observer import BaseObserver, StageEnd
 
 RESIDUAL_ARROW_SCALE = 50.0  # residual arrows are drawn this many times longer than they are (sub-pixel otherwise)
 RESIDUAL_COLOUR_MAX_PX = 1.0  # residual colour map saturates here
 GUIDE_SPACING_PX = 40
 OUTLIER_COLOUR = (255, 40, 40)
 APP_ID = "lfgraph"
-SINK_FLAGS = ("save", "connect", "serve", "stdout", "url")
-
-
-def add_args(parser: argparse.ArgumentParser) -> None:
-    """Rerun's standard script flags (``--save FILE.rrd``, ``--connect``, ``--serve``, ``--headless``, ...)."""
-    rr.script_add_args(parser)
-
-
-def wants_logging(args: argparse.Namespace) -> bool:
-    """True when a sink was asked for; without one nothing is logged and rerun is never initialised."""
-    return any(getattr(args, name, None) for name in SINK_FLAGS)
-
-
 def check_save_path(path: str | os.PathLike) -> None:
-    """Fail before any work when ``--save`` cannot be written (missing folder, not writable, a folder)."""
+    """Fail before any work when a recording cannot be written there (missing folder, not writable, a folder)."""
     p = Path(path)
     if p.is_dir():
-        raise ValueError(f"--save {p}: is a folder; give a file name such as {p / 'run.rrd'}")
+        raise ValueError(f"{p}: is a folder; give a recording file name such as {p / 'run.rrd'}")
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
-        raise ValueError(f"--save {p}: folder {parent} does not exist")
+        raise ValueError(f"{p}: folder {parent} does not exist")
     if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise ValueError(f"--save {p}: not writable")
+        raise ValueError(f"{p}: not writable")
 
 
 def _colour_by(values: np.ndarray, vmax: float) -> np.ndarray:
@@ -82,30 +68,114 @@ def default_blueprint(grid: ViewGrid) -> rrb.Blueprint:
     )
 
 
-class RerunLogger:
-    """Logs lfgraph's data to one explicit `rr.RecordingStream` (never the global one)."""
+class RerunLogger(BaseObserver):
+    """Logs lfgraph's data to one explicit `rr.RecordingStream` (never the global one); an `lfgraph.Observer`.
 
-    def __init__(self, args: argparse.Namespace, grid: ViewGrid | None = None) -> None:
-        self.rec = rr.RecordingStream(APP_ID)
-        blueprint = None if grid is None else default_blueprint(grid)
-        self._final: Path | None = None
-        self._tmp: Path | None = None
-        if args.stdout:
-            self.rec.stdout(default_blueprint=blueprint)
-        elif args.serve:
-            self.rec.serve_grpc(default_blueprint=blueprint)
-        elif args.connect or args.url:
-            self.rec.connect_grpc(args.url, default_blueprint=blueprint)
-        elif args.save:
-            # written next to the target and renamed at the end: a failed run leaves no half-written .rrd
-            self._final = Path(args.save)
-            self._tmp = self._final.with_name(f".{self._final.name}.{os.getpid()}.tmp")
-            self.rec.save(str(self._tmp), default_blueprint=blueprint)
-        self.iteration = 0
+    Make one with `to_file` (written atomically when closed), `from_stream` (your own stream), `serve`, `connect`
+    or `stdout`; use it as a context manager (closed at the end; a failure discards a file recording) and pass it
+    as ``observer=`` to `lfgraph.calibrate` / `lfgraph.refine`.
+    """
+
+    def __init__(self, rec: rr.RecordingStream, grid: ViewGrid | None = None, final_path: Path | None = None,
+                 tmp_path: Path | None = None) -> None:
+        self.rec = rec
+        self.grid = grid
+        self._final, self._tmp = final_path, tmp_path
+        self.iteration_count = 0
         self._calib: Calibration | None = None  # the latest refined calibration (for naming views of outliers)
         self.rec.log("optimizer/error", rr.SeriesLines(names="graph error"), static=True)
         self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px, from the error)"), static=True)
         self._n_measurements = 0
+
+    @classmethod
+    def to_file(cls, path: str | os.PathLike, grid: ViewGrid | None = None) -> RerunLogger:
+        """Record to ``path`` (.rrd): written next to it and renamed on a successful `close`, so a failed run leaves
+        no half-written file.
+
+        Raises:
+            ValueError: the path is a folder, its folder does not exist or is not writable.
+        """
+        final = Path(path)
+        check_save_path(final)
+        tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
+        rec = rr.RecordingStream(APP_ID)
+        rec.save(str(tmp), default_blueprint=None if grid is None else default_blueprint(grid))
+        return cls(rec, grid, final, tmp)
+
+    @classmethod
+    def from_stream(cls, rec: rr.RecordingStream, grid: ViewGrid | None = None) -> RerunLogger:
+        """Log to a stream you opened (and whose sink you chose); ``grid`` sends the default blueprint."""
+        if grid is not None:
+            rec.send_blueprint(default_blueprint(grid))
+        return cls(rec, grid)
+
+    @classmethod
+    def serve(cls, grid: ViewGrid | None = None) -> RerunLogger:
+        """Host a gRPC server and web viewer for the recording."""
+        rec = rr.RecordingStream(APP_ID)
+        rec.serve_grpc(default_blueprint=None if grid is None else default_blueprint(grid))
+        return cls(rec, grid)
+
+    @classmethod
+    def connect(cls, url: str | None = None, grid: ViewGrid | None = None) -> RerunLogger:
+        """Stream to a running viewer (rerun's default address unless ``url``)."""
+        rec = rr.RecordingStream(APP_ID)
+        rec.connect_grpc(url, default_blueprint=None if grid is None else default_blueprint(grid))
+        return cls(rec, grid)
+
+    @classmethod
+    def stdout(cls, grid: ViewGrid | None = None) -> RerunLogger:
+        """Write the recording to standard output (pipe it into ``rerun -``)."""
+        rec = rr.RecordingStream(APP_ID)
+        rec.stdout(default_blueprint=None if grid is None else default_blueprint(grid))
+        return cls(rec, grid)
+
+    @property
+    def path(self) -> Path | None:
+        """The recording file (`to_file`), else None."""
+        return self._final
+
+    def __enter__(self) -> RerunLogger:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close(success=exc_type is None)
+
+    # ------------------------------------------------------------------------------------------- observer
+    def log(self, message: str) -> None:
+        """Into the recording only (combine with `lfgraph.BaseObserver` in `lfgraph.Observers` for the console)."""
+        self.rec.log("log", rr.TextLog(message, level="INFO"))
+
+    def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        self.on_iteration(iteration, error_before, error_after)
+
+    def frame(self, index: int, images: np.ndarray) -> None:
+        self.rec.set_time("frame", sequence=index)
+
+    def stage_start(self, name: str, measurements: int) -> None:
+        self.rec.set_time("iteration", sequence=self.iteration_count + 1)
+        self.rec.log("optimizer/stages", rr.TextLog(f"stage {name} starts", level="INFO"))
+        self.set_measurements(measurements)
+
+    def stage_end(self, event: StageEnd) -> None:
+        from lfgraph.camera import project_world
+
+        calib, points, valid = event.calib, event.points_ref_m, event.valid
+        with np.errstate(invalid="ignore"):
+            mean_err = np.nanmean(np.where(valid, event.errors_px, np.nan), axis=0)
+        self.landmarks(points, mean_err)
+        projected = np.stack([project_world(calib.intrinsics[v], calib.view_T_ref(v), points)
+                              for v in range(calib.num_views)])
+        self.observations(calib, event.pixels_px, projected, valid)
+        self._calib = calib
+
+    def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        if self._calib is None:
+            return
+        for v in range(self._calib.num_views):
+            self.rec.log(f"views/{self._calib.grid.name(v)}/outliers",
+                         rr.Points2D(pixels_px[v][valid[v]], radii=2.0, colors=OUTLIER_COLOUR))
 
     # ------------------------------------------------------------------------------------------- optimiser
     def set_measurements(self, n: int) -> None:
@@ -114,21 +184,13 @@ class RerunLogger:
 
     def on_iteration(self, _iteration: int, _before: float, after: float) -> None:
         """`lfgraph.optimize` callback: one step on the ``iteration`` timeline per optimiser iteration."""
-        self.iteration += 1
-        self.rec.set_time("iteration", sequence=self.iteration)
+        self.iteration_count += 1
+        self.rec.set_time("iteration", sequence=self.iteration_count)
         self.rec.log("optimizer/error", rr.Scalars(after))
         if self._n_measurements:
             # graph error = 0.5 sum |r|^2 at 1 px sigma (priors are negligible): RMS per point = sqrt(2 e / N)
             self.rec.log("optimizer/rms_px", rr.Scalars(float(np.sqrt(2.0 * after / self._n_measurements))))
 
-    def stage(self, name: str) -> None:
-        self.rec.set_time("iteration", sequence=self.iteration + 1)
-        self.rec.log("optimizer/stages", rr.TextLog(f"stage {name} starts", level="INFO"))
-
-    def frame(self, index: int) -> None:
-        self.rec.set_time("frame", sequence=index)
-
-    # ------------------------------------------------------------------------------------------- geometry
     def rig(self, calib: Calibration, images: np.ndarray | None = None) -> None:
         """Every view's pose, intrinsics and (optionally) an image, static."""
         w, h = calib.image_size_px
@@ -192,31 +254,6 @@ class RerunLogger:
             outliers[:, list(report.outlier_frames)] = obs.valid[:, list(report.outlier_frames)]
             self.observations(calib, observed, projected, obs.valid.reshape(n, -1), outliers.reshape(n, -1))
 
-    def refine_event(self, kind: str, data: dict) -> None:
-        """`lfgraph.refinement.staged` event hook."""
-        from lfgraph.camera import project_world
-
-        if kind == "frame":
-            self.frame(data["index"])
-        elif kind == "stage":
-            self.stage(data["name"])
-            self.set_measurements(data["measurements"])
-        elif kind == "stage_done":
-            calib, points, pixels, valid = data["calib"], data["points"], data["pixels"], data["valid"]
-            errors = data["errors"]
-            with np.errstate(invalid="ignore"):
-                mean_err = np.nanmean(np.where(valid, errors, np.nan), axis=0)
-            self.landmarks(points, mean_err)
-            projected = np.stack([project_world(calib.intrinsics[v], calib.view_T_ref(v), points)
-                                  for v in range(calib.num_views)])
-            self.observations(calib, pixels, projected, valid)
-            self._calib = calib
-        elif kind == "outliers" and self._calib is not None:
-            pixels, valid = data["pixels"], data["valid"]
-            for v in range(self._calib.num_views):
-                self.rec.log(f"views/{self._calib.grid.name(v)}/outliers",
-                             rr.Points2D(pixels[v][valid[v]], radii=2.0, colors=OUTLIER_COLOUR))
-
     def study_rows(self, rows: list[dict]) -> None:
         """Study results as scalars: ``study/<stages>_<robust>/<metric>`` on the ``level`` timeline."""
         for r in rows:
@@ -238,7 +275,7 @@ class RerunLogger:
             self.rec.log(f"{base}/guides", rr.LineStrips2D(lines, colors=(0, 255, 255), radii=0.5), static=True)
 
     def close(self, success: bool = True) -> None:
-        """Flush and finish; with ``--save`` the file appears only now, and only when ``success``."""
+        """Flush and finish; a file recording appears only now, and only when ``success``."""
         self.rec.flush(timeout_sec=60.0)
         self.rec.disconnect()
         if self._tmp is not None:
@@ -246,25 +283,3 @@ class RerunLogger:
                 os.replace(self._tmp, self._final)
             else:
                 self._tmp.unlink(missing_ok=True)
-
-
-def open_logger(args: argparse.Namespace, grid: ViewGrid | None = None) -> RerunLogger | None:
-    """A logger when ``args`` ask for a sink, else None (and rerun stays uninitialised)."""
-    if not wants_logging(args):
-        return None
-    return RerunLogger(args, grid)
-
-
-@contextmanager
-def rerun_session(args: argparse.Namespace, grid: ViewGrid | None = None) -> Iterator[RerunLogger | None]:
-    """`open_logger` for a ``with`` block: closed at the end; a failure discards a ``--save`` file."""
-    logger = open_logger(args, grid)
-    try:
-        yield logger
-    except BaseException:
-        if logger is not None:
-            logger.close(success=False)
-        raise
-    if logger is not None:
-        logger.close()
-        print(f"rerun recording: {args.save or 'sent'}")

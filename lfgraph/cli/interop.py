@@ -11,11 +11,10 @@ into exit code 1 and a message.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from lfgraph.cli import _grid  # the main CLI's RxC parser (lfgraph.cli imports this module lazily)
+from lfgraph.cli.args import EXIT_OK, grid_size
 from lfgraph.interop import EXPORT_FORMATS, IMPORT_FORMATS
 
 
@@ -38,7 +37,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = export_calibration(calib, args.fmt, args.output)
     print(f"wrote {out} ({args.fmt}: {calib.num_views} views, {calib.grid} grid, reference view "
           f"{calib.grid.reference})")
-    return 0
+    return EXIT_OK
 
 
 def cmd_import(args: argparse.Namespace) -> int:
@@ -60,18 +59,11 @@ def cmd_import(args: argparse.Namespace) -> int:
     calib.save(args.output)
     print(f"wrote {args.output} from {args.source} ({args.fmt}: {calib.num_views} views, {calib.grid} grid, "
           f"reference view {calib.grid.reference})")
-    return 0
+    return EXIT_OK
 
 
-def add_parsers(sub: Any, positive_int: Callable[[str], int]) -> None:
-    """Add the ``export`` and ``import`` subcommands to ``sub = parser.add_subparsers(...)``.
-
-    Args:
-        sub: the main parser's subparsers action.
-        positive_int: the main CLI's argparse type for whole numbers >= 1, taken so that every subcommand words
-            such errors alike; these two commands have no count option yet, so it is not used.
-    """
-    del positive_int  # part of the shared signature; see the docstring
+def add_parsers(sub: Any) -> None:
+    """Add the ``export`` and ``import`` subcommands to ``sub = parser.add_subparsers(...)``."""
     ex = sub.add_parser("export", help="write a calibration in another tool's format",
                         description="Write calibration.json as OpenCV FileStorage YAML, a Kalibr camchain.yaml, a "
                                     "COLMAP text model folder (cameras.txt + rigs.txt) or lfgraph JSON.")
@@ -88,7 +80,7 @@ def add_parsers(sub: Any, positive_int: Callable[[str], int]) -> None:
     im.add_argument("source", type=Path, metavar="PATH",
                     help="input file (colmap: the model folder; middlebury, hci: the file or its scene folder)")
     im.add_argument("--from", dest="fmt", required=True, choices=IMPORT_FORMATS, help="input format")
-    im.add_argument("--grid", type=_grid, metavar="RxC",
+    im.add_argument("--grid", type=grid_size, metavar="RxC",
                     help="view grid ROWSxCOLS, views row-major; required for kalibr (and colmap models not written "
                          "by lfgraph), otherwise checked against the file")
     im.add_argument("--reference", type=_view_index, metavar="N",

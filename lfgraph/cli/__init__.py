@@ -1,0 +1,74 @@
+"""The ``lfgraph`` command. Thin: parse, call the library, print a report.
+
+One module per command group (`synth`, `calibrate`, `rectify`, `refine`, `study`, `interop`), each with an
+``add_parsers(sub)``; argument types, exit codes and shared flags in `args`. No command module imports another.
+
+Exit codes: 0 success, 1 bad input (the message names the file and what was wrong), 2 usage error, 3 drift found
+(``check``), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from lfgraph.cli import calibrate, interop, rectify, refine, study, synth
+from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_OK, EXIT_USAGE, UsageError
+
+__all__ = ["EXIT_BAD_INPUT", "EXIT_DRIFT", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
+
+LOG_FORMAT = "%(message)s"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from lfgraph import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="lfgraph",
+        description="Calibrate, rectify and auto-refine light-field cameras built as camera arrays.",
+        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 drift found (check), 130 interrupted.")
+    parser.add_argument("--version", action="version", version=f"lfgraph {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="more log output (debug level)")
+    verbosity.add_argument("-q", "--log-quiet", dest="log_quiet", action="store_true",
+                           help="warnings and errors only on the log")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in (synth, calibrate, rectify, refine, study, interop):
+        module.add_parsers(sub)
+    return parser
+
+
+def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
+    """The library logs through ``logging.getLogger("lfgraph")``; the CLI shows it on standard error."""
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    logger = logging.getLogger("lfgraph")
+    logger.setLevel(level)
+    if not any(getattr(h, "_lfgraph_cli", False) for h in logger.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter(LOG_FORMAT))
+        handler._lfgraph_cli = True  # type: ignore[attr-defined]
+        logger.addHandler(handler)
+    logger.propagate = False
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.log_quiet or getattr(args, "quiet", False))
+    try:
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        parser.error(str(exc))
+        return EXIT_USAGE
+    except (ValueError, OSError, RuntimeError) as exc:
+        print(f"lfgraph: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("lfgraph: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

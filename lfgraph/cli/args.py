@@ -1,0 +1,148 @@
+"""Argument types, exit codes and shared flags of the ``lfgraph`` command (no command imports another)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_USAGE, EXIT_DRIFT = 0, 1, 2, 3
+
+
+class UsageError(ValueError):
+    """A command-line value that makes no sense; exit code 2."""
+
+
+def image_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"image size must be WIDTHxHEIGHT such as 960x960, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"image size must be positive, got {text!r}")
+    return w, h
+
+
+def grid_size(text: str) -> tuple[int, int]:
+    from lfgraph.grid import parse_grid
+
+    try:
+        return parse_grid(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs")
+
+
+RERUN_SINK_FLAGS = ("save", "connect", "serve", "stdout", "url")
+
+
+def check_rerun(args: argparse.Namespace) -> bool:
+    """Validate the rerun flags before any work; True when logging was asked for (rerun is imported only then)."""
+    if not any(getattr(args, name, None) for name in RERUN_SINK_FLAGS):
+        return False
+    if getattr(args, "save", None):
+        from lfgraph.viz.rerun_log import check_save_path
+
+        try:
+            check_save_path(args.save)
+        except ValueError as exc:
+            raise UsageError(f"--save {exc}") from None
+    return True
+
+
+def jobs_default() -> int:
+    return max(1, os.cpu_count() or 1)
+
+
+def number_list(text: str, kind: type, minimum: float, what: str) -> list:
+    try:
+        values = [kind(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
+    if not values or any(not np.isfinite(v) or v < minimum for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what} >= {minimum:g}, got {text!r}")
+    return values
+
+
+def floats(text: str) -> list[float]:
+    return number_list(text, float, 0.0, "numbers")
+
+
+def ints(text: str) -> list[int]:
+    return number_list(text, int, 1, "whole numbers")
+
+
+@contextmanager
+def rerun_session(args: argparse.Namespace, grid, logging: bool) -> Iterator:
+    """A `lfgraph.viz.RerunLogger` for a ``with`` block when ``logging``, else None (no recording is created);
+    closed at the end, a failure discards a ``--save`` file."""
+    if not logging:
+        yield None
+        return
+    from lfgraph.viz.rerun_log import RerunLogger
+
+    if args.stdout:
+        logger = RerunLogger.stdout(grid)
+    elif args.serve:
+        logger = RerunLogger.serve(grid)
+    elif args.connect or args.url:
+        logger = RerunLogger.connect(args.url, grid)
+    else:
+        logger = RerunLogger.to_file(args.save, grid)
+    with logger:
+        yield logger
+    if logger.path is not None:
+        print(f"rerun recording: {logger.path} (open it with: rerun {logger.path})")
+
+
+def cli_observer(logger):
+    """What the commands pass as ``observer=``: log lines to `logging` (the CLI shows them on stderr), and to rerun
+    when a recording is open."""
+    from lfgraph.observer import BaseObserver, Observers
+
+    return None if logger is None else Observers(BaseObserver(), logger)
+
+
+def add_rerun_args(p: argparse.ArgumentParser) -> None:
+    """rerun's sink flags (the same names as rerun's ``script_add_args``), without importing rerun."""
+    group = p.add_argument_group("rerun visual debugging (nothing is logged without --save/--connect/--serve/--stdout)")
+    group.add_argument("--save", metavar="FILE.rrd", help="write a rerun recording to this file (atomically)")
+    group.add_argument("--connect", action="store_true", help="stream to a running rerun viewer")
+    group.add_argument("--url", help="the viewer's gRPC URL for --connect")
+    group.add_argument("--serve", action="store_true", help="host a gRPC server and web viewer")
+    group.add_argument("--stdout", action="store_true", help="write the recording to standard output (| rerun -)")

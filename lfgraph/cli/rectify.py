@@ -1,0 +1,126 @@
+"""``lfgraph rectify`` and ``lfgraph check`` (the drift check)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from lfgraph.cli.args import (
+    EXIT_DRIFT,
+    EXIT_OK,
+    LAYOUT_CHOICES,
+    UsageError,
+    add_rerun_args,
+    check_rerun,
+    jobs_default,
+    positive_float,
+    positive_int,
+    rerun_session,
+)
+
+
+def _rectify_frame_task(task: tuple) -> int:
+    capture, frame, calib_json, crop, out_dir, out_layout = task
+    from lfgraph.calibration import Calibration
+    from lfgraph.capture import write_frame
+    from lfgraph.rectification import build_maps, remap_views, stored_rectification
+
+    calib = Calibration.from_dict(calib_json)
+    maps = build_maps(calib, stored_rectification(calib))
+    images = capture.load_frame(frame, grayscale=False)
+    write_frame(out_dir, capture.frame_names[frame], remap_views(images, maps), capture.grid, out_layout)
+    return frame
+
+
+def cmd_rectify(args: argparse.Namespace) -> int:
+    import shutil
+    import tempfile
+
+    from lfgraph.calibration import Calibration
+    from lfgraph.capture import open_capture
+    from lfgraph.parallel import run_tasks
+    from lfgraph.rectification import attach, check_compatible, compute_rectification
+    from lfgraph.report import rectification_text
+
+    out = args.output
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UsageError(f"-o {out} exists and is not an empty folder; choose a new output folder")
+    calib = Calibration.load(args.calibration)
+    capture = open_capture(args.input, calib.grid, args.layout)
+    check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    logging = check_rerun(args)
+    rect = compute_rectification(calib, args.crop)
+    rectified = attach(calib, rect)
+    print(rectification_text(calib, rect))
+    with rerun_session(args, calib.grid, logging) as logger:
+        if logger is not None:
+            from lfgraph.rectification import build_maps, remap_views
+
+            logger.rig(calib, capture.load_frame(0))
+            logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
+    out_layout = "folders" if capture.layout == "pairs" else capture.layout
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        tasks = [(capture, f, rectified.to_dict(), args.crop, tmp, out_layout) for f in range(len(capture))]
+        run_tasks(_rectify_frame_task, tasks, args.jobs, desc="rectifying", unit="frame", progress=not args.quiet)
+        rectified.save(tmp / "calibration.json")
+        if out.exists():
+            out.rmdir()  # empty, checked above
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    print(f"wrote {len(capture)} rectified frames ({out_layout}) and {out / 'calibration.json'} "
+          f"(with the rectification) to {out}")
+    return EXIT_OK
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from lfgraph.calibration import Calibration
+    from lfgraph.capture import open_capture
+    from lfgraph.drift import check_capture
+    from lfgraph.rectification import check_compatible, compute_rectification, stored_rectification
+    from lfgraph.report import drift_text
+
+    calib = Calibration.load(args.calibration)
+    capture = open_capture(args.input, calib.grid, args.layout)
+    check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    rect = stored_rectification(calib) or compute_rectification(calib)
+    n = min(len(capture), args.max_frames)
+    report = check_capture(calib, rect, (capture.load_frame(f) for f in range(n)))
+    print(drift_text(calib, report))
+    if report.rms_px > args.max_px:
+        print(f"DRIFT: reprojection RMS {report.rms_px:.3f} px is above --max-px {args.max_px:g}; "
+              f"re-calibrate or run lfgraph refine")
+        return EXIT_DRIFT
+    print(f"OK: reprojection RMS {report.rms_px:.3f} px <= --max-px {args.max_px:g}")
+    return EXIT_OK
+
+
+
+
+def add_parsers(sub: Any) -> None:
+    """Add this module's commands to the ``lfgraph`` subparsers."""
+    rc = sub.add_parser("rectify", help="rectify a capture with a calibration (paper Section 3.3)")
+    rc.add_argument("calibration", type=Path, help="calibration.json")
+    rc.add_argument("input", type=Path, help="capture folder")
+    rc.add_argument("-o", "--output", type=Path, required=True, help="new folder for the rectified capture")
+    rc.add_argument("--crop", choices=("valid", "full"), default="valid",
+                    help="valid: the rectangle every view fills (default); full: keep the source size")
+    rc.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    rc.add_argument("--jobs", type=positive_int, default=jobs_default())
+    rc.add_argument("--quiet", action="store_true")
+    add_rerun_args(rc)
+    rc.set_defaults(func=cmd_rectify)
+
+    ck = sub.add_parser("check", help="drift check: does the calibration still fit an ordinary capture? "
+                                      "(exit 2 when not)")
+    ck.add_argument("calibration", type=Path, help="calibration.json")
+    ck.add_argument("input", type=Path, help="capture folder of any textured scene")
+    ck.add_argument("--max-px", type=positive_float, default=0.5,
+                    help="largest acceptable reprojection RMS (default 0.5 px)")
+    ck.add_argument("--max-frames", type=positive_int, default=3, help="frames to use (default 3)")
+    ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    ck.set_defaults(func=cmd_check)

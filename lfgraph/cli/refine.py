@@ -1,0 +1,86 @@
+"""``lfgraph refine``: auto-refinement from ordinary scene captures."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from lfgraph.cli.args import (
+    EXIT_OK,
+    LAYOUT_CHOICES,
+    UsageError,
+    add_rerun_args,
+    check_rerun,
+    cli_observer,
+    positive_float,
+    positive_int,
+    rerun_session,
+)
+
+
+def cmd_refine(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from lfgraph.calibration import Calibration
+    from lfgraph.capture import open_capture
+    from lfgraph.factors.noise import describe_noise
+    from lfgraph.rectification import check_compatible
+    from lfgraph.refinement import RefineConfig, refine, with_reference
+    from lfgraph.refinement.config import schedule_name
+    from lfgraph.report import refinement_text
+
+    try:
+        config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
+                              target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if not args.output.parent.exists():
+        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    logging = check_rerun(args)
+    calib = Calibration.load(args.calibration)
+    if args.reference is not None:
+        if not 0 <= args.reference < calib.num_views:
+            raise UsageError(f"--reference {args.reference} is not a view of the {calib.grid} grid")
+        calib = with_reference(calib, args.reference)
+    capture = open_capture(args.input, calib.grid, args.layout)
+    check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
+    n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
+    print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "
+          f"triangulation filter {config.triangulation_filter}, robust {describe_noise(config.noise)}")
+    frames = (capture.load_frame(f) for f in range(n))
+    bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
+    with rerun_session(args, calib.grid, logging) as logger, logging_redirect_tqdm():
+        if logger is not None:
+            logger.rig(calib, capture.load_frame(0))
+        refined, report = refine(calib, bar, config, cli_observer(logger))
+        refined.save(args.output)
+    print(refinement_text(calib, refined, report))
+    print(f"wrote {args.output}")
+    return EXIT_OK
+
+
+
+
+def add_parsers(sub: Any) -> None:
+    """Add this module's commands to the ``lfgraph`` subparsers."""
+    rf = sub.add_parser("refine", help="auto-refine a calibration from ordinary scene captures (paper Section 4)")
+    rf.add_argument("calibration", type=Path, help="calibration.json to refine")
+    rf.add_argument("input", type=Path, help="capture folder of a textured scene")
+    rf.add_argument("-o", "--output", type=Path, required=True, help="refined calibration.json to write")
+    rf.add_argument("--stages", default="default",
+                    help="schedule: default (points,poses,clean), paper (points,intrinsics,all) or a comma list of "
+                         "points, intrinsics, poses, all, clean")
+    rf.add_argument("--robust", default="none", help="robust kernel NAME[:THRESHOLD_PX] (none, huber:1.345, "
+                                                     "cauchy:..., tukey:..., gm:..., dcs:...)")
+    rf.add_argument("--triangulation-filter", choices=("median", "worst", "none"),
+                    help="median: the paper's (default with --stages paper); worst: drop outlying tracks (default)")
+    rf.add_argument("--max-frames", type=positive_int, help="use at most this many frames")
+    rf.add_argument("--target-rms", type=positive_float,
+                    help="stop adding frames once a new frame fits the calibration at this RMS (px)")
+    rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
+    rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    rf.add_argument("--quiet", action="store_true")
+    add_rerun_args(rf)
+    rf.set_defaults(func=cmd_refine)

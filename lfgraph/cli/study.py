@@ -1,0 +1,209 @@
+"""``lfgraph study shake|calibration`` and ``lfgraph depth-error``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lfgraph.cli.args import (
+    EXIT_OK,
+    UsageError,
+    add_rerun_args,
+    check_rerun,
+    floats,
+    ints,
+    jobs_default,
+    non_negative,
+    positive_float,
+    positive_int,
+    rerun_session,
+)
+
+
+def cmd_depth_error(args: argparse.Namespace) -> int:
+    import json
+
+    from lfgraph.depth import depth_error_m
+    from lfgraph.report import format_table
+
+    near, far = args.range_m
+    if not 0 < near <= far:
+        raise UsageError(f"--range-m needs 0 < NEAR <= FAR, got {near} {far}")
+    depths = np.linspace(near, far, args.steps)
+    errors = depth_error_m(args.focal_px, args.baseline_m, args.error_px, depths)
+    if args.json:
+        print(json.dumps({"focal_px": args.focal_px, "baseline_m": args.baseline_m, "error_px": args.error_px,
+                          "depth_m": depths.tolist(),
+                          "depth_error_m": [None if not np.isfinite(e) else float(e) for e in errors]}))
+    else:
+        print(f"depth error for f = {args.focal_px:g} px, b = {args.baseline_m:g} m, reprojection error "
+              f"{args.error_px:g} px (half the spread of the depths at disparity d - E and d + E):")
+        print(format_table(["depth_m", "disparity_px", "depth_error_m", "relative_%"],
+                           [[f"{z:.3f}", f"{args.focal_px * args.baseline_m / z:.3f}", f"{e:.4f}",
+                             f"{100 * e / z:.2f}"] for z, e in zip(depths, errors, strict=True)]))
+    if args.plot is not None:
+        from lfgraph.plot import line_plot
+
+        line_plot(args.plot, [(f"E = {args.error_px:g} px", depths, errors)],
+                  f"depth error, f = {args.focal_px:g} px, b = {args.baseline_m:g} m", "depth (m)",
+                  "depth error (m)")
+        if not args.json:
+            print(f"plot: {args.plot}")
+    return EXIT_OK
+
+
+
+
+def _study_common(args: argparse.Namespace) -> None:
+    from lfgraph.executor import parse_executor
+
+    try:
+        parse_executor(args.executor)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if not args.output.parent.exists():
+        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+
+
+def cmd_study_shake(args: argparse.Namespace) -> int:
+    from lfgraph.datasets.scenes import get_scene
+    from lfgraph.factors.noise import RobustKernel
+    from lfgraph.refinement import parse_stages
+    from lfgraph.study import (
+        SHAKE_COLUMNS,
+        make_shake_trials,
+        run_shake_trial,
+        run_study,
+        shake_plots,
+        shake_row_key,
+        shake_trial_rows,
+    )
+
+    _study_common(args)
+    try:
+        get_scene(args.scene)
+        stages = [s.strip() for s in args.stages.split(",")]
+        for name in stages:
+            parse_stages(name)
+        robust = [r.strip() for r in args.robust.split(",")]
+        for r in robust:
+            RobustKernel.parse(r)
+        trials = make_shake_trials(args.scene, args.rot_deg, args.trans_mm, args.trials, args.frames, stages,
+                                   robust, args.seed)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    logging = check_rerun(args)
+    print(f"shake study on {args.scene}: {len(trials)} trials ({len(trials) // args.trials} levels x {args.trials} "
+          f"seeds), {len(stages) * len(robust)} configurations each, executor {args.executor}")
+    with rerun_session(args, None, logging) as logger:
+        rows = run_study(trials, run_shake_trial, args.output, SHAKE_COLUMNS, shake_trial_rows, shake_row_key,
+                         args.executor, args.jobs, progress=not args.quiet,
+                         on_rows=None if logger is None else logger.study_rows)
+    plots = shake_plots(rows, args.output)
+    print(_shake_summary(rows))
+    print(f"wrote {args.output} and {', '.join(str(p) for p in plots)}")
+    return EXIT_OK
+
+
+def _shake_summary(rows) -> str:
+    from lfgraph.report import format_table
+    from lfgraph.study import summarise
+
+    metrics = ["transfer_before_px", "transfer_px", "rot_err_deg", "rms_after_px"]
+    summary = summarise(rows, ("stages", "robust"), "rot_deg", metrics)
+    table = []
+    for (stages, robust), d in sorted(summary.items()):
+        for i, x in enumerate(d["rot_deg"]):
+            table.append([stages, robust, f"{x:g}", *(f"{d[m][i]:.4f}" for m in metrics)])
+    return "mean over seeds:\n" + format_table(["stages", "robust", "rot_shake_deg", "transfer_before_px",
+                                                 "transfer_after_px", "rot_err_deg", "rms_after_px"], table)
+
+
+def cmd_study_calibration(args: argparse.Namespace) -> int:
+    from lfgraph.datasets.scenes import get_scene
+    from lfgraph.report import format_table
+    from lfgraph.study import (
+        CALIBRATION_COLUMNS,
+        CalibrationTrial,
+        calibration_plots,
+        calibration_row_key,
+        calibration_trial_rows,
+        run_calibration_trial,
+        run_study,
+        summarise,
+    )
+
+    _study_common(args)
+    try:
+        named = get_scene(args.scene)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if max(args.frames) > named.checkerboard.frames:
+        raise UsageError(f"--frames up to {named.checkerboard.frames} for {args.scene}, got {max(args.frames)}")
+    trials = [CalibrationTrial(args.scene, f, s, args.seed + i) for f in args.frames for s in args.sigma_px
+              for i in range(args.trials)]
+    print(f"calibration study on {args.scene}: {len(trials)} trials, executor {args.executor}")
+    rows = run_study(trials, run_calibration_trial, args.output, CALIBRATION_COLUMNS, calibration_trial_rows,
+                     calibration_row_key, args.executor, args.jobs, progress=not args.quiet)
+    plots = calibration_plots(rows, args.output)
+    metrics = ["fx_err_px", "pos_err_mm", "rot_err_deg"]
+    sq = [{**r, **{m: float(r[m]) ** 2 for m in metrics}} for r in rows]
+    table = []
+    for (method, sigma), d in sorted(summarise(sq, ("method", "sigma_px"), "frames", metrics).items()):
+        for i, f in enumerate(d["frames"]):
+            table.append([method, sigma, int(f), *(f"{np.sqrt(d[m][i]):.4g}" for m in metrics)])
+    print("RMS over seeds:")
+    print(format_table(["method", "sigma_px", "frames", "fx_err_px", "pos_err_mm", "rot_err_deg"], table))
+    print(f"wrote {args.output} and {len(plots)} plots ({plots[0].parent if plots else ''})")
+    return EXIT_OK
+
+
+
+
+def add_parsers(sub: Any) -> None:
+    """Add this module's commands to the ``lfgraph`` subparsers."""
+    de = sub.add_parser("depth-error", help="the depth error a reprojection error causes (paper Section 5.1)")
+    de.add_argument("--focal-px", type=positive_float, required=True, help="focal length in pixels")
+    de.add_argument("--baseline-m", type=positive_float, required=True, help="baseline in metres")
+    de.add_argument("--error-px", type=non_negative, required=True, help="reprojection (disparity) error, px")
+    de.add_argument("--range-m", type=positive_float, nargs=2, metavar=("NEAR", "FAR"), default=(0.5, 2.0),
+                    help="depth range in metres (default 0.5 2.0)")
+    de.add_argument("--steps", type=positive_int, default=7, help="depths in the table (default 7)")
+    de.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    de.add_argument("--plot", type=Path, help="write a PNG plot of depth error against depth")
+    de.set_defaults(func=cmd_depth_error)
+
+    st = sub.add_parser("study", help="studies: the paper's shake experiment, calibration accuracy vs frames")
+    st_sub = st.add_subparsers(dest="study_command", required=True)
+
+    def common_study(p: argparse.ArgumentParser, default_scene: str, default_out: str) -> None:
+        p.add_argument("--scene", default=default_scene, help=f"named scene (default {default_scene})")
+        p.add_argument("--trials", type=positive_int, default=3, help="seeded trials per level (default 3)")
+        p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+        p.add_argument("--executor", default="local",
+                       help="local (process pool, default), dask-local (a LocalCluster) or dask://HOST:PORT")
+        p.add_argument("--jobs", type=positive_int, default=jobs_default(), help="processes / Dask workers")
+        p.add_argument("-o", "--output", type=Path, default=Path(default_out),
+                       help=f"tidy CSV (default {default_out}); a re-run skips trials already in it")
+        p.add_argument("--quiet", action="store_true")
+
+    ss = st_sub.add_parser("shake", help="refine shaken rigs (the paper's Fig. avg_synth)")
+    common_study(ss, "paper-5x5", "shake_study.csv")
+    ss.add_argument("--rot-deg", type=floats, default=[0.0, 0.25, 0.5, 1.0],
+                    help="rotation shake levels about each optical axis, deg (default 0,0.25,0.5,1)")
+    ss.add_argument("--trans-mm", type=floats, default=[0.0, 1.0, 2.0, 5.0],
+                    help="translation shake levels paired with --rot-deg, mm per axis (default 0,1,2,5)")
+    ss.add_argument("--frames", type=positive_int, default=1, help="scene frames per trial (default 1)")
+    ss.add_argument("--stages", default="paper,default", help="schedules to compare (default paper,default)")
+    ss.add_argument("--robust", default="none", help="robust kernels to compare, e.g. none,huber:1.345,cauchy:1.0")
+    add_rerun_args(ss)
+    ss.set_defaults(func=cmd_study_shake)
+
+    sc2 = st_sub.add_parser("calibration", help="calibration accuracy vs frames and corner noise, three methods")
+    common_study(sc2, "paper-4x4", "calibration_study.csv")
+    sc2.add_argument("--frames", type=ints, default=[5, 10, 20, 30, 40], help="frame counts (default 5,...,40)")
+    sc2.add_argument("--sigma-px", type=floats, default=[0.1, 0.3], help="corner noise levels (default 0.1,0.3)")
+    sc2.set_defaults(func=cmd_study_calibration)

@@ -1,0 +1,125 @@
+"""Graph fragments of the auto-refinement: scene landmarks seen by the views, the priors that hold what a stage
+does not free, and the gauges. Each function returns a `gtsam.NonlinearFactorGraph` fragment merged with
+``push_back``; noise models come from `lfgraph.factors.noise`.
+
+Gauges: (1) the array's frame — the reference view's pose is held; scale, unobservable from a scene alone, is fixed
+by one range (reference to the farthest view); (2) the hidden principal-point gauge — shifting each view's
+principal point in proportion to its baseline while shifting every landmark's inverse depth leaves all images
+unchanged, so cx of the reference row's neighbour (cy of its column neighbour in a single-column grid) is held
+whenever principal points are free; (3) with nearly parallel views a common zoom and shift of every view's fx, fy,
+cx, cy is unobservable too, so the reference view's intrinsics are held as its pose is.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
+from lfgraph.factors.noise import (
+    HELD_SIGMA,
+    MIN_SIGMA,
+    cal3ds2_noise,
+    gauge_pose_noise,
+    pose_noise,
+    range_noise,
+)
+from lfgraph.geometry import to_pose3
+
+RANGE_GAUGE_SIGMA_M = 1e-3  # a pure gauge: any sigma keeps the range; 1e-6 m made LM fail on a 14 mm baseline
+FOCAL_FREE_SIGMA_PX = 1e4  # fx, fy, cx, cy when a refinement stage frees them (no practical pull)
+
+
+def _observations(valid: np.ndarray, pixels: np.ndarray) -> tuple[list[int], list[int], np.ndarray]:
+    vs, js = np.nonzero(valid)
+    return vs.tolist(), js.tolist(), pixels[vs, js]
+
+
+def triangulation_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
+                          noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactorGraph:
+    """Landmarks seen by constant cameras (`TriangulationFactorCal3DS2`): (V, N, 2) pixels, (V, N) valid."""
+    graph = gtsam.NonlinearFactorGraph()
+    cams = [gtsam.PinholeCameraCal3DS2(to_pose3(calib.ref_T_view[v]), calib.intrinsics[v].to_gtsam())
+            for v in range(calib.num_views)]
+    vs, js, meas = _observations(valid, pixels)
+    for v, j, uv in zip(vs, js, meas, strict=True):
+        graph.add(gtsam.TriangulationFactorCal3DS2(cams[v], uv, noise, landmark_key(j)))
+    return graph
+
+
+def projection_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
+                       noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactorGraph:
+    """Landmarks seen by free poses with constant intrinsics (`GenericProjectionFactorCal3DS2`)."""
+    graph = gtsam.NonlinearFactorGraph()
+    cals = [calib.intrinsics[v].to_gtsam() for v in range(calib.num_views)]
+    vs, js, meas = _observations(valid, pixels)
+    for v, j, uv in zip(vs, js, meas, strict=True):
+        graph.add(gtsam.GenericProjectionFactorCal3DS2(uv, noise, view_pose_key(v), landmark_key(j), cals[v]))
+    return graph
+
+
+def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactorGraph:
+    """Landmarks seen by free poses and free intrinsics (`GeneralSFMFactor2Cal3DS2`)."""
+    graph = gtsam.NonlinearFactorGraph()
+    vs, js, meas = _observations(valid, pixels)
+    for v, j, uv in zip(vs, js, meas, strict=True):
+        graph.add(gtsam.GeneralSFMFactor2Cal3DS2(uv, noise, view_pose_key(v), landmark_key(j), calib_key(v)))
+    return graph
+
+
+def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int],
+                scale_sigma_mm: float | None) -> gtsam.NonlinearFactorGraph:
+    """The reference pose (gauge); held views and, when poses are not free, every view; optional weak position
+    priors (``scale_sigma_mm``, which bias rotations) on the free views."""
+    graph = gtsam.NonlinearFactorGraph()
+    for v in range(calib.num_views):
+        pose = to_pose3(calib.ref_T_view[v])
+        if v == calib.grid.reference:
+            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, gauge_pose_noise()))
+        elif poses_free and v not in held_views:
+            if scale_sigma_mm is not None:
+                graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, pose_noise(1.0, scale_sigma_mm * 1e-3)))
+        else:
+            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, pose_noise(HELD_SIGMA, HELD_SIGMA)))
+    return graph
+
+
+def range_gauge(calib: Calibration) -> gtsam.NonlinearFactorGraph:
+    """Scale: one range from the reference to the farthest view, at its calibrated length (pulls no direction)."""
+    graph = gtsam.NonlinearFactorGraph()
+    far = int(np.argmax(np.linalg.norm(calib.ref_T_view[:, :3, 3], axis=1)))
+    graph.add(gtsam.RangeFactorPose3(view_pose_key(calib.grid.reference), view_pose_key(far),
+                                     float(np.linalg.norm(calib.ref_T_view[far, :3, 3])),
+                                     range_noise(RANGE_GAUGE_SIGMA_M)))
+    return graph
+
+
+def principal_point_gauge(calib: Calibration) -> tuple[int, int] | None:
+    """(view, Cal3DS2 index) of the principal-point coordinate held to remove the hidden intrinsics gauge."""
+    grid = calib.grid
+    r0, c0 = grid.position(grid.reference)
+    if grid.cols > 1:
+        c = c0 + 1 if c0 + 1 < grid.cols else c0 - 1
+        return grid.index(r0, c), 3  # cx
+    if grid.rows > 1:
+        r = r0 + 1 if r0 + 1 < grid.rows else r0 - 1
+        return grid.index(r, c0), 4  # cy
+    return None
+
+
+def intrinsics_priors(calib: Calibration, held_views: frozenset[int]) -> gtsam.NonlinearFactorGraph:
+    """fx, fy, cx, cy free for the non-reference, non-held views (minus the principal-point gauge); skew,
+    distortion and everything of the reference and held views held."""
+    graph = gtsam.NonlinearFactorGraph()
+    gauge = principal_point_gauge(calib)
+    for v in range(calib.num_views):
+        sigmas = np.full(9, HELD_SIGMA)  # Cal3DS2 order: fx fy s cx cy k1 k2 p1 p2
+        sigmas[2] = MIN_SIGMA
+        if v != calib.grid.reference and v not in held_views:
+            sigmas[[0, 1, 3, 4]] = FOCAL_FREE_SIGMA_PX
+            if gauge is not None and gauge[0] == v:
+                sigmas[gauge[1]] = HELD_SIGMA
+        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), calib.intrinsics[v].to_gtsam(), cal3ds2_noise(sigmas)))
+    return graph
+

@@ -1,0 +1,89 @@
+"""The one boundary between lfgraph's objects and `gtsam.Values`: every insert and every read-back of view poses,
+intrinsics, board poses, board corners and landmarks goes through here (round-trip tested)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import gtsam
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, landmark_key, view_pose_key
+from lfgraph.geometry import from_pose3, to_pose3
+
+
+def insert_view_poses(values: gtsam.Values, ref_T_view: np.ndarray) -> None:  # noqa: N803
+    """(V, 4, 4) ``ref_T_view`` as Pose3 under `view_pose_key`."""
+    for v, pose in enumerate(ref_T_view):
+        values.insert(view_pose_key(v), to_pose3(pose))
+
+
+def insert_intrinsics(values: gtsam.Values, intrinsics: Sequence[Intrinsics]) -> None:
+    """Per-view Cal3DS2 under `calib_key`."""
+    for v, intr in enumerate(intrinsics):
+        values.insert(calib_key(v), intr.to_gtsam())
+
+
+def insert_board_poses(values: gtsam.Values, board_T_ref: np.ndarray, frames: Iterable[int]) -> None:  # noqa: N803
+    """``board_T_ref`` of the given frames under `board_pose_key`."""
+    for f in frames:
+        values.insert(board_pose_key(f), to_pose3(board_T_ref[f]))
+
+
+def insert_board_corners(values: gtsam.Values, object_points_m: np.ndarray) -> None:
+    """(C, 3) board corners (board frame, metres) under `board_corner_key`."""
+    for j, p in enumerate(np.asarray(object_points_m, dtype=np.float64)):
+        values.insert(board_corner_key(j), p)
+
+
+def insert_landmarks(values: gtsam.Values, points_ref_m: np.ndarray) -> None:
+    """(N, 3) landmarks (reference frame, metres) under `landmark_key`."""
+    for j, p in enumerate(np.asarray(points_ref_m, dtype=np.float64)):
+        values.insert(landmark_key(j), p)
+
+
+def read_view_poses(values: gtsam.Values, n_views: int) -> np.ndarray:
+    """(V, 4, 4) ``ref_T_view``."""
+    return np.stack([from_pose3(values.atPose3(view_pose_key(v))) for v in range(n_views)])
+
+
+def read_intrinsics(values: gtsam.Values, n_views: int, keep: Sequence[Intrinsics] | None = None,
+                    tangential: bool = True) -> tuple[Intrinsics, ...]:
+    """Per-view intrinsics from Cal3DS2.
+
+    Args:
+        keep: when given, distortion (k1, k2, p1, p2) is taken from these instead (stages that hold it).
+        tangential: False clears p1, p2 (held at 0 by priors; this removes their ~1e-13 round-off).
+    """
+    out = []
+    for v in range(n_views):
+        cal = values.atCal3DS2(calib_key(v))
+        if keep is not None:
+            old = keep[v]
+            out.append(Intrinsics(cal.fx(), cal.fy(), cal.px(), cal.py(), old.k1, old.k2, old.p1, old.p2))
+            continue
+        k = cal.k()
+        p1, p2 = (float(k[2]), float(k[3])) if tangential else (0.0, 0.0)
+        out.append(Intrinsics(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), p1, p2))
+    return tuple(out)
+
+
+def read_board_poses(values: gtsam.Values, n_frames: int, frames: Iterable[int]) -> np.ndarray:
+    """(F, 4, 4) ``board_T_ref``, NaN for frames not in ``frames``."""
+    out = np.full((n_frames, 4, 4), np.nan)
+    for f in frames:
+        out[f] = from_pose3(values.atPose3(board_pose_key(f)))
+    return out
+
+
+def read_board_corners(values: gtsam.Values, n_corners: int) -> np.ndarray:
+    """(C, 3) board corners."""
+    return np.stack([np.asarray(values.atPoint3(board_corner_key(j))) for j in range(n_corners)])
+
+
+def read_landmarks(values: gtsam.Values, n: int) -> np.ndarray:
+    """(N, 3) landmarks (an empty (0, 3) array for none)."""
+    if n == 0:
+        return np.zeros((0, 3))
+    return np.stack([np.asarray(values.atPoint3(landmark_key(j))) for j in range(n)])

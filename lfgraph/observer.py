@@ -1,0 +1,125 @@
+"""One observer for everything the estimators report while they run: log lines, optimiser iterations, frames,
+stages, outliers.
+
+`calibrate` and `refine` take ``observer=``; without one they log through Python's `logging` (logger
+``lfgraph``). Subclass `BaseObserver` and override what you need; `lfgraph.viz.RerunLogger` is one; `Observers`
+fans out to several. The core never imports rerun.
+
+    class Printer(lf.BaseObserver):
+        def iteration(self, i, before, after):
+            print(f"LM {i}: {before:.3g} -> {after:.3g}")
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from lfgraph.calibration import Calibration
+
+LOG = logging.getLogger("lfgraph")
+
+
+@dataclass(frozen=True)
+class StageEnd:
+    """A refinement stage has run.
+
+    Attributes:
+        name: the stage (``points``, ``poses``, ``clean``, ...).
+        calib: the calibration after it.
+        points_ref_m: (N, 3) landmarks in the reference frame.
+        pixels_px: (V, N, 2) the observations it used; valid: (V, N).
+        errors_px: (V, N) reprojection errors after it (NaN where not observed).
+    """
+
+    name: str
+    calib: Calibration
+    points_ref_m: np.ndarray
+    pixels_px: np.ndarray
+    valid: np.ndarray
+    errors_px: np.ndarray
+
+
+@runtime_checkable
+class Observer(Protocol):
+    """What `calibrate` and `refine` call while they run (every method optional through `BaseObserver`)."""
+
+    def log(self, message: str) -> None:
+        """A progress line (stage summaries, warnings)."""
+
+    def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        """One Levenberg–Marquardt iteration of the graph being optimised."""
+
+    def frame(self, index: int, images: np.ndarray) -> None:
+        """Refinement starts on frame ``index``: (V, H, W) images."""
+
+    def stage_start(self, name: str, measurements: int) -> None:
+        """A refinement stage starts over ``measurements`` 2-D observations."""
+
+    def stage_end(self, event: StageEnd) -> None:
+        """A refinement stage has run."""
+
+    def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        """Observations a stage's outlier rejection dropped: (V, N, 2) and (V, N)."""
+
+
+class BaseObserver:
+    """No-op implementations of every `Observer` method, and `log` through `logging`: subclass and override."""
+
+    def log(self, message: str) -> None:
+        LOG.info(message)
+
+    def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        pass
+
+    def frame(self, index: int, images: np.ndarray) -> None:
+        pass
+
+    def stage_start(self, name: str, measurements: int) -> None:
+        pass
+
+    def stage_end(self, event: StageEnd) -> None:
+        pass
+
+    def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        pass
+
+
+class Observers(BaseObserver):
+    """Several observers as one (each gets every call, in order)."""
+
+    def __init__(self, *observers: Observer) -> None:
+        self.observers = tuple(o for o in observers if o is not None)
+
+    def log(self, message: str) -> None:
+        for o in self.observers:
+            o.log(message)
+
+    def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        for o in self.observers:
+            o.iteration(iteration, error_before, error_after)
+
+    def frame(self, index: int, images: np.ndarray) -> None:
+        for o in self.observers:
+            o.frame(index, images)
+
+    def stage_start(self, name: str, measurements: int) -> None:
+        for o in self.observers:
+            o.stage_start(name, measurements)
+
+    def stage_end(self, event: StageEnd) -> None:
+        for o in self.observers:
+            o.stage_end(event)
+
+    def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        for o in self.observers:
+            o.outliers(name, pixels_px, valid)
+
+
+def resolve(observer: Observer | None) -> Observer:
+    """The observer to call: the given one, or one that logs through `logging`."""
+    return BaseObserver() if observer is None else observer

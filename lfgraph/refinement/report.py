@@ -1,0 +1,61 @@
+"""What a refinement measured: per-stage and overall reports."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StageReport:
+    """One stage: landmarks used, RMS before/after (px), iterations, and per-view changes it made."""
+
+    name: str
+    landmarks: int
+    observations: int
+    rms_before_px: float
+    rms_after_px: float
+    iterations: int
+    seconds: float
+    rotation_change_deg: np.ndarray
+    position_change_mm: np.ndarray
+    focal_change_px: np.ndarray
+    principal_change_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class RefinementReport:
+    """Everything `refine` measured: per-frame track counts after each filter, per-stage reports, and the RMS of
+    the tracks kept by the last pass with the input and with the refined calibration."""
+
+    frame_counts: tuple[dict[str, int], ...]
+    frame_rms_before_px: tuple[float, ...]
+    stages: tuple[StageReport, ...]
+    frames_used: int
+    stop_reason: str
+    rms_before_px: float
+    rms_after_px: float
+    seconds: float
+    seconds_matching: float = 0.0
+    seconds_adjustment: float = 0.0
+    accepted: bool = True
+    coverage: float = 1.0
+    warnings: tuple[str, ...] = ()
+    total_iterations: int = 0  # LM iterations of every stage of every pass (the rerun ``iteration`` timeline)
+
+    def metrics(self) -> dict:
+        return {
+            "refinement": {
+                "frames_used": self.frames_used, "stop_reason": self.stop_reason, "accepted": self.accepted,
+                "coverage": self.coverage, "warnings": list(self.warnings),
+                "total_iterations": self.total_iterations,
+                "rms_before_px": self.rms_before_px, "rms_after_px": self.rms_after_px,
+                "frame_counts": list(self.frame_counts),
+                "stages": [{"name": str(s.name), "landmarks": s.landmarks, "rms_before_px": s.rms_before_px,
+                            "rms_after_px": s.rms_after_px, "iterations": s.iterations,
+                            "max_rotation_change_deg": float(np.max(s.rotation_change_deg)),
+                            "max_position_change_mm": float(np.max(s.position_change_mm))}
+                           for s in self.stages],
+            }
+        }

@@ -1,0 +1,240 @@
+"""Auto-refinement from ordinary scenes (paper Section 4): tracks -> filters -> staged GTSAM bundle adjustment,
+frame after frame.
+
+Schedules (`lfgraph.refinement.config`): ``paper`` = points, intrinsics, all (the paper's strategy); ``default`` =
+points, poses, clean — chosen by measurement (`benchmarks/refine.py`): holding the intrinsics and cleaning bad
+tracks is several times more accurate in view rotation and transfer error at infinity. ``clean`` drops tracks whose
+worst residual stands out (the F-matrix test cannot see errors along the baseline), then repeats the previous free
+stage (with ``clean_robust`` when set).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.factors.noise import describe_noise
+from lfgraph.geometry import rotation_angle_deg
+from lfgraph.observer import Observer, StageEnd, resolve
+from lfgraph.refinement.config import RefineConfig, Stage
+from lfgraph.refinement.matching import track_chain
+from lfgraph.refinement.report import RefinementReport, StageReport
+from lfgraph.refinement.stages import run_stage
+from lfgraph.refinement.tracks import (
+    COVERAGE_CELLS,
+    OUTLIER_FACTOR,
+    OUTLIER_FLOOR_PX,
+    collect_tracks,
+    in_front,
+    track_coverage,
+)
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+
+CLEAN_FACTOR = 3.0  # the clean stage: worst residual > 3x the median track's ...
+CLEAN_FLOOR_PX = 0.3  # ... and > 0.3 px (the prototype's threshold)
+COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells
+MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive tracking and the filters
+
+
+def with_reference(calib: Calibration, reference: int) -> Calibration:
+    """The same array expressed relative to another reference view."""
+    from lfgraph.grid import ViewGrid
+
+    poses = np.linalg.inv(calib.ref_T_view[reference])[None] @ calib.ref_T_view
+    poses[reference] = np.eye(4)
+    return calib.replace(grid=ViewGrid(calib.grid.rows, calib.grid.cols, reference), ref_T_view=poses,
+                         rectification=None)
+
+
+def _rms(errors: np.ndarray) -> float:
+    e = errors[np.isfinite(errors)]
+    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+
+def _changes(before: Calibration, after: Calibration) -> tuple[np.ndarray, ...]:
+    rot = np.asarray(rotation_angle_deg(np.swapaxes(before.ref_T_view[:, :3, :3], 1, 2)
+                                        @ after.ref_T_view[:, :3, :3]))
+    pos = 1e3 * np.linalg.norm(after.ref_T_view[:, :3, 3] - before.ref_T_view[:, :3, 3], axis=1)
+    foc = np.array([np.hypot(a.fx - b.fx, a.fy - b.fy) for a, b in zip(after.intrinsics, before.intrinsics,
+                                                                        strict=True)])
+    pp = np.array([np.hypot(a.cx - b.cx, a.cy - b.cy) for a, b in zip(after.intrinsics, before.intrinsics,
+                                                                       strict=True)])
+    return rot, pos, foc, pp
+
+
+def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
+                  observer: Observer | None = None) -> tuple[Calibration, list[StageReport], np.ndarray]:
+    """Run the stage schedule over pooled tracks: (V, N, 2) pixels with a (V, N) mask, any views (grid or not).
+
+    The observer hears ``stage_start`` before and ``stage_end`` and ``outliers`` (the tracks the stage's outlier
+    rejection dropped) after every stage, and every optimiser iteration.
+
+    Returns:
+        the calibration, stage reports and the (N,) kept-track mask.
+    """
+    config = config or RefineConfig()
+    obs = resolve(observer)
+    keep = np.ones(valid.shape[1], dtype=bool)
+    reports = []
+    last_free = None
+    for name in config.stages:
+        t0 = time.perf_counter()
+        # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
+        # linear system singular and LM give up at once — guard cheirality before building the graph
+        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep])
+        front = in_front(calib, points, valid[:, keep])
+        idx = np.nonzero(keep)[0]
+        keep[idx[~front]] = False
+        px, ok, points = pixels[:, keep], valid[:, keep], points[front]
+        errors = reprojection_errors(calib, points, px, ok)
+        if name == Stage.CLEAN:
+            if last_free is None:
+                raise ValueError("'clean' needs a free stage before it")
+            good = worst_error_filter(errors, CLEAN_FACTOR, CLEAN_FLOOR_PX)
+            idx = np.nonzero(keep)[0]
+            keep[idx[~good]] = False
+            px, ok, points = px[:, good], ok[:, good], points[good]
+            errors = errors[:, good]
+            stage, noise = last_free, config.clean_noise
+        else:
+            stage, noise = name, config.noise
+        rms_before = _rms(errors)
+        before = calib
+        obs.stage_start(str(name), int(ok.sum()))
+        per_view = ok.sum(axis=1)
+        held = frozenset(int(v) for v in np.nonzero(per_view < config.min_view_observations)[0])
+        if held and stage != Stage.POINTS:
+            obs.log(f"stage {name}: views {', '.join(calib.grid.name(v) for v in sorted(held))} have fewer than "
+                f"{config.min_view_observations} observations and are held")
+        calib, points, iterations = run_stage(stage, calib, px, ok, points, noise, config.measurement_sigma_px,
+                                              config.scale_sigma_mm, config.max_iterations, obs.iteration, held,
+                                              config.graph_hooks)
+        errors = reprojection_errors(calib, points, px, ok)
+        rms_after = _rms(errors)
+        obs.stage_end(StageEnd(str(name), calib, points, px, ok, errors))
+        rot, pos, foc, pp = _changes(before, calib)
+        reports.append(StageReport(name, int(ok.shape[1]), int(ok.sum()), rms_before, rms_after, iterations,
+                                   time.perf_counter() - t0, rot, pos, foc, pp))
+        obs.log(f"stage {name} ({stage}, {describe_noise(noise)}): {ok.shape[1]} landmarks, RMS "
+            f"{rms_before:.4f} -> {rms_after:.4f} px, {iterations} iterations, max change {np.max(rot):.4f} deg "
+            f"{np.max(pos):.3f} mm {np.max(foc):.3f} px (focal) {np.max(pp):.3f} px (principal point)")
+        if name not in (Stage.POINTS, Stage.CLEAN):
+            last_free = name
+        if name != Stage.CLEAN:
+            # re-run the outlier rejection between stages
+            good = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+            idx = np.nonzero(keep)[0]
+            keep[idx[~good]] = False
+        else:
+            good = np.ones(px.shape[1], dtype=bool)
+        obs.outliers(str(name), px[:, ~good], ok[:, ~good])
+    return calib, reports, keep
+
+
+def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
+           observer: Observer | None = None) -> tuple[Calibration, RefinementReport]:
+    """Refine a calibration from ordinary (textured) captures, frame after frame.
+
+    Each frame's tracks (chain KLT + filters + the triangulation filter) join the pool; the schedule then runs over
+    the whole pool starting from the current calibration (the previous result). It stops after ``max_frames``, when
+    the frames run out, or when a new frame already fits at ``target_rms_px``.
+
+    Args:
+        calib: the calibration to refine (e.g. from the pattern).
+        frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size.
+        config: options (`RefineConfig()` by default).
+        observer: hears log lines, frames, stages, outliers and optimiser iterations (`lfgraph.observer`);
+            default: log lines go to `logging`.
+
+    Returns:
+        the refined calibration (the input, unchanged, when the fit did not improve enough) and the report.
+
+    Raises:
+        ValueError: a frame whose shape does not match the calibration (named), no frame, or no track survives the
+            filters (too little texture).
+    """
+    config = config or RefineConfig()
+    obs = resolve(observer)
+    w, h = calib.image_size_px
+    t_start = time.perf_counter()
+    pool_px: list[np.ndarray] = []
+    pool_valid: list[np.ndarray] = []
+    counts: list[dict[str, int]] = []
+    frame_rms: list[float] = []
+    stages: list[StageReport] = []
+    current = calib
+    stop = "frames exhausted"
+    used = 0
+    t_match = t_adjust = 0.0
+    total_iterations = 0
+    for f, images in enumerate(frames):
+        if config.max_frames is not None and f >= config.max_frames:
+            stop = f"max frames ({config.max_frames})"
+            break
+        if images.shape[0] != calib.num_views or images.shape[1:3] != (h, w):
+            raise ValueError(f"frame {f} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but the "
+                             f"calibration is a {calib.grid} grid of {w}x{h} px views")
+        obs.frame(f, images)
+        t0 = time.perf_counter()
+        tracks = track_chain(images, calib.grid, config.match)
+        kept, c = collect_tracks(current, tracks, config.triangulation_filter)
+        t_match += time.perf_counter() - t0
+        counts.append(c)
+        pts = triangulate_dlt(current, kept.points_px, kept.valid)
+        rms_now = _rms(reprojection_errors(current, pts, kept.points_px, kept.valid))
+        frame_rms.append(rms_now)
+        obs.log(f"frame {f}: tracks " + ", ".join(f"{k} {v}" for k, v in c.items())
+            + f"; RMS with the current calibration {rms_now:.4f} px")
+        if config.target_rms_px is not None and used > 0 and rms_now <= config.target_rms_px:
+            stop = f"frame {f} fits at {rms_now:.4f} px <= target {config.target_rms_px:g} px"
+            break
+        if kept.num_tracks == 0:
+            obs.log(f"frame {f}: no usable tracks, skipped")
+            continue
+        pool_px.append(kept.points_px)
+        pool_valid.append(kept.valid)
+        used += 1
+        pixels = np.concatenate(pool_px, axis=1)
+        valid = np.concatenate(pool_valid, axis=1)
+        if config.max_landmarks is not None and pixels.shape[1] > config.max_landmarks:
+            pick = np.sort(np.random.default_rng(used).choice(pixels.shape[1], config.max_landmarks, replace=False))
+            pixels, valid = pixels[:, pick], valid[:, pick]
+            pool_px, pool_valid = [pixels], [valid]
+        t0 = time.perf_counter()
+        current, frame_stages, kept_mask = refine_tracks(current, pixels, valid, config, obs)
+        t_adjust += time.perf_counter() - t0
+        total_iterations += sum(st.iterations for st in frame_stages)
+        stages = frame_stages  # the last pass over the whole pool is the result
+    if used == 0:
+        raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
+                         "(see the per-frame track counts)")
+    pixels = np.concatenate(pool_px, axis=1)[:, kept_mask]
+    valid = np.concatenate(pool_valid, axis=1)[:, kept_mask]
+    before = _rms(reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid))
+    after = _rms(reprojection_errors(current, triangulate_dlt(current, pixels, valid), pixels, valid))
+    warnings = []
+    coverage = track_coverage(calib, pixels, valid)
+    if coverage < COVERAGE_WARN:
+        warnings.append(f"tracks cover only {100 * coverage:.0f} % of the reference image ({COVERAGE_CELLS}x"
+                        f"{COVERAGE_CELLS} cells): rotations about the optical axis are weakly constrained; use "
+                        f"scenes with texture across the whole field of view")
+    detected = sum(c.get("detected", 0) for c in counts)
+    survived = sum(c.get("triangulation", 0) for c in counts)
+    if detected and survived / detected < MATCH_WARN:
+        warnings.append(f"only {survived} of {detected} features ({100 * survived / max(detected, 1):.0f} %) survived "
+                        f"tracking and the filters: matches are poor (repetitive or weak texture, occlusions)")
+    accepted = bool(after > 0 and before / after >= config.min_improvement)
+    if not accepted:
+        warnings.append(f"the input calibration already fits ({before:.4f} px vs {after:.4f} px refined, less than "
+                        f"{config.min_improvement:g}x better): kept unchanged")
+        current = calib
+    for w in warnings:
+        obs.log(f"warning: {w}")
+    report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(stages), used, stop, before, after,
+                              time.perf_counter() - t_start, t_match, t_adjust, accepted, coverage, tuple(warnings),
+                              total_iterations)
+    metrics = {**dict(current.metrics or {}), **report.metrics()}
+    return current.replace(metrics=metrics, rectification=None), report

@@ -1,0 +1,88 @@
+"""One stage of the refinement as a GTSAM graph, assembled from `lfgraph.factors.scene_graph` fragments.
+
+- ``points``: cameras constant, only landmarks move (`TriangulationFactorCal3DS2`, one small block per landmark).
+- ``intrinsics``: fx, fy, cx, cy free, distortion and poses held (`GeneralSFMFactor2Cal3DS2` + priors).
+- ``poses``: poses free except the reference (gauge), intrinsics constant (`GenericProjectionFactorCal3DS2`).
+- ``all``: poses and fx, fy, cx, cy free, distortion held.
+The gauges are described in `lfgraph.factors.scene_graph`.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.factors import scene_graph
+from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
+from lfgraph.factors.noise import Noise, measurement_noise
+from lfgraph.factors.values import (
+    insert_intrinsics,
+    insert_landmarks,
+    insert_view_poses,
+    read_intrinsics,
+    read_landmarks,
+    read_view_poses,
+)
+from lfgraph.optimize import IterationCallback, OptimizerSettings, optimize
+from lfgraph.refinement.config import Stage
+
+
+def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+              noise: Noise, sigma_px: float = 1.0, scale_sigma_mm: float | None = None, max_iterations: int = 100,
+              callback: IterationCallback | None = None, held_views: frozenset[int] = frozenset(),
+              hooks: tuple[GraphHook, ...] = ()) -> tuple[Calibration, np.ndarray, int]:
+    """Run one free-variable stage (``points``, ``intrinsics``, ``poses`` or ``all``).
+
+    Args:
+        pixels: (V, N, 2) observations; valid: (V, N); points: (N, 3) initial landmarks (reference frame, m).
+        noise: the measurement noise (a normalised `lfgraph.factors.noise.NoiseSpec`); sigma_px its sigma.
+        scale_sigma_mm: None: scale by one range and a rescale to the calibrated baselines; else weak position
+            priors of this sigma.
+        held_views: views whose pose and intrinsics stay where they are (too few observations to refine them).
+        hooks: user graph hooks (`lfgraph.factors.hooks`).
+
+    Returns:
+        the updated calibration, (N, 3) landmarks, LM iterations.
+    """
+    stage = Stage(stage)
+    model = measurement_noise(noise, sigma_px)
+    n_views = calib.num_views
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    insert_landmarks(values, points)
+    poses_free = stage in (Stage.POSES, Stage.ALL)
+    intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
+    if stage == Stage.POINTS:
+        graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
+    else:
+        insert_view_poses(values, calib.ref_T_view)
+        graph.push_back(scene_graph.pose_priors(calib, poses_free, held_views, scale_sigma_mm))
+        free_views = [v for v in range(n_views) if v != calib.grid.reference and v not in held_views]
+        # a held view fixes scale by itself; otherwise one range does, and the result is rescaled below
+        rescale = poses_free and scale_sigma_mm is None and not held_views
+        if rescale and free_views:
+            graph.push_back(scene_graph.range_gauge(calib))
+        if intr_free:
+            insert_intrinsics(values, calib.intrinsics)
+            graph.push_back(scene_graph.intrinsics_priors(calib, held_views))
+            graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
+        else:
+            graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
+    run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
+    result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback)
+    new_points = read_landmarks(result.values, len(points)) if len(points) else points
+    if stage == Stage.POINTS:
+        return calib, new_points, result.iterations
+    poses = read_view_poses(result.values, n_views)
+    ref = calib.grid.reference
+    poses = np.linalg.inv(poses[ref])[None] @ poses  # exactly relative to the reference again
+    poses[ref] = np.eye(4)
+    if poses_free and scale_sigma_mm is None and not held_views:
+        # the similarity that best keeps the calibrated baselines: s = argmin sum |s c_new - c_old|^2
+        c_old, c_new = calib.ref_T_view[:, :3, 3], poses[:, :3, 3]
+        denom = float(np.sum(c_new * c_new))
+        scale = float(np.sum(c_old * c_new)) / denom if denom > 0 else 1.0
+        poses[:, :3, 3] *= scale
+        new_points = new_points * scale
+    intr = read_intrinsics(result.values, n_views, keep=calib.intrinsics) if intr_free else calib.intrinsics
+    return calib.replace(intrinsics=intr, ref_T_view=poses), new_points, result.iterations

@@ -1,0 +1,61 @@
+"""Per-frame track selection for the refinement: the triangulation filter, cheirality, coverage."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.refinement.config import TriangulationFilter
+from lfgraph.refinement.matching import Tracks
+from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
+
+OUTLIER_FACTOR = 4.0  # drop a track whose worst residual is > 4x the median track's ...
+OUTLIER_FLOOR_PX = 0.5  # ... and > 0.5 px
+COVERAGE_CELLS = 8
+MIN_BASELINE_M = 1e-6  # a track needs observing centres at least this far apart
+
+
+def collect_tracks(calib: Calibration, tracks: Tracks,
+                   triangulation_filter: TriangulationFilter) -> tuple[Tracks, dict[str, int]]:
+    """Apply the triangulation filter to one frame's tracks; returns the kept tracks and the counts."""
+    points = triangulate_dlt(calib, tracks.points_px, tracks.valid)
+    errors = reprojection_errors(calib, points, tracks.points_px, tracks.valid)
+    if triangulation_filter == TriangulationFilter.MEDIAN:
+        keep = median_filter(errors, calib.grid.reference)
+    elif triangulation_filter == TriangulationFilter.WORST:
+        keep = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+    else:
+        keep = np.all(np.isfinite(points), axis=1)
+    return tracks.subset(keep), {**tracks.counts, "triangulation": int(keep.sum())}
+
+
+def in_front(calib: Calibration, points_ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(N,) finite points in front of every view that observes them, seen from at least two distinct centres
+    (views that share a centre — the Middlebury rings hold such pairs, one turned by 180° — give no depth)."""
+    ok = np.all(np.isfinite(points_ref), axis=1)
+    centres = calib.ref_T_view[:, :3, 3]
+    lo = np.where(valid[..., None], centres[:, None, :], np.inf).min(axis=0)
+    hi = np.where(valid[..., None], centres[:, None, :], -np.inf).max(axis=0)
+    ok &= np.max(hi - lo, axis=1) > MIN_BASELINE_M
+    for v in range(calib.num_views):
+        m = valid[v] & ok
+        if m.any():
+            T = calib.view_T_ref(v)  # noqa: N806
+            depth = points_ref[m] @ T[2, :3] + T[2, 3]
+            bad = np.nonzero(m)[0][~(depth > 0)]
+            ok[bad] = False
+    return ok
+
+
+def track_coverage(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, cells: int = COVERAGE_CELLS) -> float:
+    """Share of an 8x8 grid of reference-image cells holding at least one kept track."""
+    ref = calib.grid.reference
+    w, h = calib.image_size_px
+    pts = pixels[ref][valid[ref]]
+    if not len(pts):
+        return 0.0
+    cx = np.clip((pts[:, 0] / w * cells).astype(int), 0, cells - 1)
+    cy = np.clip((pts[:, 1] / h * cells).astype(int), 0, cells - 1)
+    grid = np.zeros((cells, cells), dtype=bool)
+    grid[cy, cx] = True
+    return float(grid.mean())
