@@ -110,6 +110,21 @@ class Calibration:
             "metrics": dict(self.metrics or {}),
         }
 
+    def summary_dict(self) -> dict[str, Any]:
+        """Grid, image size and per-view parameters (positions in mm and rotation angles in degrees relative to the
+        reference view) with the stored metrics: what ``lfgraph info --json`` prints."""
+        from lfgraph.geometry import rotation_angle_deg
+
+        views = []
+        for v, intr in enumerate(self.intrinsics):
+            views.append({"index": v, "name": self.grid.name(v), "fx_px": intr.fx, "fy_px": intr.fy, "cx_px": intr.cx,
+                          "cy_px": intr.cy, "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2,
+                          "position_mm": [float(x) for x in 1e3 * self.ref_T_view[v, :3, 3]],
+                          "rotation_deg": float(rotation_angle_deg(self.ref_T_view[v, :3, :3]))})
+        return {"grid": {"rows": self.grid.rows, "cols": self.grid.cols, "reference": self.grid.reference},
+                "image_size_px": list(self.image_size_px), "views": views,
+                "rectification": self.rectification is not None, "metrics": dict(self.metrics or {})}
+
     def to_json(self) -> str:
         try:
             return json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n"

@@ -38,6 +38,19 @@ class DriftReport:
     alignment: PointAlignmentReport
     frames: int
 
+    def to_dict(self, calib: Calibration) -> dict:
+        """JSON-friendly figures, views named as in the grid (``rRR_cCC``)."""
+        return {
+            "rms_px": _finite_or_none(self.rms_px), "frames": self.frames, "tracks": dict(self.counts),
+            "view_rms_px": {calib.grid.name(v): _finite_or_none(x) for v, x in enumerate(self.view_rms_px)},
+            "alignment": {name: getattr(self.alignment, name).as_dict()
+                          for name in ("before", "after", "compensated", "parallax")},
+        }
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
 
 def reprojection_residuals(calib: Calibration, tracks: Tracks) -> np.ndarray:
     """(V, N) residual norms (px) of tracks triangulated with ``calib``."""

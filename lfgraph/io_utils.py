@@ -9,6 +9,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+def default_mode(requested: int = 0o666) -> int:
+    """``requested`` less the process umask: the mode ``open()`` (0o666) or ``mkdir`` (0o777) would give."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return requested & ~mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``, on error removed.
@@ -23,6 +30,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        # mkstemp creates 0600; give the file the mode a plain open() would (or keep the replaced file's)
+        os.chmod(tmp_path, final.stat().st_mode & 0o777 if final.exists() else default_mode(0o666))
         os.replace(tmp_path, final)
     finally:
         if tmp_path.exists():

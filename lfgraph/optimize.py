@@ -45,10 +45,13 @@ class OptimizationResult:
 
 
 @contextmanager
-def _native_stdout_muted() -> Iterator[None]:
+def gtsam_quiet() -> Iterator[None]:
     """Silence what GTSAM's C++ prints to standard output (e.g. "CheiralityException: Landmark l3 behind Camera x1"
-    for every point that a bad step puts behind a camera — the factor already handles it). Python output inside
-    the block (iteration callbacks) is muted too, so callbacks must not print."""
+    for every point that a bad step puts behind a camera — the factor already handles it) around GTSAM calls only.
+
+    Python's own output inside the block (a user's iteration callback) still reaches the terminal: ``sys.stdout``
+    is pointed at a duplicate of the real descriptor while descriptor 1 goes to /dev/null.
+    """
     try:
         fd = sys.stdout.fileno()
     except (AttributeError, OSError, ValueError):  # captured or replaced stdout: nothing native reaches it
@@ -56,11 +59,17 @@ def _native_stdout_muted() -> Iterator[None]:
         return
     sys.stdout.flush()
     saved = os.dup(fd)
+    python_stdout = sys.stdout
+    proxy = open(saved, "w", closefd=False, buffering=1, encoding=getattr(python_stdout, "encoding", None))  # noqa: SIM115
     try:
         with open(os.devnull, "w") as devnull:
             os.dup2(devnull.fileno(), fd)
+            sys.stdout = proxy
             yield
     finally:
+        proxy.flush()
+        sys.stdout = python_stdout
+        proxy.close()
         os.dup2(saved, fd)
         os.close(saved)
 
@@ -97,15 +106,15 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
     params.iterationHook = hook
     start = time.perf_counter()
     try:
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-        initial_error = graph.error(initial)
-        with _native_stdout_muted():
+        with gtsam_quiet():
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+            initial_error = graph.error(initial)
             values = optimizer.optimize()
+            final_error = graph.error(values)
     except RuntimeError as exc:
         raise RuntimeError(f"optimisation failed: {exc}") from exc
     seconds = time.perf_counter() - start
     iterations = optimizer.iterations()
-    final_error = graph.error(values)
     converged = iterations < settings.max_iterations
     return OptimizationResult(values, initial_error, final_error, iterations, converged, seconds,
                               tuple(history) or (initial_error,))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     from lfgraph.report import calibration_summary
 
     calib = Calibration.load(args.calibration)
+    if args.json:
+        print(json.dumps({"file": str(args.calibration), **calib.summary_dict()}, indent=1))
+        return EXIT_OK
     print(f"{args.calibration}:")
     print(calibration_summary(calib))
     return EXIT_OK
@@ -98,6 +102,7 @@ def add_parsers(sub: Any) -> None:
     """Add this module's commands to the ``lfgraph`` subparsers."""
     info = sub.add_parser("info", help="print a calibration file as a table")
     info.add_argument("calibration", type=Path)
+    info.add_argument("--json", action="store_true", help="print grid, per-view parameters and metrics as JSON")
     info.set_defaults(func=cmd_info)
 
     cal = sub.add_parser("calibrate", help="calibrate the array from checkerboard captures (paper Section 3.2)")

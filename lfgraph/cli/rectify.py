@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,7 @@ def cmd_rectify(args: argparse.Namespace) -> int:
 
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
+    from lfgraph.io_utils import default_mode
     from lfgraph.parallel import run_tasks
     from lfgraph.rectification import attach, check_compatible, compute_rectification
     from lfgraph.report import rectification_text
@@ -62,6 +64,7 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     out_layout = "folders" if capture.layout == "pairs" else capture.layout
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700; the output folder gets the user's umask
     try:
         tasks = [(capture, f, rectified.to_dict(), args.crop, tmp, out_layout) for f in range(len(capture))]
         run_tasks(_rectify_frame_task, tasks, args.jobs, desc="rectifying", unit="frame", progress=not args.quiet)
@@ -80,18 +83,21 @@ def cmd_rectify(args: argparse.Namespace) -> int:
 def cmd_check(args: argparse.Namespace) -> int:
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
-    from lfgraph.drift import check_capture
-    from lfgraph.rectification import check_compatible, compute_rectification, stored_rectification
+    from lfgraph.drift import check
+    from lfgraph.rectification import check_compatible
     from lfgraph.report import drift_text
 
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
-    rect = stored_rectification(calib) or compute_rectification(calib)
-    n = min(len(capture), args.max_frames)
-    report = check_capture(calib, rect, (capture.load_frame(f) for f in range(n)))
+    report = check(calib, capture.frames(args.max_frames))
+    drifted = report.rms_px > args.max_px
+    if args.json:
+        print(json.dumps({"calibration": str(args.calibration), "capture": str(args.input), "max_px": args.max_px,
+                          "verdict": "DRIFT" if drifted else "OK", **report.to_dict(calib)}, indent=1))
+        return EXIT_DRIFT if drifted else EXIT_OK
     print(drift_text(calib, report))
-    if report.rms_px > args.max_px:
+    if drifted:
         print(f"DRIFT: reprojection RMS {report.rms_px:.3f} px is above --max-px {args.max_px:g}; "
               f"re-calibrate or run lfgraph refine")
         return EXIT_DRIFT
@@ -123,4 +129,5 @@ def add_parsers(sub: Any) -> None:
                     help="largest acceptable reprojection RMS (default 0.5 px)")
     ck.add_argument("--max-frames", type=positive_int, default=3, help="frames to use (default 3)")
     ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    ck.add_argument("--json", action="store_true", help="print the figures and the verdict as JSON")
     ck.set_defaults(func=cmd_check)

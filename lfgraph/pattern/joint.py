@@ -25,7 +25,7 @@ from lfgraph.factors.values import (
     read_intrinsics,
     read_view_poses,
 )
-from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSettings, optimize
+from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSettings, gtsam_quiet, optimize
 from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.scoring import rig_residuals
 
@@ -45,9 +45,9 @@ class JointResult:
 
 def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
                      ref_T_view: np.ndarray) -> tuple[dict[str, Any], ...]:  # noqa: N803
-    marginals = gtsam.Marginals(graph, values)
     keys = gtsam.KeyVector([calib_key(v) for v in range(n_views)] + [view_pose_key(v) for v in range(n_views)])
-    joint = marginals.jointMarginalCovariance(keys)
+    with gtsam_quiet():
+        joint = gtsam.Marginals(graph, values).jointMarginalCovariance(keys)
     out = []
     for v in range(n_views):
         kc = np.sqrt(np.maximum(np.diag(joint.at(calib_key(v), calib_key(v))), 0.0)) * scale
