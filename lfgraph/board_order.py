@@ -32,7 +32,8 @@ from lfgraph.detections import BoardObservations
 from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
 
 ROT_TOL_DEG = 10.0  # two relative poses agree within this rotation (the wrong order is 180° off)
-TRANS_TOL_BOARDS = 0.25  # ... and within this translation, in board diagonals (wrong order moves by ~ a board)
+TRANS_TOL_BOARDS = 0.5  # ... and (relative poses of two frames) within this translation, in board diagonals: a
+#                          wrong order moves the board's far corners by up to two diagonals
 MIN_ZHANG_FRAMES = 3  # fewer frames in a view: a nominal camera (focal = larger image side) and PnP instead
 MONO_FLAGS = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
 
@@ -42,7 +43,7 @@ ANCHOR = "anchor"  # order kept: fixes the frame's free choice (the reference vi
 DECIDED = "decided"  # order chosen by agreement with the anchor through the rig
 ALONE = "alone"  # the only linked view seeing this frame: its order does not matter to the rig
 UNLINKED = "unlinked"  # the view's pose in the rig could not be decided: order left as detected
-AMBIGUOUS = "ambiguous"  # neither order agrees with the rig (a mis-detection?) or both do: left as detected
+AMBIGUOUS = "ambiguous"  # neither order agrees with the rig (a mis-detection?): left as detected
 
 
 @dataclass(frozen=True)
@@ -220,12 +221,14 @@ def order_symmetric_boards(obs: BoardObservations) -> tuple[BoardObservations, B
             if v == anchor:
                 continue
             hyp = np.stack([ref_T_view[v] @ poses[v, f], ref_T_view[v] @ poses[v, f] @ flip])
-            ok = _agree(board_in_ref[None], hyp, trans_tol_m)[0]
-            if ok.sum() != 1:
+            # the two orders' board rotations are 180° apart: rotation alone decides, and a board that agrees with
+            # neither within the tolerance is a mis-detection (or a rig too rough to tell), not a guess
+            gap_deg = _rotation_deg(np.einsum("ji,njk->nik", board_in_ref[:3, :3], hyp[:, :3, :3]))
+            ok = gap_deg < ROT_TOL_DEG
+            if not ok.any():
                 status[v, f] = AMBIGUOUS
-                what = "both orders agree" if ok.all() else "neither order agrees"
-                messages.append(f"{obs.describe(v, f)}: {what} with {obs.describe(anchor)} through the rig; "
-                                f"left as detected")
+                messages.append(f"{obs.describe(v, f)}: neither corner order agrees with {obs.describe(anchor)} "
+                                f"through the rig (by {gap_deg.min():.0f}°, a mis-detected board?); left as detected")
                 continue
             status[v, f] = DECIDED
             flipped[v, f] = bool(ok[1])

@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from lfgraph.board import BoardSpec, detect_board
-from lfgraph.board_order import ALONE, ANCHOR, DECIDED, UNLINKED, UNSEEN, flip_transform, order_symmetric_boards
+from lfgraph.board_order import (
+    ALONE,
+    AMBIGUOUS,
+    ANCHOR,
+    DECIDED,
+    UNLINKED,
+    UNSEEN,
+    flip_transform,
+    order_symmetric_boards,
+)
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
@@ -156,3 +165,18 @@ def test_trinocular_order_is_restored(trinocular):
     assert report.messages == () and not report.undecidable.any()
     assert max(_stereo_rms_px(ordered)) < STEREO_CONSISTENT_PX
     assert _consistent_per_frame(ordered, trinocular.corners_px)
+
+
+def test_mis_detected_board_is_reported_not_guessed():
+    obs, true_corners = _symmetric_rig()
+    full = np.nonzero(obs.seen.all(axis=0))[0]
+    f_bad, f_other = int(full[0]), int(full[-1])
+    corners = obs.corners_px.copy()
+    corners[1, f_bad] = obs.corners_px[1, f_other]  # view 1 reports another frame's board in this frame
+    bad = dataclasses.replace(obs, corners_px=corners)
+    ordered, report = order_symmetric_boards(bad)
+    assert report.status[1, f_bad] == AMBIGUOUS and report.undecidable.sum() == 1
+    assert len(report.messages) == 1 and f"frame {obs.frame_names[f_bad]}" in report.messages[0]
+    np.testing.assert_array_equal(ordered.corners_px[1, f_bad], corners[1, f_bad])
+    rest = np.setdiff1d(np.arange(obs.num_frames), [f_bad])
+    assert _consistent_per_frame(ordered.subset_frames(rest), true_corners[:, rest])
