@@ -27,10 +27,11 @@ class BoardObservations:
     """Board corners seen by every view in every frame.
 
     A checkerboard is seen whole or not at all; a ChArUco board is usually seen in part, and ``valid`` says which
-    of its corners were found (a view-frame with fewer than `MIN_CORNERS_PER_BOARD` is all invalid).
+    of its corners were found (detection leaves a view-frame with fewer than `MIN_CORNERS_PER_BOARD` corners, or
+    with corners along one line, all invalid).
 
     Attributes:
-        board: the checkerboard.
+        board: the board (checkerboard or ChArUco).
         grid: the view grid.
         image_size_px: (width, height) of every view.
         corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
