@@ -11,6 +11,8 @@ import numpy as np
 _BOARD_RE = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 BOARD_KINDS = ("chessboard", "charuco")
 CHARUCO_FLAGS = ("legacy", "inverted")
+# OpenCV's predefined dictionary names by their upper-case spelling (DICT_APRILTAG_36h11 has a lower-case h)
+_DICTIONARIES = {name.upper(): name for name in dir(cv2.aruco) if name.startswith("DICT_")}
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,7 @@ class BoardSpec:
         if marker_mm is None:
             raise ValueError("a ChArUco board needs the marker side (millimetres) as well as the square side")
         return cls(int(m.group(1)) - 1, int(m.group(2)) - 1, float(square_mm) / 1000.0, kind="charuco",
-                   marker_m=float(marker_mm) / 1000.0, dictionary=parts[2].upper(),
+                   marker_m=float(marker_mm) / 1000.0, dictionary=_DICTIONARIES.get(parts[2].upper(), parts[2]),
                    legacy_pattern="legacy" in flags, inverted="inverted" in flags)
 
     @property

@@ -52,6 +52,7 @@ def test_parse_keeps_chessboards_and_refuses_bad_charuco():
     assert BoardSpec.parse("11x8", 20.0) == BoardSpec(11, 8, 0.020)
     legacy = BoardSpec.parse("charuco:5x6:DICT_5X5_100:legacy", 30.0, 22.0)
     assert legacy.legacy_pattern and not legacy.inverted and legacy.squares == (5, 6)
+    assert BoardSpec.parse("charuco:8x6:dict_apriltag_36h11", 30.0, 22.0).dictionary == "DICT_APRILTAG_36h11"
     bad = [("charuco:4x5:DICT_NOPE", 54, 40), ("charuco:4x5:DICT_4X4_50:upside", 54, 40),
            ("charuco:4x5:DICT_4X4_1000", 54, None), ("charuco:4x5:DICT_4X4_1000", 54, 60),
            ("charuco:4x5", 54, 40), ("11x8", 20, 15), ("charuco:20x20:DICT_4X4_50", 20, 15)]
