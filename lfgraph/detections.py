@@ -12,21 +12,26 @@ import numpy as np
 
 from lfgraph.board import BoardSpec, detect_board
 from lfgraph.capture import CaptureSet
+from lfgraph.charuco import detect_charuco
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
 
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
-CACHE_VERSION = 2  # bump whenever detection changes its output
+CACHE_VERSION = 3  # bump whenever detection changes its output
 
 
 @dataclass(frozen=True)
 class BoardObservations:
-    """Checkerboard corners seen by every view in every frame.
+    """Board corners seen by every view in every frame.
+
+    A checkerboard is seen whole or not at all; a ChArUco board is usually seen in part, and ``valid`` says which
+    of its corners were found (detection leaves a view-frame with fewer than `MIN_CORNERS_PER_BOARD` corners, or
+    with corners along one line, all invalid).
 
     Attributes:
-        board: the checkerboard.
+        board: the board (checkerboard or ChArUco).
         grid: the view grid.
         image_size_px: (width, height) of every view.
         corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
@@ -111,7 +116,7 @@ def observations_from_arrays(board: BoardSpec, grid: ViewGrid, image_size_px: tu
 
 # ------------------------------------------------------------------------------------------------- detection
 def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
-    """Worker: (V, C, 2) corners of one frame, NaN where the board was not found. Loads one frame at a time."""
+    """Worker: (V, C, 2) corners of one frame, NaN where a corner was not found. Loads one frame at a time."""
     capture, frame, board = task
     out = np.full((capture.grid.num_views, board.num_corners, 2), np.nan)
     if capture.layout == "mosaic":
@@ -119,8 +124,9 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
         images = (views[v] for v in range(capture.grid.num_views))
     else:
         images = (capture.load_view(frame, v) for v in range(capture.grid.num_views))
+    detect = detect_charuco if board.kind == "charuco" else detect_board
     for v, img in enumerate(images):
-        corners = detect_board(img, board)
+        corners = detect(img, board)
         if corners is not None:
             out[v] = corners
     return out
@@ -133,7 +139,8 @@ def _cache_key(capture: CaptureSet, board: BoardSpec) -> str:
             st = p.stat()
             files.append([os.path.relpath(p, capture.root), st.st_size, st.st_mtime_ns])
     spec = {"version": CACHE_VERSION, "layout": capture.layout, "grid": [capture.grid.rows, capture.grid.cols],
-            "board": [board.cols, board.rows], "files": files}
+            "board": [board.kind, board.cols, board.rows, board.square_m, board.marker_m, board.dictionary,
+                      board.legacy_pattern, board.inverted], "files": files}
     return hashlib.sha256(json.dumps(spec).encode()).hexdigest()
 
 

@@ -64,7 +64,7 @@ def _pm(value: float, sigma: float | None, fmt: str) -> str:
     return format(value, fmt) if sigma is None else f"{format(value, fmt)} ± {sigma:.2g}"
 
 
-def calibration_report_text(calib: Calibration, report) -> str:  # report: lfgraph.calibrate.CalibrationReport
+def calibration_report_text(calib: Calibration, report) -> str:  # report: lfgraph.CalibrationReport
     """The ``lfgraph calibrate`` printout: figures of merit, per-view table with 1-sigma, per-frame RMS, warnings."""
     lines = []
     start = {"paper": " (started from the paper route)", "design": " (started from design values)"}
@@ -116,7 +116,7 @@ def calibration_report_text(calib: Calibration, report) -> str:  # report: lfgra
     return "\n".join(lines)
 
 
-def evaluation_table(errors, truth_name: str = "truth") -> str:  # errors: lfgraph.calibrate.CalibrationErrors
+def evaluation_table(errors, truth_name: str = "truth") -> str:  # errors: lfgraph.CalibrationErrors
     """Per-view errors against ground truth and their RMS."""
     rows = []
     for v in range(errors.intrinsics.shape[0]):

@@ -238,7 +238,7 @@ class RerunLogger(BaseObserver):
             self.rec.log(f"rms/view_{calib.grid.name(v)}", rr.Scalars(rms))
 
     def calibration_result(self, calib: Calibration, obs, report, images: np.ndarray | None = None) -> None:
-        """After `lfgraph.calibrate.calibrate`: rig, board poses, per-view corners, reprojections and residuals."""
+        """After `lfgraph.calibrate`: rig, board poses, per-view corners, reprojections and residuals."""
         from lfgraph.geometry import invert_T
 
         self.rig(calib, images)
