@@ -47,7 +47,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from lfgraph.report import calibration_report_text
 
     try:
-        board = BoardSpec.parse(args.board, args.square_mm)
+        board = BoardSpec.parse(args.board, args.square_mm, args.marker_mm)
         grid = ViewGrid(args.grid[0], args.grid[1], args.reference)
         config = CalibrateConfig(method=args.method, init=args.init, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
                                  robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm)
@@ -108,8 +108,13 @@ def add_parsers(sub: Any) -> None:
     cal = sub.add_parser("calibrate", help="calibrate the array from checkerboard captures (paper Section 3.2)")
     cal.add_argument("input", type=Path, help="capture folder (see --layout)")
     cal.add_argument("--grid", type=grid_size, required=True, help="ROWSxCOLS of the array, e.g. 4x4")
-    cal.add_argument("--board", required=True, help="inner corners COLSxROWS (OpenCV patternSize), e.g. 11x8")
+    cal.add_argument("--board", required=True,
+                     help="checkerboard inner corners COLSxROWS (OpenCV patternSize), e.g. 11x8; or a ChArUco board "
+                          "charuco:SQUARESXxSQUARESY:DICT_NAME[:legacy][:inverted] (squares, as OpenCV counts them), "
+                          "e.g. charuco:4x5:DICT_4X4_1000 with --marker-mm")
     cal.add_argument("--square-mm", type=positive_float, required=True, help="square side in millimetres")
+    cal.add_argument("--marker-mm", type=positive_float,
+                     help="ChArUco marker side in millimetres (with --board charuco:SQUARESXxSQUARESY:DICT_...)")
     cal.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
     cal.add_argument("--reference", type=int, default=0, help="reference view, row-major index (default 0)")
     cal.add_argument("--method", choices=("joint", "paper"), default="joint",

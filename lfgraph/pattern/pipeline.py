@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 
+from lfgraph.board_order import order_symmetric_boards
 from lfgraph.calibration import Calibration
 from lfgraph.detections import BoardObservations
 from lfgraph.observer import Observer, resolve
@@ -47,8 +48,16 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     say = resolve(observer)
     method, init = config.method, config.init
     check_observations(obs)
+    order_warnings: tuple[str, ...] = ()
+    if obs.board.is_symmetric:
+        # the detector cannot tell a board turned by 180° from the original; the rig's geometry can
+        obs, order = order_symmetric_boards(obs)
+        order_warnings = order.messages
+        if order.reversed.any():
+            say.log(f"symmetric board: corner order reversed in {int(order.reversed.sum())} view-frame(s) so that "
+                    f"every view agrees with the rig")
     seconds: dict[str, float] = {}
-    warnings: list[str] = []
+    warnings: list[str] = list(order_warnings)
     n_views = obs.num_views
     paper = None
     if method == Method.PAPER or init == Init.PAPER:
