@@ -144,18 +144,36 @@ def test_coverage_warning_names_the_empty_region():
     assert {"top-right", "right", "bottom-right"} <= set(named)
 
 
-def test_view_without_enough_frames_is_named():
+def test_view_that_never_saw_the_board_is_named():
     calib, truth = small_rig()
     obs = observations(calib, truth, SIGMA_PX)
     valid = np.array(obs.valid)
     valid[3] = False
     with pytest.raises(CalibrationInputError, match=r"view 3 \(r01_c01\).*no board detected"):
         calibrate(dataclasses.replace(obs, valid=valid))
-    seen_frames = np.nonzero(obs.seen[2])[0]
+
+
+@pytest.mark.parametrize("frames_seen", [1, 2])
+def test_weakly_seen_view_is_calibrated_through_the_rig(frames_seen):
+    """Issue 12: a view that saw the board in only 1 or 2 frames is solved in the joint graph (intrinsics started
+    from its neighbours, held by a prior), with larger sigmas that still cover its error, and a warning."""
+    calib, truth = small_rig(frames=16)
+    obs = observations(calib, truth, SIGMA_PX)
     valid = np.array(obs.valid)
-    valid[2, seen_frames[2:]] = False
-    with pytest.raises(CalibrationInputError, match=r"view 2 \(r01_c00\).*only 2 frame"):
-        calibrate(dataclasses.replace(obs, valid=valid))
+    valid[2, np.nonzero(obs.seen[2])[0][frames_seen:]] = False
+    obs = dataclasses.replace(obs, valid=valid)
+    est, report = calibrate(obs)
+    err = evaluate_calibration(est, calib)
+    s = report.sigmas[2]
+    assert abs(err.intrinsics[2, 0]) < MAX_Z * s["fx_px"]
+    assert np.all(np.abs(err.position_mm[2]) < MAX_Z * np.asarray(s["position_mm"]))
+    strong_position = max(max(report.sigmas[v]["position_mm"]) for v in (1, 3))
+    assert max(s["position_mm"]) > 2 * strong_position  # honest: the weak view is the least certain
+    weak = [w for w in report.warnings if w.startswith("view 2 (r01_c00)")]
+    assert any(f"only {frames_seen} frame(s)" in w and "prior on its intrinsics" in w for w in weak)
+    paper, paper_report = calibrate(obs, CalibrateConfig(method="paper"))
+    assert any("the paper route skips its own calibration" in w for w in paper_report.warnings)
+    assert np.isnan(paper_report.view_e_mono_px[2]) and np.isfinite(paper_report.e_mono_px)
 
 
 def test_unknown_method_or_kernel_is_refused():

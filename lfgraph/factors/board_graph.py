@@ -79,15 +79,29 @@ def add_gauge_prior(graph: gtsam.NonlinearFactorGraph, reference: int) -> None:
                                      gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))
 
 
+# A weakly seen view (the board in 1-2 frames) does not determine all of fx, fy, cx, cy, k1, k2 by itself (one
+# plane at a known pose gives a homography: 8 constraints for 12 unknowns). Its intrinsics get a prior centred on
+# the start (its calibrated neighbours' mean): the spread of one lens model across units.
+WEAK_FOCAL_SIGMA_REL = 0.05  # 5 % of the focal length
+WEAK_PRINCIPAL_SIGMA_REL = 0.03  # 3 % of the image width
+WEAK_RADIAL_SIGMA = 0.1  # k1, k2
+
+
 def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[Intrinsics],
-                        tangential: bool) -> None:
+                        tangential: bool, weak: Sequence[bool] | None = None, image_width_px: float = 0.0) -> None:
     """Hold what the model lacks: skew at 0 always; p1, p2 at 0 unless ``tangential``.
 
-    The other components get a ``FREE_SIGMA`` prior (no information), which keeps one factor per view.
+    The other components get a ``FREE_SIGMA`` prior (no information), which keeps one factor per view — except for
+    views flagged ``weak``, whose fx, fy, cx, cy, k1, k2 get the ``WEAK_*`` prior around their start.
     """
     for v, intr in enumerate(intrinsics):
         prior = intr.to_gtsam() if tangential else Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1,
                                                                intr.k2).to_gtsam()
-        noise = calibration_noise(FREE_SIGMA, FREE_SIGMA, radial=FREE_SIGMA, tangential=FREE_SIGMA if tangential
+        if weak is not None and weak[v]:
+            focal, principal, radial = WEAK_FOCAL_SIGMA_REL * intr.fx, WEAK_PRINCIPAL_SIGMA_REL * image_width_px, \
+                WEAK_RADIAL_SIGMA
+        else:
+            focal = principal = radial = FREE_SIGMA
+        noise = calibration_noise(focal, principal, radial=radial, tangential=FREE_SIGMA if tangential
                                   else MIN_SIGMA, skew_px=MIN_SIGMA)
         graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, noise))

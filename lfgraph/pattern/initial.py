@@ -19,27 +19,50 @@ class CalibrationInputError(ValueError):
 
 # ------------------------------------------------------------------------------------------------- checks
 def check_observations(obs: BoardObservations) -> None:
-    """Refuse observations that cannot calibrate every view.
+    """Refuse observations that cannot calibrate every view: a view that never saw the board. (A view that saw it
+    in fewer than `MIN_FRAMES_PER_VIEW` frames is calibrated through the rig, see `weak_views`.)
 
     Raises:
-        CalibrationInputError: a view that never saw the board, or saw it in fewer than `MIN_FRAMES_PER_VIEW`
-            frames — the message names the view and its files.
+        CalibrationInputError: the message names each such view and one of its files.
     """
     seen = obs.seen
     counts = seen.sum(axis=1)
     problems = []
-    for v in np.nonzero(counts < MIN_FRAMES_PER_VIEW)[0]:
+    for v in np.nonzero(counts == 0)[0]:
         files = ""
         if obs.sources:
             first = obs.sources[0]
             files = f" (e.g. {first[v] if len(first) == obs.num_views else first[0]})"
-        what = "no board detected in any frame" if counts[v] == 0 else \
-            f"the board in only {counts[v]} frame(s), at least {MIN_FRAMES_PER_VIEW} are needed"
-        problems.append(f"{obs.describe(int(v))}{files}: {what}")
+        problems.append(f"{obs.describe(int(v))}{files}: no board detected in any frame")
     if problems:
         raise CalibrationInputError(
             f"cannot calibrate the {obs.grid} array with the {obs.board} board: " + "; ".join(problems)
             + ". Check the board size (--board, inner corners) and that the board is inside these views.")
+
+
+def weak_views(obs: BoardObservations) -> np.ndarray:
+    """(V,) bool: views that saw the board in 1 to `MIN_FRAMES_PER_VIEW` - 1 frames — too few for Zhang's method
+    alone; they are calibrated through the rig (board poses from the other views) with priors on their intrinsics."""
+    counts = obs.seen.sum(axis=1)
+    return (counts > 0) & (counts < MIN_FRAMES_PER_VIEW)
+
+
+def borrowed_intrinsics(obs: BoardObservations, view: int, known: dict[int, Intrinsics]) -> tuple[Intrinsics, str]:
+    """Starting intrinsics of a weakly seen view: the mean of its calibrated grid neighbours, else of every
+    calibrated view, else design values (focal length = the larger image side, centred principal point).
+
+    Returns:
+        the intrinsics and a phrase saying where they came from (for the warning).
+    """
+    for pool, source in (([n for n in obs.grid.neighbours(view) if n in known], "its neighbours"),
+                         (sorted(known), "the other views")):
+        if pool:
+            fields = np.mean([[known[n].fx, known[n].fy, known[n].cx, known[n].cy, known[n].k1, known[n].k2]
+                              for n in pool], axis=0)
+            return Intrinsics(*(float(x) for x in fields)), f"{source} ({', '.join(obs.grid.name(n) for n in pool)})"
+    w, h = obs.image_size_px
+    f = float(max(w, h))
+    return Intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0), "design values (focal length = the larger image side)"
 
 
 # ------------------------------------------------------------------------------------------------- helpers

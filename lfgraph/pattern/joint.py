@@ -27,6 +27,7 @@ from lfgraph.factors.values import (
 )
 from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSettings, gtsam_quiet, optimize
 from lfgraph.pattern.config import CalibrateConfig
+from lfgraph.pattern.initial import weak_views
 from lfgraph.pattern.scoring import rig_residuals
 
 SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below this (noise-free synthetic data)
@@ -87,7 +88,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
         else settings.board_sigma_mm * 1e-3
     board_graph.add_corner_priors(graph, obj, board_sigma_m)
     board_graph.add_gauge_prior(graph, obs.grid.reference)
-    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential)
+    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs), obs.image_size_px[0])
     values = gtsam.Values()
     insert_intrinsics(values, intrinsics)
     insert_view_poses(values, ref_T_view)

@@ -11,9 +11,10 @@ import numpy as np
 from lfgraph.board_order import order_symmetric_boards
 from lfgraph.calibration import Calibration
 from lfgraph.detections import BoardObservations
+from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
 from lfgraph.observer import Observer, resolve
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
-from lfgraph.pattern.initial import check_observations, design_initial, initial_board_T_ref
+from lfgraph.pattern.initial import check_observations, design_initial, initial_board_T_ref, weak_views
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.paper import calibrate_paper
 from lfgraph.pattern.scoring import (
@@ -89,6 +90,14 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         say.log(f"joint route: {opt.iterations} LM iterations, error {opt.initial_error:.4g} -> "
                 f"{opt.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
         intrinsics, ref_T_view = joint.intrinsics, joint.ref_T_view  # noqa: N806
+        for v in np.nonzero(weak_views(obs))[0]:
+            s = joint.sigmas[v] if joint.sigmas is not None else None
+            sig = "" if s is None else (f"; 1-sigma fx {s['fx_px']:.2g} px, cx {s['cx_px']:.2g} px, position "
+                                        f"{max(s['position_mm']):.2g} mm, rotation {max(s['rotation_deg']):.2g} deg")
+            warnings.append(f"{obs.describe(int(v))} saw the board in only {int(obs.seen[v].sum())} frame(s): "
+                            f"calibrated through the rig with a prior on its intrinsics (focal length "
+                            f"±{100 * WEAK_FOCAL_SIGMA_REL:g} %, principal point ±{100 * WEAK_PRINCIPAL_SIGMA_REL:g} % "
+                            f"of the width, k1, k2 ±{WEAK_RADIAL_SIGMA:g}){sig}; show it the board more often")
         res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
         boards = joint.board_T_ref
     view_rms = np.asarray(rms_px(res, axis=(1, 2)))
