@@ -181,9 +181,13 @@ def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
     def number(x: Any, field: str) -> float:
         if isinstance(x, bool) or not isinstance(x, int | float):
             raise fail(field, f"must be a number, got {x!r}")
-        if not math.isfinite(x):
+        try:
+            value = float(x)
+        except OverflowError:  # an integer too large for a float (JSON allows any number of digits)
+            raise fail(field, f"is out of range ({len(str(x))}-digit number)") from None
+        if not math.isfinite(value):
             raise fail(field, f"must be finite, got {x}")
-        return float(x)
+        return value
 
     def matrix(x: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
         try:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,8 +152,11 @@ def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray | No
             if str(data["key"]) != key or data["corners_px"].shape != shape:
                 return None
             return np.array(data["corners_px"])
-    except (OSError, KeyError, ValueError, EOFError):
-        return None  # a damaged or foreign cache is simply recomputed
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        # a damaged or foreign cache is simply recomputed (and rewritten)
+        logging.getLogger("lfgraph").warning(f"{path}: unreadable detection cache ({type(exc).__name__}: {exc}); "
+                                             f"detecting again")
+        return None
 
 
 def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = None, progress: bool = True,

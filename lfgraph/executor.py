@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from contextlib import contextmanager
 from typing import Any
+
+from lfgraph.parallel import process_pool
 
 EXECUTORS = ("local", "dask-local", "dask://HOST:PORT")
 
@@ -60,7 +62,7 @@ def open_executor(spec: str = "local", jobs: int | None = None) -> Iterator[Exec
         if jobs == 1:
             yield Executor("local", 1)
             return
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
+        with process_pool(jobs) as pool:
             yield Executor("local", jobs, pool=pool)
         return
     try:

@@ -2,12 +2,48 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
+import signal
+import sys
+import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 from tqdm import tqdm
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_POLL_S = 1.0  # the portable fallback checks for an orphaned worker this often
+
+
+def _watch_parent(parent_pid: int) -> None:
+    while True:
+        time.sleep(PARENT_POLL_S)
+        if os.getppid() != parent_pid:
+            os._exit(1)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Pool initializer: end this worker when the process that started it dies, even by ``kill -9`` (which runs no
+    clean-up in the parent). Linux: the kernel sends SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon
+    thread notices that the worker was re-parented."""
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            armed = ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(1)
+    if not armed:
+        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+
+
+def process_pool(max_workers: int) -> ProcessPoolExecutor:
+    """A process pool whose workers never outlive this process."""
+    return ProcessPoolExecutor(max_workers=max_workers, initializer=die_with_parent, initargs=(os.getpid(),))
 
 
 def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any], jobs: int | None, desc: str, unit: str,
@@ -21,7 +57,7 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any], jobs: int | None, 
                 results.append(fn(t))
                 bar.update()
         else:
-            with ProcessPoolExecutor(max_workers=min(jobs, len(tasks) or 1)) as pool:
+            with process_pool(min(jobs, len(tasks) or 1)) as pool:
                 for r in pool.map(fn, tasks):
                     results.append(r)
                     bar.update()

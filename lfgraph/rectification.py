@@ -222,6 +222,9 @@ def _source_of(rect: np.ndarray, K: np.ndarray, rect_R_view: np.ndarray, intr: I
     return px
 
 
+MIN_CROP_PX = 16  # a common region smaller than this is no rectified image (the views barely overlap)
+
+
 def _largest_valid_rect(valid: np.ndarray) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) inclusive rectangle with every cell valid: shrink the side holding most invalid cells."""
     h, w = valid.shape
@@ -284,6 +287,12 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
         px0, py0 = int(xs[min(x0 + 1, x1)]), int(ys[min(y0 + 1, y1)])
         px1, py1 = int(xs[max(x1 - 1, x0)]), int(ys[max(y1 - 1, y0)])
         crop_rect = (px0, py0, px1 - px0 + 1, py1 - py0 + 1)
+        if min(crop_rect[2], crop_rect[3]) < MIN_CROP_PX:
+            raise RectificationError(
+                f"the views share only a {max(crop_rect[2], 0)}x{max(crop_rect[3], 0)} px region of the {w}x{h} px "
+                f"images after rectification (views turned by up to "
+                f"{float(np.max(rotation_angle_deg(rect_R_view))):.1f} deg from the common orientation): they barely "
+                f"overlap; check the calibration, or keep the source size with --crop full")
     else:
         crop_rect = (0, 0, w, h)
     K_r = K_full.copy()  # noqa: N806

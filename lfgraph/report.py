@@ -153,7 +153,13 @@ def rectification_text(calib: Calibration, rect) -> str:  # rect: lfgraph.rectif
 
 def alignment_table(named: Sequence[tuple[str, object]]) -> str:
     """Rows of `lfgraph.alignment.Alignment` figures."""
-    rows = [[name, f"{a.row_px:.4f}", f"{a.col_px:.4f}", f"{a.proportionality_px:.4f}", a.n_points]
+
+    def px(x: float, why: str) -> str:
+        return f"{x:.4f}" if np.isfinite(x) else why
+
+    # a 1x2 rig has no column pairs, and proportionality needs three views on a line
+    rows = [[name, px(a.row_px, "-"), px(a.col_px, "- (no vertical pairs)" if a.n_col == 0 else "-"),
+             px(a.proportionality_px, "- (needs 3+ views)"), max(a.n_points, a.n_row, a.n_col)]
             for name, a in named]
     return format_table(["", "row_px", "col_px", "proportionality_px", "points"], rows)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -54,7 +55,17 @@ def read_rows(path: str | os.PathLike, columns: Sequence[str]) -> list[dict[str,
             return []
         if list(reader.fieldnames) != list(columns):
             raise ValueError(f"{p}: the CSV has columns {reader.fieldnames}, not this study's; choose another -o")
-        return list(reader)
+        rows, broken = [], []
+        for row in reader:
+            if None in row or any(row[c] in (None, "") for c in columns):  # cut short or padded by hand
+                broken.append(reader.line_num)
+            else:
+                rows.append(row)
+    if broken:
+        logging.getLogger("lfgraph").warning(f"{p}: ignoring {len(broken)} incomplete row(s) (line(s) "
+                                             f"{', '.join(map(str, broken[:5]))}{' ...' if len(broken) > 5 else ''});"
+                                             f" those trials run again")
+    return rows
 
 
 def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], out_csv: str | os.PathLike,
@@ -71,7 +82,10 @@ def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], 
     from lfgraph.executor import open_executor
 
     existing = read_rows(out_csv, columns)
-    done = {row_key(r) for r in existing}
+    try:
+        done = {row_key(r) for r in existing}
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{out_csv}: a row does not parse ({exc}); fix the file or choose another -o") from None
     todo = [t for t in trials if not trial_rows(t) <= done]
     rows: list[dict[str, Any]] = list(existing)
     if not todo:

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
@@ -16,6 +17,9 @@ class UsageError(ValueError):
     """A command-line value that makes no sense; exit code 2."""
 
 
+MAX_IMAGE_SIDE_PX = 16384  # larger "images" are typing mistakes (and would exhaust memory before any message)
+
+
 def image_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(x) for x in text.lower().split("x"))
@@ -23,6 +27,9 @@ def image_size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"image size must be WIDTHxHEIGHT such as 960x960, got {text!r}") from None
     if w <= 0 or h <= 0:
         raise argparse.ArgumentTypeError(f"image size must be positive, got {text!r}")
+    if max(w, h) > MAX_IMAGE_SIDE_PX:
+        raise argparse.ArgumentTypeError(f"image size {w}x{h} is larger than any camera's; each side must be at most "
+                                         f"{MAX_IMAGE_SIDE_PX} px")
     return w, h
 
 
@@ -83,6 +90,61 @@ def check_rerun(args: argparse.Namespace) -> bool:
         except ValueError as exc:
             raise UsageError(f"--save {exc}") from None
     return True
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
+def check_output_file(path: Path, inputs: Iterable[Path] = (), overwritable: Iterable[Path] = (),
+                      overwrite: bool = False, flag: str = "-o") -> None:
+    """Refuse, before any work, an output file that cannot be written or that is one of the command's inputs.
+
+    Args:
+        path: the output file.
+        inputs: files the command reads (images of the capture, ...): never an output.
+        overwritable: inputs that may be replaced in place with ``overwrite`` (a calibration refined in place).
+        overwrite: the user's explicit ``--overwrite``.
+
+    Raises:
+        UsageError: naming the path and the problem.
+    """
+    path = Path(path)
+    for src in overwritable:
+        if _same_file(path, Path(src)) and not overwrite:
+            raise UsageError(f"{flag} {path} is the input calibration; choose another file or pass --overwrite to "
+                             f"replace it")
+    for src in inputs:
+        if _same_file(path, Path(src)):
+            raise UsageError(f"{flag} {path} is one of this command's inputs; it would be destroyed")
+    if path.is_dir():
+        raise UsageError(f"{flag} {path} is a folder; give the output file's path")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise UsageError(f"{flag} {path}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise UsageError(f"{flag} {path}: not writable")
+
+
+def check_output_folder(path: Path, input_root: Path | None = None, flag: str = "-o") -> None:
+    """Refuse, before any work, an output folder that exists and is not empty, lies inside the input capture, or
+    whose parent cannot be written."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise UsageError(f"{flag} {path} exists and is not an empty folder; choose a new output folder")
+    if input_root is not None:
+        root = Path(input_root).resolve()
+        if path.resolve() == root or root in path.resolve().parents:
+            raise UsageError(f"{flag} {path} is inside the input {input_root}; choose a folder outside it")
+    parent = path.parent if str(path.parent) else Path(".")
+    existing = parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise UsageError(f"{flag} {path}: {existing} is not a writable folder")
 
 
 def jobs_default() -> int:

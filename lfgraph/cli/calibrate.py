@@ -13,6 +13,7 @@ from lfgraph.cli.args import (
     LAYOUT_CHOICES,
     UsageError,
     add_rerun_args,
+    check_output_file,
     check_rerun,
     cli_observer,
     grid_size,
@@ -53,13 +54,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                                  robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if args.output.exists() and args.output.is_dir():
-        raise UsageError(f"-o {args.output} is a folder; give the calibration file's path")
-    if not args.output.parent.exists():
-        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    check_output_file(args.output)
     logging = check_rerun(args)
     start = time.perf_counter()
     capture = open_capture(args.input, grid, args.layout)
+    check_output_file(args.output, inputs=[p for f in range(len(capture)) for p in capture.paths(f)])
     print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
           f"{capture.image_size_px[0]}x{capture.image_size_px[1]} px; board {board}")
     obs, cached = detect_capture(capture, board, jobs=args.jobs, progress=not args.quiet, cache=not args.no_cache)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -11,8 +12,8 @@ from lfgraph.cli.args import (
     EXIT_DRIFT,
     EXIT_OK,
     LAYOUT_CHOICES,
-    UsageError,
     add_rerun_args,
+    check_output_folder,
     check_rerun,
     jobs_default,
     positive_float,
@@ -34,6 +35,28 @@ def _rectify_frame_task(task: tuple) -> int:
     return frame
 
 
+def _remove_stale_partials(out: Path) -> None:
+    """Remove ``.OUT.PID.*`` folders that a killed earlier run left beside ``out`` (its process is gone)."""
+    import shutil
+
+    if not out.parent.is_dir():
+        return
+    for stale in out.parent.glob(f".{out.name}.*"):
+        pid = stale.name[len(out.name) + 2:].split(".")[0]
+        if stale.is_dir() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def cmd_rectify(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
@@ -46,8 +69,7 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     from lfgraph.report import rectification_text
 
     out = args.output
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise UsageError(f"-o {out} exists and is not an empty folder; choose a new output folder")
+    check_output_folder(out, args.input)
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
@@ -63,7 +85,8 @@ def cmd_rectify(args: argparse.Namespace) -> int:
             logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
     out_layout = "folders" if capture.layout == "pairs" else capture.layout
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    _remove_stale_partials(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", dir=out.parent))
     tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700; the output folder gets the user's umask
     try:
         tasks = [(capture, f, rectified.to_dict(), args.crop, tmp, out_layout) for f in range(len(capture))]

@@ -11,6 +11,7 @@ from lfgraph.cli.args import (
     LAYOUT_CHOICES,
     UsageError,
     add_rerun_args,
+    check_output_file,
     check_rerun,
     cli_observer,
     positive_float,
@@ -36,8 +37,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
                               target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if not args.output.parent.exists():
-        raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    check_output_file(args.output, overwritable=[args.calibration], overwrite=args.overwrite)
     logging = check_rerun(args)
     calib = Calibration.load(args.calibration)
     if args.reference is not None:
@@ -45,6 +45,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
             raise UsageError(f"--reference {args.reference} is not a view of the {calib.grid} grid")
         calib = with_reference(calib, args.reference)
     capture = open_capture(args.input, calib.grid, args.layout)
+    check_output_file(args.output, inputs=[p for f in range(len(capture)) for p in capture.paths(f)])
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
     print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "
@@ -81,6 +82,7 @@ def add_parsers(sub: Any) -> None:
                     help="stop adding frames once a new frame fits the calibration at this RMS (px)")
     rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
     rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    rf.add_argument("--overwrite", action="store_true", help="allow -o to be the input calibration (replaced in place)")
     rf.add_argument("--quiet", action="store_true")
     add_rerun_args(rf)
     rf.set_defaults(func=cmd_refine)
