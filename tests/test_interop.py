@@ -8,6 +8,7 @@ import re
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from lfgraph.calibration import Calibration, CalibrationFileError
 from lfgraph.cli.interop import add_parsers
@@ -18,11 +19,10 @@ from lfgraph.interop import (
     COLMAP_PIXEL_OFFSET_PX,
     EXPORT_FORMATS,
     IMPORT_FORMATS,
-    _parse_simple_yaml,
-    _rotation_from_wxyz,
     export_calibration,
     import_calibration,
 )
+from lfgraph.interop.colmap import rotation_from_wxyz
 from lfgraph.rectification import attach, compute_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
@@ -134,7 +134,7 @@ def test_opencv_yaml_without_rectification_has_no_rect_keys(tmp_path, calib):
 
 def test_kalibr_layout(tmp_path, calib):
     path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
-    data = _parse_simple_yaml(path.read_text(), path)
+    data = yaml.safe_load(path.read_text())  # PyYAML, which Kalibr reads its camchain with
     assert list(data) == [f"cam{i}" for i in range(calib.num_views)]
     for i, intr in enumerate(calib.intrinsics):
         cam = data[f"cam{i}"]
@@ -177,7 +177,7 @@ def test_colmap_layout(tmp_path, calib):
         assert sensors[k] == "CAMERA" and sensors[k + 2] == "1"
         view = int(sensors[k + 1]) - 1
         q, t = np.array(sensors[k + 3: k + 7], dtype=float), np.array(sensors[k + 7: k + 10], dtype=float)
-        sensor_from_rig = make_T(_rotation_from_wxyz(q), t)
+        sensor_from_rig = make_T(rotation_from_wxyz(q), t)
         assert np.max(np.abs(sensor_from_rig - calib.view_T_ref(view))) < ROUND_TRIP_TOLERANCE
     assert "# lfgraph grid: 2x3" in (folder / "rigs.txt").read_text()
 
@@ -438,7 +438,14 @@ def test_opencv_yaml_unparsable(tmp_path):
     (lambda t: t.replace("distortion_model: radtan", "distortion_model: equidistant", 1), r"cam0\.distortion_model"),
     (lambda t: t.replace("camera_model: pinhole", "camera_model: omni", 1), r"cam0\.camera_model"),
     (lambda t: t.replace("resolution: [960, 960]", "resolution: [640, 480]", 1), r"cam0\.resolution|cam1\.resolution"),
-    (lambda t: t.replace("intrinsics: [", "intrinsics: [[", 1), r"line \d+: unterminated"),
+    (lambda t: t.replace("intrinsics: [", "intrinsics: [[", 1), r"line \d+: not valid YAML"),
+    (lambda t: t.replace("intrinsics: [", "intrinsics: [1.0, ", 1), r"cam0\.intrinsics: must have shape 4"),
+    (lambda t: re.sub(r"(cam2:\n  T_cn_cnm1:\n)  - \[.*\]\n", r"\1", t), r"cam2\.T_cn_cnm1: must have shape 4x4"),
+    (lambda t: t.replace("  rostopic:", "  camera_model: pinhole\n  rostopic:", 1),
+     r"line \d+: .*'camera_model' appears twice"),
+    (lambda t: t.replace("resolution: [960, 960]", "resolution: [960, .inf]", 1), r"cam0\.resolution: must be finite"),
+    (lambda t: "cam0: [1, 2\n", r"line \d+: not valid YAML"),
+    (lambda t: "- cam0\n", r"file: must be a YAML mapping"),
 ])
 def test_kalibr_errors_name_file_and_key(tmp_path, calib, edit, key):
     path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
@@ -454,6 +461,86 @@ def test_kalibr_reads_zero_distortion_and_comments(tmp_path, calib):
     back = import_calibration(path, "kalibr", (2, 3))
     assert all(i.dist_cv.tolist() == [0.0] * 5 for i in back.intrinsics)
     assert np.max(np.abs(back.ref_T_view - calib.ref_T_view)) < ROUND_TRIP_TOLERANCE
+
+
+# Kalibr's kalibr_calibrate_cameras output as written by PyYAML >= 5.1 (yaml.dump's default is block style there):
+# every list a block of "- " lines, T_cn_cnm1 a block list of block lists. cam1 sits 0.11 m to the right of cam0,
+# turned 2 degrees about y.
+_KALIBR_BLOCK_CAMCHAIN = """\
+cam0:
+  cam_overlaps:
+  - 1
+  camera_model: pinhole
+  distortion_coeffs:
+  - -0.2834
+  - 0.0739
+  - 0.00019
+  - 1.76e-05
+  distortion_model: radtan
+  intrinsics:
+  - 458.654
+  - 457.296
+  - 367.215
+  - 248.375
+  resolution:
+  - 752
+  - 480
+  rostopic: /cam0/image_raw
+  timeshift_cam_imu: 0.0
+cam1:
+  T_cn_cnm1:
+  - - {c}
+    - 0.0
+    - {s}
+    - -0.11
+  - - 0.0
+    - 1.0
+    - 0.0
+    - 0.0
+  - - {ms}
+    - 0.0
+    - {c}
+    - 0.0
+  - - 0.0
+    - 0.0
+    - 0.0
+    - 1.0
+  cam_overlaps:
+  - 0
+  camera_model: pinhole
+  distortion_coeffs: [-0.28368, 0.07451, -0.000104, -3.555e-05]
+  distortion_model: radtan
+  intrinsics: [457.587, 456.134, 379.999, 255.238]
+  resolution: [752, 480]
+  rostopic: /cam1/image_raw
+  timeshift_cam_imu: -1.5e-05
+"""
+
+
+def test_kalibr_reads_block_style_as_kalibr_writes_it(tmp_path):
+    angle = np.deg2rad(2.0)
+    c, s = float(np.cos(angle)), float(np.sin(angle))
+    path = tmp_path / "camchain.yaml"
+    path.write_text(_KALIBR_BLOCK_CAMCHAIN.format(c=repr(c), s=repr(s), ms=repr(-s)))
+    back = import_calibration(path, "kalibr", (1, 2))
+    assert back.image_size_px == (752, 480)
+    assert back.intrinsics[0].as_vector().tolist() == [458.654, 457.296, 367.215, 248.375,
+                                                       -0.2834, 0.0739, 0.00019, 1.76e-05]
+    assert back.intrinsics[1].as_vector().tolist() == [457.587, 456.134, 379.999, 255.238,
+                                                       -0.28368, 0.07451, -0.000104, -3.555e-05]
+    cam1_T_cam0 = np.array([[c, 0.0, s, -0.11], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 0.0], [0.0, 0.0, 0.0, 1.0]])  # noqa: N806
+    assert np.max(np.abs(back.ref_T_view[1] - np.linalg.inv(cam1_T_cam0))) < CHAIN_TOLERANCE
+    assert np.array_equal(back.ref_T_view[0], np.eye(4))
+
+
+@pytest.mark.parametrize("reference", [0, 4])
+def test_kalibr_block_style_round_trip(tmp_path, reference):
+    calib = _rig(reference)
+    path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
+    # re-written by PyYAML in block style, as Kalibr's yaml.dump writes it with PyYAML >= 5.1
+    path.write_text(yaml.safe_dump(yaml.safe_load(path.read_text()), default_flow_style=False))
+    assert "\n  - - " in path.read_text()
+    _assert_same(import_calibration(path, "kalibr", ViewGrid(2, 3, reference)), calib)
 
 
 def _edit_camera_1(folder, edit) -> None:
