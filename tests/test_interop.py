@@ -23,10 +23,13 @@ from lfgraph.interop import (
     import_calibration,
 )
 from lfgraph.interop.colmap import rotation_from_wxyz
-from lfgraph.rectification import attach, compute_rectification
+from lfgraph.rectification import attach, build_maps, compute_rectification, stored_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
 CHAIN_TOLERANCE = 1e-12  # m, unitless rotation entries: composing 4x4 transforms costs a few ulps per step
+# build_maps stores OpenCV's fixed-point maps (1/32 px steps); maps from the exported K_i, D_i, R_rect_i, P_i must
+# land on the same steps, so anything below one step means "the same rectified image"
+FIXED_POINT_MAP_STEP_PX = 1.0 / cv2.INTER_TAB_SIZE
 MIDDLEBURY_SCENES = 6  # scenes in shared/data/middlebury2014_quarter
 # real file suffixes, so the OpenCV writer must force YAML where the name does not say it
 FILE_NAMES = {"opencv-yaml": "calib.yml", "kalibr": "camchain.yaml", "colmap": "sparse", "json": "calibration.json"}
@@ -117,7 +120,7 @@ def test_opencv_yaml_is_read_by_filestorage(tmp_path, calib):
             assert np.array_equal(fs.getNode(f"T_{i}").mat().ravel(), view_T_ref[:3, 3])
             rect_view = rectified.rectification["views"][i]
             assert np.array_equal(fs.getNode(f"R_rect_{i}").mat(), np.array(rect_view["R_rect_from_view"]))
-            assert np.array_equal(fs.getNode(f"P_{i}").mat(), np.array(rect_view["P"]))
+            assert fs.getNode(f"P_{i}").mat().shape == (3, 4)  # its convention: test_opencv_yaml_rectification_*
         assert np.array_equal(fs.getNode("K_r").mat(), np.array(rectified.rectification["K_r"]))
     finally:
         fs.release()
@@ -648,6 +651,36 @@ def test_cli_errors(tmp_path, calib):
 def test_opencv_yaml_export_refuses_an_incomplete_rectification(tmp_path, calib):
     rect = attach(calib, compute_rectification(calib)).rectification
     broken = {**rect, "views": [{"P": v["P"]} for v in rect["views"]]}
-    with pytest.raises(ValueError, match=r"rectification\.views\[0\] must hold R_rect_from_view and P"):
+    with pytest.raises(ValueError, match=r"rectification\.views\[0\]\.R_rect_from_view is missing"):
         export_calibration(calib.replace(rectification=broken), "opencv-yaml", tmp_path / "c.yaml")
     assert not list(tmp_path.iterdir())
+
+
+# ============================================================================================== issue 19
+def test_opencv_yaml_rectification_maps_match_lfgraph(tmp_path, calib):
+    """OpenCV users rectify with initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i) as with stereoRectify's P1/P2; that
+    must give lfgraph's own rectified views (build_maps), not images off by pixels."""
+    rectified = attach(calib, compute_rectification(calib))
+    rect = stored_rectification(rectified)
+    lfgraph_maps = build_maps(rectified, rect)
+    path = export_calibration(rectified, "opencv-yaml", tmp_path / "calib.yml")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        size = (int(fs.getNode("rect_image_width").real()), int(fs.getNode("rect_image_height").real()))
+        assert size == rect.image_size_px
+        for i in range(calib.num_views):
+            K, D, R_rect, P = (fs.getNode(f"{k}_{i}").mat() for k in ("K", "D", "R_rect", "P"))  # noqa: N806
+            m1, m2 = cv2.initUndistortRectifyMap(K, D, R_rect, P, size, cv2.CV_16SC2)
+            opencv_xy, _ = cv2.convertMaps(m1, m2, cv2.CV_32FC1)
+            ours_x, ours_y = cv2.convertMaps(lfgraph_maps.map_xy[i], lfgraph_maps.map_frac[i], cv2.CV_32FC1)
+            error_px = max(np.max(np.abs(opencv_xy - ours_x)), np.max(np.abs(_ - ours_y)))
+            assert error_px < FIXED_POINT_MAP_STEP_PX, f"view {i}: rectified maps differ by {error_px} px"
+            # P_i in stereoRectify's convention: rectified reference frame -> rectified pixels of view i, so a
+            # reference-frame point projects where lfgraph's own projection P (reference frame) puts it
+            X_ref = np.array([0.1, -0.05, 2.0, 1.0])  # noqa: N806
+            X_rect = np.append(rect.rect_R_ref @ X_ref[:3], 1.0)  # noqa: N806
+            expected = rect.P[i] @ X_ref
+            got = P @ X_rect
+            assert np.max(np.abs(got[:2] / got[2] - expected[:2] / expected[2])) < ROUND_TRIP_TOLERANCE
+    finally:
+        fs.release()

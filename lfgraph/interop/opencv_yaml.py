@@ -2,15 +2,23 @@
 
 Top level ``grid_rows``, ``grid_cols``, ``reference``, ``image_width``, ``image_height``, ``num_views``; per view
 ``i``: ``K_i`` (3x3), ``D_i`` (1x5: k1 k2 p1 p2 k3 with k3 = 0), ``R_i`` (3x3) and ``T_i`` (3x1, metres) with
-``x_view = R_i x_ref + T_i`` (= ``calib.view_T_ref(i)``, the convention of ``cv2.stereoCalibrate``). A stored
-rectification adds ``K_r`` (3x3), ``R_rect_i`` (3x3, rectified from view) and ``P_i`` (3x4). Import reads the
-calibration, not the rectification (recompute that with ``lfgraph rectify``): ``K_r``, ``R_rect_i`` and ``P_i`` alone
-do not make a complete lfgraph rectification.
+``x_view = R_i x_ref + T_i`` (= ``calib.view_T_ref(i)``, the convention of ``cv2.stereoCalibrate``).
+
+A stored rectification adds ``rect_image_width``, ``rect_image_height`` (the rectified image size), ``K_r`` (3x3),
+and per view ``R_rect_i`` (3x3, rectified from view; the role of ``cv2.stereoRectify``'s R1/R2) and ``P_i`` (3x4) in
+``cv2.stereoRectify``'s P1/P2 convention: ``P_i = [K_r | p_i]`` maps points of the *rectified reference frame*
+(``x = R_rect_from_ref x_ref``, origin at the reference view's centre, as stereoRectify's frame of rectified
+camera 1) to rectified pixels of view i, with ``p_i = -K_r R_rect_from_ref c_i`` and ``c_i`` the view's ideal grid
+position (lfgraph's rectified projection, re-expressed). Hence
+``cv2.initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, rect_image_height), m1type)`` (which uses
+``P_i``'s left 3x3 as the new camera matrix) gives exactly lfgraph's rectified view i (`lfgraph.rectification
+.build_maps`). Import reads the calibration, not the rectification (recompute that with ``lfgraph rectify``):
+``K_r``, ``R_rect_i`` and ``P_i`` alone do not make a complete lfgraph rectification.
+
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import cv2
@@ -31,24 +39,21 @@ from lfgraph.interop.common import (
     whole,
 )
 from lfgraph.io_utils import atomic_path
+from lfgraph.rectification import stored_rectification
+
+
+def rectified_projection(K_r: np.ndarray, P_lfgraph: np.ndarray) -> np.ndarray:  # noqa: N803
+    """lfgraph's rectified projection (reference-frame points) in OpenCV's P1/P2 convention (rectified-frame points).
+
+    ``P_lfgraph = K_r [R | -R c]`` with ``R = rect_R_ref``; re-expressed for ``x_rect = R x_ref`` it is
+    ``P_lfgraph @ diag(R^T, 1) = [K_r | -K_r R c]``: the last column is unchanged and the left block is exactly
+    ``K_r``, so it is built from those two pieces rather than by a matrix product that would round.
+    """
+    return np.column_stack([K_r, P_lfgraph[:, 3]])
 
 
 def write(calib: Calibration, path: Path) -> None:
-    rect = calib.rectification if isinstance(calib.rectification, Mapping) else None
-    rect_views = []
-    if rect is not None:
-        views = rect.get("views")
-        if "K_r" not in rect or not isinstance(views, Sequence) or len(views) != calib.num_views:
-            raise ValueError(f"calibration's rectification must hold K_r and {calib.num_views} views to be exported")
-        for i, view in enumerate(views):
-            if not isinstance(view, Mapping) or "R_rect_from_view" not in view or "P" not in view:
-                raise ValueError(f"rectification.views[{i}] must hold R_rect_from_view and P to be exported")
-            R = np.asarray(view["R_rect_from_view"], dtype=np.float64)  # noqa: N806
-            P = np.asarray(view["P"], dtype=np.float64)  # noqa: N806
-            if R.shape != (3, 3) or P.shape != (3, 4):
-                raise ValueError(f"rectification.views[{i}]: R_rect_from_view must be 3x3 and P 3x4, got "
-                                 f"{R.shape} and {P.shape}")
-            rect_views.append((R, P))
+    rect = stored_rectification(calib)  # RectificationError (a ValueError) naming the field when incomplete
     w, h = calib.image_size_px
     with atomic_path(path) as tmp:
         # FORMAT_YAML: FileStorage would otherwise choose XML for a name that does not end in .yaml/.yml
@@ -70,10 +75,14 @@ def write(calib: Calibration, path: Path) -> None:
                 fs.write(f"R_{i}", view_T_ref[:3, :3])
                 fs.write(f"T_{i}", view_T_ref[:3, 3].reshape(3, 1))
             if rect is not None:
-                fs.write("K_r", np.asarray(rect["K_r"], dtype=np.float64).reshape(3, 3))
-                for i, (R, P) in enumerate(rect_views):  # noqa: N806
-                    fs.write(f"R_rect_{i}", R)
-                    fs.write(f"P_{i}", P)
+                fs.writeComment("rectification: initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, "
+                                "rect_image_height)) gives lfgraph's rectified view i; P_i as stereoRectify's P1/P2")
+                fs.write("rect_image_width", int(rect.image_size_px[0]))
+                fs.write("rect_image_height", int(rect.image_size_px[1]))
+                fs.write("K_r", rect.K_r)
+                for i in range(calib.num_views):
+                    fs.write(f"R_rect_{i}", rect.rect_R_view[i])
+                    fs.write(f"P_{i}", rectified_projection(rect.K_r, rect.P[i]))
         finally:
             fs.release()
 
