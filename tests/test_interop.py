@@ -4,6 +4,7 @@ files, and every validation error."""
 import argparse
 import dataclasses
 import re
+import time
 
 import cv2
 import numpy as np
@@ -23,6 +24,7 @@ from lfgraph.interop import (
     import_calibration,
 )
 from lfgraph.interop.colmap import rotation_from_wxyz
+from lfgraph.interop.common import MAX_IMPORT_VIEWS
 from lfgraph.rectification import attach, build_maps, compute_rectification, stored_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
@@ -30,6 +32,8 @@ CHAIN_TOLERANCE = 1e-12  # m, unitless rotation entries: composing 4x4 transform
 # build_maps stores OpenCV's fixed-point maps (1/32 px steps); maps from the exported K_i, D_i, R_rect_i, P_i must
 # land on the same steps, so anything below one step means "the same rectified image"
 FIXED_POINT_MAP_STEP_PX = 1.0 / cv2.INTER_TAB_SIZE
+REFUSAL_TIME_LIMIT_S = 0.5  # an absurd grid is refused from the header, without reading per-view data
+IMPORT_20X20_TIME_LIMIT_S = 1.0  # 400 views; minutes were spent on a 300x300 grid before the one-pass reader
 MIDDLEBURY_SCENES = 6  # scenes in shared/data/middlebury2014_quarter
 # real file suffixes, so the OpenCV writer must force YAML where the name does not say it
 FILE_NAMES = {"opencv-yaml": "calib.yml", "kalibr": "camchain.yaml", "colmap": "sparse", "json": "calibration.json"}
@@ -426,9 +430,17 @@ def test_opencv_yaml_errors_name_file_and_key(tmp_path, calib, edit, key):
         import_calibration(tmp_path / "c.yaml", "opencv-yaml")
 
 
-def test_opencv_yaml_unparsable(tmp_path):
+def test_opencv_yaml_unparsable(tmp_path, calib):
     (tmp_path / "c.yaml").write_text("%YAML:1.0\n---\nK_0: [1, 2\n")
-    with pytest.raises(CalibrationFileError, match=r"c\.yaml: file: "):
+    with pytest.raises(CalibrationFileError, match=r"c\.yaml: line 4: not valid YAML"):
+        import_calibration(tmp_path / "c.yaml", "opencv-yaml")
+    (tmp_path / "c.yaml").write_text("%YAML:1.0\n---\ngrid_rows: 1\ngrid_rows: 2\n")
+    with pytest.raises(CalibrationFileError, match=r"c\.yaml: line 4: .*'grid_rows' appears twice"):
+        import_calibration(tmp_path / "c.yaml", "opencv-yaml")
+    text = export_calibration(calib, "opencv-yaml", tmp_path / "c.yaml").read_text()
+    (tmp_path / "c.yaml").write_text(re.sub(r"(K_0: !!opencv-matrix\n(?:.*\n){3}\s*data: )\[[^]]*\]", r"\1[ 1., 2. ]",
+                                            text))
+    with pytest.raises(CalibrationFileError, match=r"c\.yaml: K_0: !!opencv-matrix of 3x3 holds 2 numbers"):
         import_calibration(tmp_path / "c.yaml", "opencv-yaml")
 
 
@@ -684,3 +696,48 @@ def test_opencv_yaml_rectification_maps_match_lfgraph(tmp_path, calib):
             assert np.max(np.abs(got[:2] / got[2] - expected[:2] / expected[2])) < ROUND_TRIP_TOLERANCE
     finally:
         fs.release()
+
+
+def _opencv_header_only(path, rows: int, cols: int) -> None:
+    path.write_text(f"%YAML:1.0\n---\ngrid_rows: {rows}\ngrid_cols: {cols}\nreference: 0\nimage_width: 960\n"
+                    f"image_height: 960\nnum_views: {rows * cols}\n")
+
+
+def test_opencv_yaml_refuses_an_absurd_grid_quickly(tmp_path):
+    _opencv_header_only(tmp_path / "c.yaml", 300, 300)
+    start = time.perf_counter()
+    with pytest.raises(CalibrationFileError, match=rf"c\.yaml: num_views: declares 90000 views; .* {MAX_IMPORT_VIEWS}"):
+        import_calibration(tmp_path / "c.yaml", "opencv-yaml")
+    assert time.perf_counter() - start < REFUSAL_TIME_LIMIT_S
+
+
+def test_opencv_yaml_imports_a_20x20_grid_quickly(tmp_path):
+    calib = make_rig(RigConfig(rows=20, cols=20, reference=210), np.random.default_rng(3))
+    path = export_calibration(calib, "opencv-yaml", tmp_path / "c.yml")
+    start = time.perf_counter()
+    back = import_calibration(path, "opencv-yaml")
+    elapsed_s = time.perf_counter() - start
+    _assert_same(back, calib)
+    assert elapsed_s < IMPORT_20X20_TIME_LIMIT_S, f"20x20 import took {elapsed_s:.2f} s"
+
+
+def test_opencv_yaml_reads_old_opencv_headers_and_refuses_xml(tmp_path, calib):
+    _write_filestorage(tmp_path / "c.yaml", _opencv_entries(calib))
+    text = (tmp_path / "c.yaml").read_text()
+    assert text.startswith("%YAML 1.2")  # what OpenCV 5 writes; OpenCV 3 and 4 wrote %YAML:1.0
+    (tmp_path / "old.yaml").write_text(text.replace("%YAML 1.2", "%YAML:1.0", 1))
+    _assert_same(import_calibration(tmp_path / "old.yaml", "opencv-yaml"), calib)
+    fs = cv2.FileStorage(str(tmp_path / "c.xml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("grid_rows", 2)
+    fs.release()
+    with pytest.raises(CalibrationFileError, match=r"c\.xml: file: is FileStorage XML or JSON"):
+        import_calibration(tmp_path / "c.xml", "opencv-yaml")
+
+
+def test_hci_refuses_an_absurd_grid(tmp_path):
+    (tmp_path / "parameters.cfg").write_text(
+        "[intrinsics]\nfocal_length_mm = 100\nsensor_size_mm = 35\nimage_resolution_x_px = 512\n"
+        "image_resolution_y_px = 512\n[extrinsics]\nnum_cams_x = 100000\nnum_cams_y = 100000\nbaseline_mm = 1\n")
+    with pytest.raises(CalibrationFileError, match=r"parameters\.cfg: \[extrinsics\] num_cams_x, num_cams_y: "
+                                                   r"declares 10000000000 views"):
+        import_calibration(tmp_path, "hci")

@@ -12,7 +12,7 @@ follow OpenCV's convention, the centre of the top-left pixel is ``(0, 0)``, exce
 Grids on import: ``grid`` is a `ViewGrid`, a ``(rows, cols)`` pair or None. Its view count and shape must match
 the file's (the error names the file and the key). A `ViewGrid` whose reference differs from the file's re-expresses
 all poses relative to that view (refused when the file holds a rectification, which is tied to its reference);
-a ``(rows, cols)`` pair keeps the file's reference.
+a ``(rows, cols)`` pair keeps the file's reference. At most `MAX_IMPORT_VIEWS` views are imported.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 from lfgraph.calibration import Calibration
 from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, opencv_yaml
 from lfgraph.interop.colmap import COLMAP_CAMERA_MODELS, COLMAP_MODEL_FILES, COLMAP_PIXEL_OFFSET_PX
-from lfgraph.interop.common import MM_PER_M, GridLike, PathLike
+from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike
 from lfgraph.interop.kalibr import KALIBR_DISTORTION_MODELS
 
 __all__ = [
@@ -33,6 +33,7 @@ __all__ = [
     "EXPORT_FORMATS",
     "IMPORT_FORMATS",
     "KALIBR_DISTORTION_MODELS",
+    "MAX_IMPORT_VIEWS",
     "MM_PER_M",
     "export_calibration",
     "import_calibration",
@@ -97,7 +98,7 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
     Raises:
         ValueError: unknown format. `CalibrationFileError` (a ValueError) naming the file and the key: a missing
             file or key, a malformed or non-finite number, a matrix of the wrong shape or not a rotation, a grid
-            whose shape or view count does not match the file.
+            whose shape or view count does not match the file, more than `MAX_IMPORT_VIEWS` views.
     """
     reader = _READERS.get(fmt)
     if reader is None:

@@ -25,6 +25,7 @@ from lfgraph.interop.common import (
     MM_PER_M,
     GridLike,
     build,
+    check_view_count,
     fail,
     finite,
     fit_grid,
@@ -63,6 +64,7 @@ def read(path: Path, grid: GridLike) -> Calibration:
     h = whole(get("intrinsics", "image_resolution_y_px"), path, "[intrinsics] image_resolution_y_px")
     cols = whole(get("extrinsics", "num_cams_x"), path, "[extrinsics] num_cams_x")
     rows = whole(get("extrinsics", "num_cams_y"), path, "[extrinsics] num_cams_y")
+    check_view_count(rows * cols, path, "[extrinsics] num_cams_x, num_cams_y")
     pitch_m = positive("extrinsics", "baseline_mm") / MM_PER_M
     focal_px = focal_mm / sensor_mm * max(w, h)  # the sensor size spans the longer image side
     intr = Intrinsics(focal_px, focal_px, (w - 1) / 2.0, (h - 1) / 2.0)

@@ -15,31 +15,54 @@ position (lfgraph's rectified projection, re-expressed). Hence
 .build_maps`). Import reads the calibration, not the rectification (recompute that with ``lfgraph rectify``):
 ``K_r``, ``R_rect_i`` and ``P_i`` alone do not make a complete lfgraph rectification.
 
+Import parses the file once with PyYAML's parser (libyaml when available) and walks its node tree:
+``cv2.FileStorage`` looks every key up by a linear scan of the top-level map, which made import quadratic in the view
+count (a 300x300 grid, 360,000 keys, took minutes). Both OpenCV's ``%YAML:1.0``
+and ``%YAML 1.2`` headers are read; FileStorage's XML and JSON flavours are refused (re-save them as YAML). A
+header declaring more than `MAX_IMPORT_VIEWS` views is refused before the file is parsed.
 """
 
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
+import yaml
 
 from lfgraph.calibration import Calibration
 from lfgraph.geometry import invert_T, make_T
 from lfgraph.grid import ViewGrid
 from lfgraph.interop.common import (
+    MAX_IMPORT_VIEWS,
     GridLike,
     array,
     build,
     check_reference_pose,
+    check_view_count,
+    compose_yaml,
     fail,
     fit_grid,
     intrinsics,
+    read_text,
     rotation,
     whole,
 )
 from lfgraph.io_utils import atomic_path
 from lfgraph.rectification import stored_rectification
+
+__all__ = ["MAX_IMPORT_VIEWS", "read", "rectified_projection", "write"]
+
+_OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML[: ]\s*\d+\.\d+[^\n]*\n")  # OpenCV 3/4 write %YAML:1.0, OpenCV 5 %YAML 1.2
+# cv2.FileStorage writes these for non-finite numbers; YAML 1.1 spells them .nan/.NaN/.inf only
+_OPENCV_SPECIAL_FLOATS = {".nan": float("nan"), ".inf": float("inf"), "+.inf": float("inf"), "-.inf": float("-inf")}
+_HEADER_COUNT = re.compile(r"^(grid_rows|grid_cols|num_views)[ \t]*:[ \t]*(\d+)[ \t]*(?:#.*)?$", re.MULTILINE)
+
+
+_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"
 
 
 def rectified_projection(K_r: np.ndarray, P_lfgraph: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -87,62 +110,112 @@ def write(calib: Calibration, path: Path) -> None:
             fs.release()
 
 
+@dataclass(frozen=True)
+class _Matrix:
+    """An ``!!opencv-matrix`` as text, validated by `_matrix` once its key is known."""
+
+    rows: Any
+    cols: Any
+    data: list[Any] | None
+
+
+def _plain(node: yaml.Node) -> Any:
+    """A node as text, a `_Matrix`, or the node itself when it is neither (the reader then names the key)."""
+    if isinstance(node, yaml.ScalarNode):
+        return node.value
+    if isinstance(node, yaml.MappingNode) and node.tag == _MATRIX_TAG:
+        fields = {str(k.value): v for k, v in node.value}
+        data = fields.get("data")
+        items = None if data is None else data.value if isinstance(data, yaml.SequenceNode) else [data]
+        return _Matrix(_plain_or_none(fields.get("rows")), _plain_or_none(fields.get("cols")),
+                       None if items is None else [_plain_or_none(item) for item in items])
+    return node
+
+
+def _plain_or_none(node: yaml.Node | None) -> Any:
+    return None if node is None else node.value if isinstance(node, yaml.ScalarNode) else node
+
+
+def _top_level(root: yaml.Node | None) -> dict[str, Any] | str:
+    """The top-level mapping as ``{key: text | _Matrix | node}``, or the problem as text (raised by the caller)."""
+    if not isinstance(root, yaml.MappingNode):
+        return "file: must be a YAML mapping of keys (grid_rows, K_0, ...)"
+    entries: dict[str, Any] = {}
+    for key_node, value_node in root.value:
+        key = str(key_node.value)
+        if key in entries:
+            return f"line {key_node.start_mark.line + 1}: {key!r} appears twice"
+        entries[key] = _plain(value_node)
+    return entries
+
+
+def _number(value: Any, path: Path, key: str) -> Any:
+    if not isinstance(value, str):
+        raise fail(path, key, "must be a number")
+    return _OPENCV_SPECIAL_FLOATS.get(value.lower(), value)
+
+
+def _matrix(entries: dict[str, Any], key: str, shape: tuple[int, ...] | None, path: Path) -> np.ndarray:
+    """An ``!!opencv-matrix`` (one channel) as a finite float64 array of ``shape`` (any size when None)."""
+    if key not in entries:
+        raise fail(path, key, "is missing")
+    m = entries[key]
+    if not isinstance(m, _Matrix):
+        raise fail(path, key, "must be an !!opencv-matrix")
+    for name in ("rows", "cols", "data"):
+        if getattr(m, name) is None:
+            raise fail(path, key, f"!!opencv-matrix without {name}")
+    rows = whole(_number(m.rows, path, f"{key}.rows"), path, f"{key}.rows")
+    cols = whole(_number(m.cols, path, f"{key}.cols"), path, f"{key}.cols")
+    values = [_number(v, path, key) for v in m.data]
+    if len(values) != rows * cols:
+        raise fail(path, key, f"!!opencv-matrix of {rows}x{cols} holds {len(values)} numbers (one channel expected)")
+    return array(np.array(values, dtype=object).reshape(rows, cols), shape or (rows * cols,), path, key)
+
+
 def read(path: Path, grid: GridLike) -> Calibration:
     if not path.is_file():
         raise fail(path, "file", "does not exist" if not path.exists() else "is not a file")
+    text = read_text(path)
+    if text.lstrip()[:1] in ("<", "{"):
+        raise fail(path, "file", "is FileStorage XML or JSON; lfgraph reads the YAML flavour (re-save it with "
+                                 "cv2.FileStorage under a .yaml name)")
+    # Refuse an absurd grid from the header alone: parsing a file of 100,000 views is already minutes of work.
+    header = {m.group(1): int(m.group(2)) for m in _HEADER_COUNT.finditer(text)}
+    if "num_views" in header:
+        check_view_count(header["num_views"], path, "num_views")
+    if "grid_rows" in header and "grid_cols" in header:
+        check_view_count(header["grid_rows"] * header["grid_cols"], path, "grid_rows, grid_cols")
+    entries = compose_yaml(_OPENCV_DIRECTIVE.sub("%YAML 1.1\n", text, count=1), path, _top_level)
+    if isinstance(entries, str):
+        where, _, problem = entries.partition(": ")
+        raise fail(path, where, problem)
+
+    def integer(key: str, minimum: int) -> int:
+        if key not in entries:
+            raise fail(path, key, "is missing")
+        return whole(_number(entries[key], path, key), path, key, minimum)
+
+    rows, cols = integer("grid_rows", 1), integer("grid_cols", 1)
+    reference = integer("reference", 0)
+    size = (integer("image_width", 1), integer("image_height", 1))
+    num_views = integer("num_views", 1)
+    check_view_count(num_views, path, "num_views")
+    if num_views != rows * cols:
+        raise fail(path, "num_views", f"is {num_views}, but grid_rows x grid_cols = {rows}x{cols} needs {rows * cols}")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as exc:  # OpenCV 5 raises SystemError wrapping cv2.error on a parse error
-        cause = exc.__cause__ or exc
-        raise fail(path, "file", f"not a readable OpenCV FileStorage file ({str(cause).strip()[:200]})") from None
-    if not fs.isOpened():
-        raise fail(path, "file", "cannot be opened by cv2.FileStorage")
-    try:
-        def node(key: str) -> cv2.FileNode:
-            n = fs.getNode(key)
-            if n.empty() or n.isNone():
-                raise fail(path, key, "is missing")
-            return n
-
-        def integer(key: str, minimum: int) -> int:
-            n = node(key)
-            if not (n.isInt() or n.isReal()):
-                raise fail(path, key, "must be a number")
-            return whole(n.real(), path, key, minimum)
-
-        def matrix(key: str, shape: tuple[int, ...] | None) -> np.ndarray:
-            n = node(key)
-            try:
-                m = n.mat() if n.isMap() else None
-            except cv2.error:
-                m = None
-            if m is None:
-                raise fail(path, key, "must be an !!opencv-matrix")
-            m = np.asarray(m, dtype=np.float64)
-            return array(m, shape or (m.size,), path, key)
-
-        rows, cols = integer("grid_rows", 1), integer("grid_cols", 1)
-        reference = integer("reference", 0)
-        size = (integer("image_width", 1), integer("image_height", 1))
-        num_views = integer("num_views", 1)
-        if num_views != rows * cols:
-            raise fail(path, "num_views", f"is {num_views}, but grid_rows x grid_cols = {rows}x{cols} needs "
-                                           f"{rows * cols}")
-        try:
-            file_grid = ViewGrid(rows, cols, reference)
-        except ValueError as exc:
-            raise fail(path, "reference", str(exc)) from None
-        views, poses = [], []
-        for i in range(num_views):
-            K = matrix(f"K_{i}", (3, 3))  # noqa: N806
-            dist = matrix(f"D_{i}", None)  # 4, 5 or more coefficients; those past p2 must be 0
-            views.append(intrinsics(path, f"K_{i}, D_{i}", K, dist))
-            R = rotation(matrix(f"R_{i}", (3, 3)), path, f"R_{i}")  # noqa: N806
-            view_T_ref = make_T(R, matrix(f"T_{i}", (3, 1)).ravel())  # noqa: N806
-            if i == reference:
-                check_reference_pose(view_T_ref, path, f"R_{i}, T_{i}")
-            poses.append(invert_T(view_T_ref))
-    finally:
-        fs.release()
+        file_grid = ViewGrid(rows, cols, reference)
+    except ValueError as exc:
+        raise fail(path, "reference", str(exc)) from None
+    views, poses = [], []
+    for i in range(num_views):
+        K = _matrix(entries, f"K_{i}", (3, 3), path)  # noqa: N806
+        dist = _matrix(entries, f"D_{i}", None, path)  # 4, 5 or more coefficients; those past p2 must be 0
+        views.append(intrinsics(path, f"K_{i}, D_{i}", K, dist))
+        R = rotation(_matrix(entries, f"R_{i}", (3, 3), path), path, f"R_{i}")  # noqa: N806
+        view_T_ref = make_T(R, _matrix(entries, f"T_{i}", (3, 1), path).ravel())  # noqa: N806
+        if i == reference:
+            check_reference_pose(view_T_ref, path, f"R_{i}, T_{i}")
+        poses.append(invert_T(view_T_ref))
     calib = build(path, "num_views", file_grid, size, views, np.stack(poses))
     return fit_grid(calib, grid, path, "num_views")
