@@ -3,6 +3,7 @@ files, and every validation error."""
 
 import argparse
 import dataclasses
+import os
 import re
 import time
 
@@ -12,6 +13,7 @@ import pytest
 import yaml
 
 from lfgraph.calibration import Calibration, CalibrationFileError
+from lfgraph.cli import main as cli_main
 from lfgraph.cli.interop import add_parsers
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.geometry import invert_T, make_T
@@ -741,3 +743,76 @@ def test_hci_refuses_an_absurd_grid(tmp_path):
     with pytest.raises(CalibrationFileError, match=r"parameters\.cfg: \[extrinsics\] num_cams_x, num_cams_y: "
                                                    r"declares 10000000000 views"):
         import_calibration(tmp_path, "hci")
+
+
+def _run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    try:
+        code = cli_main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse usage errors (exit code 2)
+        code = int(exc.code)
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("command", "fmt"), [("import", "json"), ("export", "json"), ("import", "opencv-yaml")])
+def test_cli_refuses_to_overwrite_its_input(tmp_path, calib, capsys, command, fmt):
+    path = tmp_path / ("c.json" if fmt == "json" else "c.yml")
+    if fmt == "json":
+        calib.save(path)
+    else:
+        export_calibration(calib, fmt, path)
+    before = path.read_bytes()
+    flag = "--from" if command == "import" else "--to"
+    # the same file through another spelling of its path
+    code, err = _run_cli([command, path, flag, fmt, "-o", tmp_path / "." / path.name], capsys)
+    assert code == 1
+    assert f"is the input {path}" in err
+    assert path.read_bytes() == before
+
+
+def test_cli_import_refuses_to_overwrite_a_scene_file(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    text = "cam0=[1000 0 300; 0 1000 200; 0 0 1]\ncam1=[1000 0 310; 0 1000 200; 0 0 1]\nbaseline=100\nwidth=600\n" \
+           "height=400\n"
+    (scene / "calib.txt").write_text(text)
+    code, err = _run_cli(["import", scene, "--from", "middlebury", "-o", scene / "calib.txt"], capsys)
+    assert code == 1 and "calib.txt" in err
+    assert (scene / "calib.txt").read_text() == text
+
+
+def test_cli_refuses_a_missing_output_folder_before_reading(tmp_path, calib, capsys):
+    missing = tmp_path / "missing"
+    # the input does not exist either: the output must be the first thing checked
+    for argv in (["import", tmp_path / "nowhere.json", "--from", "json", "-o", missing / "o.json"],
+                 ["export", tmp_path / "nowhere.json", "--to", "kalibr", "-o", missing / "camchain.yaml"],
+                 ["export", tmp_path / "nowhere.json", "--to", "colmap", "-o", missing / "sparse"]):
+        code, err = _run_cli(argv, capsys)
+        assert code == 2
+        assert f"folder {missing} does not exist" in err
+        assert not missing.exists()
+
+
+def test_cli_refuses_an_output_of_the_wrong_kind(tmp_path, calib, capsys):
+    calib.save(tmp_path / "in.json")
+    (tmp_path / "folder").mkdir()
+    code, err = _run_cli(["import", tmp_path / "in.json", "--from", "json", "-o", tmp_path / "folder"], capsys)
+    assert code == 2 and f"{tmp_path / 'folder'} is a folder" in err
+    code, err = _run_cli(["export", tmp_path / "in.json", "--to", "opencv-yaml", "-o", tmp_path / "folder"], capsys)
+    assert code == 2 and "is a folder" in err
+    (tmp_path / "file.txt").write_text("x")
+    code, err = _run_cli(["export", tmp_path / "in.json", "--to", "colmap", "-o", tmp_path / "file.txt"], capsys)
+    assert code == 2 and "is a file" in err
+    assert (tmp_path / "file.txt").read_text() == "x"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into any folder")
+def test_cli_refuses_an_unwritable_output_folder(tmp_path, calib, capsys):
+    calib.save(tmp_path / "in.json")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        code, err = _run_cli(["import", tmp_path / "in.json", "--from", "json", "-o", locked / "o.json"], capsys)
+    finally:
+        locked.chmod(0o700)
+    assert code == 1 and f"folder {locked} is not writable" in err

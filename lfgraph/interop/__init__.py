@@ -1,7 +1,8 @@
 """Calibration import and export in other tools' formats ("interoperability").
 
-Two entry points: `export_calibration(calib, fmt, path)` and `import_calibration(path, fmt, grid)`. Every file is
-written atomically (a temporary sibling renamed onto the final name), so a crash never leaves half a file.
+Two entry points: `export_calibration(calib, fmt, path)` and `import_calibration(path, fmt, grid)`; `input_paths`
+names what an import reads (so a caller can refuse to overwrite it). Every file is written atomically (a temporary
+sibling renamed onto the final name), so a crash never leaves half a file.
 
 One module per format, each documenting its layout: `opencv_yaml` (``opencv-yaml``, export and import), `kalibr`
 (``kalibr``, export and import), `colmap` (``colmap``, export and import), `json_format` (``json``, export and
@@ -23,7 +24,7 @@ from pathlib import Path
 from lfgraph.calibration import Calibration
 from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, opencv_yaml
 from lfgraph.interop.colmap import COLMAP_CAMERA_MODELS, COLMAP_MODEL_FILES, COLMAP_PIXEL_OFFSET_PX
-from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike
+from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike, in_folder
 from lfgraph.interop.kalibr import KALIBR_DISTORTION_MODELS
 
 __all__ = [
@@ -35,8 +36,10 @@ __all__ = [
     "KALIBR_DISTORTION_MODELS",
     "MAX_IMPORT_VIEWS",
     "MM_PER_M",
+    "FILE_FORMATS",
     "export_calibration",
     "import_calibration",
+    "input_paths",
 ]
 
 _WRITERS: dict[str, Callable[[Calibration, Path], None]] = {
@@ -55,6 +58,7 @@ _READERS: dict[str, Callable[[Path, GridLike], Calibration]] = {
 }
 EXPORT_FORMATS: tuple[str, ...] = tuple(_WRITERS)
 IMPORT_FORMATS: tuple[str, ...] = tuple(_READERS)
+FILE_FORMATS: tuple[str, ...] = ("opencv-yaml", "kalibr", "json")  # exports that write one file (colmap: a folder)
 
 
 def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
@@ -105,3 +109,20 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
         raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
     return reader(Path(path), grid)
 
+
+def input_paths(path: PathLike, fmt: str) -> tuple[Path, ...]:
+    """The paths `import_calibration(path, fmt)` reads: ``path`` and, for a folder, the files in it that it reads.
+
+    Raises:
+        ValueError: unknown format.
+    """
+    if fmt not in _READERS:
+        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
+    source = Path(path)
+    if fmt == "colmap":
+        return (source, *(source / name for name in sorted(COLMAP_MODEL_FILES)))
+    if fmt == "middlebury":
+        return tuple(dict.fromkeys((source, in_folder(source, middlebury.CALIB_FILE))))
+    if fmt == "hci":
+        return tuple(dict.fromkeys((source, in_folder(source, hci.PARAMETERS_FILE))))
+    return (source,)
