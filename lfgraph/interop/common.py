@@ -155,13 +155,18 @@ def array(values: Any, shape: tuple[int, ...], path: PathLike, key: str) -> np.n
     A vector may arrive as a row or a column (``1xN``, ``Nx1``): dimensions of length 1 are not compared.
     """
     want = "x".join(map(str, shape))
-    try:
-        arr = np.array(values, dtype=object)
-    except ValueError:
-        raise fail(path, key, f"must be a {want} array of numbers") from None
+    if isinstance(values, np.ndarray) and values.dtype == np.float64 and bool(np.isfinite(values).all()):
+        arr = values  # already numbers (a large file's matrices): skip the per-element checks below
+    else:
+        try:
+            arr = np.array(values, dtype=object)
+        except ValueError:
+            raise fail(path, key, f"must be a {want} array of numbers") from None
     squeeze = tuple(d for d in arr.shape if d != 1)
     if arr.size != math.prod(shape) or squeeze != tuple(d for d in shape if d != 1):
         raise fail(path, key, f"must have shape {want}, got {'x'.join(map(str, arr.shape)) or 'a scalar'}")
+    if arr is values:
+        return np.array(arr, dtype=np.float64).reshape(shape)
     return np.array([finite(v, path, key) for v in arr.ravel()]).reshape(shape)
 
 

@@ -37,7 +37,6 @@ from lfgraph.calibration import Calibration
 from lfgraph.geometry import invert_T, make_T
 from lfgraph.grid import ViewGrid
 from lfgraph.interop.common import (
-    MAX_IMPORT_VIEWS,
     GridLike,
     array,
     build,
@@ -54,15 +53,11 @@ from lfgraph.interop.common import (
 from lfgraph.io_utils import atomic_path
 from lfgraph.rectification import stored_rectification
 
-__all__ = ["MAX_IMPORT_VIEWS", "read", "rectified_projection", "write"]
-
 _OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML[: ]\s*\d+\.\d+[^\n]*\n")  # OpenCV 3/4 write %YAML:1.0, OpenCV 5 %YAML 1.2
 # cv2.FileStorage writes these for non-finite numbers; YAML 1.1 spells them .nan/.NaN/.inf only
 _OPENCV_SPECIAL_FLOATS = {".nan": float("nan"), ".inf": float("inf"), "+.inf": float("inf"), "-.inf": float("-inf")}
 _HEADER_COUNT = re.compile(r"^(grid_rows|grid_cols|num_views)[ \t]*:[ \t]*(\d+)[ \t]*(?:#.*)?$", re.MULTILINE)
-
-
-_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"
+_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"  # what the parser makes of FileStorage's !!opencv-matrix
 
 
 def rectified_projection(K_r: np.ndarray, P_lfgraph: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -119,32 +114,31 @@ class _Matrix:
     data: list[Any] | None
 
 
+def _text(node: yaml.Node | None) -> Any:
+    """A scalar node's text; None for no node; any other node as it is (the reader then names the key)."""
+    return node.value if isinstance(node, yaml.ScalarNode) else node
+
+
 def _plain(node: yaml.Node) -> Any:
-    """A node as text, a `_Matrix`, or the node itself when it is neither (the reader then names the key)."""
-    if isinstance(node, yaml.ScalarNode):
-        return node.value
+    """A top-level value as text, a `_Matrix`, or the node itself when it is neither."""
     if isinstance(node, yaml.MappingNode) and node.tag == _MATRIX_TAG:
         fields = {str(k.value): v for k, v in node.value}
         data = fields.get("data")
         items = None if data is None else data.value if isinstance(data, yaml.SequenceNode) else [data]
-        return _Matrix(_plain_or_none(fields.get("rows")), _plain_or_none(fields.get("cols")),
-                       None if items is None else [_plain_or_none(item) for item in items])
-    return node
+        return _Matrix(_text(fields.get("rows")), _text(fields.get("cols")),
+                       None if items is None else [_text(item) for item in items])
+    return _text(node)
 
 
-def _plain_or_none(node: yaml.Node | None) -> Any:
-    return None if node is None else node.value if isinstance(node, yaml.ScalarNode) else node
-
-
-def _top_level(root: yaml.Node | None) -> dict[str, Any] | str:
-    """The top-level mapping as ``{key: text | _Matrix | node}``, or the problem as text (raised by the caller)."""
+def _top_level(root: yaml.Node | None, path: Path) -> dict[str, Any]:
+    """The top-level mapping as ``{key: text | _Matrix | node}``; a key given twice is refused (naming its line)."""
     if not isinstance(root, yaml.MappingNode):
-        return "file: must be a YAML mapping of keys (grid_rows, K_0, ...)"
+        raise fail(path, "file", "must be a YAML mapping of keys (grid_rows, K_0, ...)")
     entries: dict[str, Any] = {}
     for key_node, value_node in root.value:
         key = str(key_node.value)
         if key in entries:
-            return f"line {key_node.start_mark.line + 1}: {key!r} appears twice"
+            raise fail(path, f"line {key_node.start_mark.line + 1}", f"{key!r} appears twice")
         entries[key] = _plain(value_node)
     return entries
 
@@ -170,7 +164,11 @@ def _matrix(entries: dict[str, Any], key: str, shape: tuple[int, ...] | None, pa
     values = [_number(v, path, key) for v in m.data]
     if len(values) != rows * cols:
         raise fail(path, key, f"!!opencv-matrix of {rows}x{cols} holds {len(values)} numbers (one channel expected)")
-    return array(np.array(values, dtype=object).reshape(rows, cols), shape or (rows * cols,), path, key)
+    try:
+        m = np.array(values, dtype=np.float64)  # numpy parses the text; `array` re-checks it one by one if this fails
+    except ValueError:
+        m = np.array(values, dtype=object)
+    return array(m.reshape(rows, cols), shape or (rows * cols,), path, key)
 
 
 def read(path: Path, grid: GridLike) -> Calibration:
@@ -186,10 +184,8 @@ def read(path: Path, grid: GridLike) -> Calibration:
         check_view_count(header["num_views"], path, "num_views")
     if "grid_rows" in header and "grid_cols" in header:
         check_view_count(header["grid_rows"] * header["grid_cols"], path, "grid_rows, grid_cols")
-    entries = compose_yaml(_OPENCV_DIRECTIVE.sub("%YAML 1.1\n", text, count=1), path, _top_level)
-    if isinstance(entries, str):
-        where, _, problem = entries.partition(": ")
-        raise fail(path, where, problem)
+    yaml_text = _OPENCV_DIRECTIVE.sub("%YAML 1.1\n", text, count=1)  # PyYAML cannot read OpenCV 3/4's %YAML:1.0
+    entries = compose_yaml(yaml_text, path, lambda root: _top_level(root, path))
 
     def integer(key: str, minimum: int) -> int:
         if key not in entries:
