@@ -3,13 +3,17 @@ files, and every validation error."""
 
 import argparse
 import dataclasses
+import os
 import re
+import time
 
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from lfgraph.calibration import Calibration, CalibrationFileError
+from lfgraph.cli import main as cli_main
 from lfgraph.cli.interop import add_parsers
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.geometry import invert_T, make_T
@@ -18,15 +22,20 @@ from lfgraph.interop import (
     COLMAP_PIXEL_OFFSET_PX,
     EXPORT_FORMATS,
     IMPORT_FORMATS,
-    _parse_simple_yaml,
-    _rotation_from_wxyz,
     export_calibration,
     import_calibration,
 )
-from lfgraph.rectification import attach, compute_rectification
+from lfgraph.interop.colmap import rotation_from_wxyz
+from lfgraph.interop.common import MAX_IMPORT_VIEWS
+from lfgraph.rectification import attach, build_maps, compute_rectification, stored_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
 CHAIN_TOLERANCE = 1e-12  # m, unitless rotation entries: composing 4x4 transforms costs a few ulps per step
+# build_maps stores OpenCV's fixed-point maps (1/32 px steps); maps from the exported K_i, D_i, R_rect_i, P_i must
+# land on the same steps, so anything below one step means "the same rectified image"
+FIXED_POINT_MAP_STEP_PX = 1.0 / cv2.INTER_TAB_SIZE
+REFUSAL_TIME_LIMIT_S = 0.5  # an absurd grid is refused from the header, without reading per-view data
+IMPORT_20X20_TIME_LIMIT_S = 1.0  # 400 views; minutes were spent on a 300x300 grid before the one-pass reader
 MIDDLEBURY_SCENES = 6  # scenes in shared/data/middlebury2014_quarter
 # real file suffixes, so the OpenCV writer must force YAML where the name does not say it
 FILE_NAMES = {"opencv-yaml": "calib.yml", "kalibr": "camchain.yaml", "colmap": "sparse", "json": "calibration.json"}
@@ -117,7 +126,7 @@ def test_opencv_yaml_is_read_by_filestorage(tmp_path, calib):
             assert np.array_equal(fs.getNode(f"T_{i}").mat().ravel(), view_T_ref[:3, 3])
             rect_view = rectified.rectification["views"][i]
             assert np.array_equal(fs.getNode(f"R_rect_{i}").mat(), np.array(rect_view["R_rect_from_view"]))
-            assert np.array_equal(fs.getNode(f"P_{i}").mat(), np.array(rect_view["P"]))
+            assert fs.getNode(f"P_{i}").mat().shape == (3, 4)  # its convention: test_opencv_yaml_rectification_*
         assert np.array_equal(fs.getNode("K_r").mat(), np.array(rectified.rectification["K_r"]))
     finally:
         fs.release()
@@ -134,7 +143,7 @@ def test_opencv_yaml_without_rectification_has_no_rect_keys(tmp_path, calib):
 
 def test_kalibr_layout(tmp_path, calib):
     path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
-    data = _parse_simple_yaml(path.read_text(), path)
+    data = yaml.safe_load(path.read_text())  # PyYAML, which Kalibr reads its camchain with
     assert list(data) == [f"cam{i}" for i in range(calib.num_views)]
     for i, intr in enumerate(calib.intrinsics):
         cam = data[f"cam{i}"]
@@ -177,7 +186,7 @@ def test_colmap_layout(tmp_path, calib):
         assert sensors[k] == "CAMERA" and sensors[k + 2] == "1"
         view = int(sensors[k + 1]) - 1
         q, t = np.array(sensors[k + 3: k + 7], dtype=float), np.array(sensors[k + 7: k + 10], dtype=float)
-        sensor_from_rig = make_T(_rotation_from_wxyz(q), t)
+        sensor_from_rig = make_T(rotation_from_wxyz(q), t)
         assert np.max(np.abs(sensor_from_rig - calib.view_T_ref(view))) < ROUND_TRIP_TOLERANCE
     assert "# lfgraph grid: 2x3" in (folder / "rigs.txt").read_text()
 
@@ -423,9 +432,17 @@ def test_opencv_yaml_errors_name_file_and_key(tmp_path, calib, edit, key):
         import_calibration(tmp_path / "c.yaml", "opencv-yaml")
 
 
-def test_opencv_yaml_unparsable(tmp_path):
+def test_opencv_yaml_unparsable(tmp_path, calib):
     (tmp_path / "c.yaml").write_text("%YAML:1.0\n---\nK_0: [1, 2\n")
-    with pytest.raises(CalibrationFileError, match=r"c\.yaml: file: "):
+    with pytest.raises(CalibrationFileError, match=r"c\.yaml: line 4: not valid YAML"):
+        import_calibration(tmp_path / "c.yaml", "opencv-yaml")
+    (tmp_path / "c.yaml").write_text("%YAML:1.0\n---\ngrid_rows: 1\ngrid_rows: 2\n")
+    with pytest.raises(CalibrationFileError, match=r"c\.yaml: line 4: .*'grid_rows' appears twice"):
+        import_calibration(tmp_path / "c.yaml", "opencv-yaml")
+    text = export_calibration(calib, "opencv-yaml", tmp_path / "c.yaml").read_text()
+    (tmp_path / "c.yaml").write_text(re.sub(r"(K_0: !!opencv-matrix\n(?:.*\n){3}\s*data: )\[[^]]*\]", r"\1[ 1., 2. ]",
+                                            text))
+    with pytest.raises(CalibrationFileError, match=r"c\.yaml: K_0: !!opencv-matrix of 3x3 holds 2 numbers"):
         import_calibration(tmp_path / "c.yaml", "opencv-yaml")
 
 
@@ -438,7 +455,14 @@ def test_opencv_yaml_unparsable(tmp_path):
     (lambda t: t.replace("distortion_model: radtan", "distortion_model: equidistant", 1), r"cam0\.distortion_model"),
     (lambda t: t.replace("camera_model: pinhole", "camera_model: omni", 1), r"cam0\.camera_model"),
     (lambda t: t.replace("resolution: [960, 960]", "resolution: [640, 480]", 1), r"cam0\.resolution|cam1\.resolution"),
-    (lambda t: t.replace("intrinsics: [", "intrinsics: [[", 1), r"line \d+: unterminated"),
+    (lambda t: t.replace("intrinsics: [", "intrinsics: [[", 1), r"line \d+: not valid YAML"),
+    (lambda t: t.replace("intrinsics: [", "intrinsics: [1.0, ", 1), r"cam0\.intrinsics: must have shape 4"),
+    (lambda t: re.sub(r"(cam2:\n  T_cn_cnm1:\n)  - \[.*\]\n", r"\1", t), r"cam2\.T_cn_cnm1: must have shape 4x4"),
+    (lambda t: t.replace("  rostopic:", "  camera_model: pinhole\n  rostopic:", 1),
+     r"line \d+: .*'camera_model' appears twice"),
+    (lambda t: t.replace("resolution: [960, 960]", "resolution: [960, .inf]", 1), r"cam0\.resolution: must be finite"),
+    (lambda t: "cam0: [1, 2\n", r"line \d+: not valid YAML"),
+    (lambda t: "- cam0\n", r"file: must be a YAML mapping"),
 ])
 def test_kalibr_errors_name_file_and_key(tmp_path, calib, edit, key):
     path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
@@ -454,6 +478,86 @@ def test_kalibr_reads_zero_distortion_and_comments(tmp_path, calib):
     back = import_calibration(path, "kalibr", (2, 3))
     assert all(i.dist_cv.tolist() == [0.0] * 5 for i in back.intrinsics)
     assert np.max(np.abs(back.ref_T_view - calib.ref_T_view)) < ROUND_TRIP_TOLERANCE
+
+
+# Kalibr's kalibr_calibrate_cameras output as written by PyYAML >= 5.1 (yaml.dump's default is block style there):
+# every list a block of "- " lines, T_cn_cnm1 a block list of block lists. cam1 sits 0.11 m to the right of cam0,
+# turned 2 degrees about y.
+_KALIBR_BLOCK_CAMCHAIN = """\
+cam0:
+  cam_overlaps:
+  - 1
+  camera_model: pinhole
+  distortion_coeffs:
+  - -0.2834
+  - 0.0739
+  - 0.00019
+  - 1.76e-05
+  distortion_model: radtan
+  intrinsics:
+  - 458.654
+  - 457.296
+  - 367.215
+  - 248.375
+  resolution:
+  - 752
+  - 480
+  rostopic: /cam0/image_raw
+  timeshift_cam_imu: 0.0
+cam1:
+  T_cn_cnm1:
+  - - {c}
+    - 0.0
+    - {s}
+    - -0.11
+  - - 0.0
+    - 1.0
+    - 0.0
+    - 0.0
+  - - {ms}
+    - 0.0
+    - {c}
+    - 0.0
+  - - 0.0
+    - 0.0
+    - 0.0
+    - 1.0
+  cam_overlaps:
+  - 0
+  camera_model: pinhole
+  distortion_coeffs: [-0.28368, 0.07451, -0.000104, -3.555e-05]
+  distortion_model: radtan
+  intrinsics: [457.587, 456.134, 379.999, 255.238]
+  resolution: [752, 480]
+  rostopic: /cam1/image_raw
+  timeshift_cam_imu: -1.5e-05
+"""
+
+
+def test_kalibr_reads_block_style_as_kalibr_writes_it(tmp_path):
+    angle = np.deg2rad(2.0)
+    c, s = float(np.cos(angle)), float(np.sin(angle))
+    path = tmp_path / "camchain.yaml"
+    path.write_text(_KALIBR_BLOCK_CAMCHAIN.format(c=repr(c), s=repr(s), ms=repr(-s)))
+    back = import_calibration(path, "kalibr", (1, 2))
+    assert back.image_size_px == (752, 480)
+    assert back.intrinsics[0].as_vector().tolist() == [458.654, 457.296, 367.215, 248.375,
+                                                       -0.2834, 0.0739, 0.00019, 1.76e-05]
+    assert back.intrinsics[1].as_vector().tolist() == [457.587, 456.134, 379.999, 255.238,
+                                                       -0.28368, 0.07451, -0.000104, -3.555e-05]
+    cam1_T_cam0 = np.array([[c, 0.0, s, -0.11], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 0.0], [0.0, 0.0, 0.0, 1.0]])  # noqa: N806
+    assert np.max(np.abs(back.ref_T_view[1] - np.linalg.inv(cam1_T_cam0))) < CHAIN_TOLERANCE
+    assert np.array_equal(back.ref_T_view[0], np.eye(4))
+
+
+@pytest.mark.parametrize("reference", [0, 4])
+def test_kalibr_block_style_round_trip(tmp_path, reference):
+    calib = _rig(reference)
+    path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
+    # re-written by PyYAML in block style, as Kalibr's yaml.dump writes it with PyYAML >= 5.1
+    path.write_text(yaml.safe_dump(yaml.safe_load(path.read_text()), default_flow_style=False))
+    assert "\n  - - " in path.read_text()
+    _assert_same(import_calibration(path, "kalibr", ViewGrid(2, 3, reference)), calib)
 
 
 def _edit_camera_1(folder, edit) -> None:
@@ -561,6 +665,154 @@ def test_cli_errors(tmp_path, calib):
 def test_opencv_yaml_export_refuses_an_incomplete_rectification(tmp_path, calib):
     rect = attach(calib, compute_rectification(calib)).rectification
     broken = {**rect, "views": [{"P": v["P"]} for v in rect["views"]]}
-    with pytest.raises(ValueError, match=r"rectification\.views\[0\] must hold R_rect_from_view and P"):
+    with pytest.raises(ValueError, match=r"rectification\.views\[0\]\.R_rect_from_view is missing"):
         export_calibration(calib.replace(rectification=broken), "opencv-yaml", tmp_path / "c.yaml")
     assert not list(tmp_path.iterdir())
+
+
+# ============================================================================================== issue 19
+def test_opencv_yaml_rectification_maps_match_lfgraph(tmp_path, calib):
+    """OpenCV users rectify with initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i) as with stereoRectify's P1/P2; that
+    must give lfgraph's own rectified views (build_maps), not images off by pixels."""
+    rectified = attach(calib, compute_rectification(calib))
+    rect = stored_rectification(rectified)
+    lfgraph_maps = build_maps(rectified, rect)
+    path = export_calibration(rectified, "opencv-yaml", tmp_path / "calib.yml")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        size = (int(fs.getNode("rect_image_width").real()), int(fs.getNode("rect_image_height").real()))
+        assert size == rect.image_size_px
+        for i in range(calib.num_views):
+            K, D, R_rect, P = (fs.getNode(f"{k}_{i}").mat() for k in ("K", "D", "R_rect", "P"))  # noqa: N806
+            m1, m2 = cv2.initUndistortRectifyMap(K, D, R_rect, P, size, cv2.CV_16SC2)
+            opencv_xy, _ = cv2.convertMaps(m1, m2, cv2.CV_32FC1)
+            ours_x, ours_y = cv2.convertMaps(lfgraph_maps.map_xy[i], lfgraph_maps.map_frac[i], cv2.CV_32FC1)
+            error_px = max(np.max(np.abs(opencv_xy - ours_x)), np.max(np.abs(_ - ours_y)))
+            assert error_px < FIXED_POINT_MAP_STEP_PX, f"view {i}: rectified maps differ by {error_px} px"
+            # P_i in stereoRectify's convention: rectified reference frame -> rectified pixels of view i, so a
+            # reference-frame point projects where lfgraph's own projection P (reference frame) puts it
+            X_ref = np.array([0.1, -0.05, 2.0, 1.0])  # noqa: N806
+            X_rect = np.append(rect.rect_R_ref @ X_ref[:3], 1.0)  # noqa: N806
+            expected = rect.P[i] @ X_ref
+            got = P @ X_rect
+            assert np.max(np.abs(got[:2] / got[2] - expected[:2] / expected[2])) < ROUND_TRIP_TOLERANCE
+    finally:
+        fs.release()
+
+
+def _opencv_header_only(path, rows: int, cols: int) -> None:
+    path.write_text(f"%YAML:1.0\n---\ngrid_rows: {rows}\ngrid_cols: {cols}\nreference: 0\nimage_width: 960\n"
+                    f"image_height: 960\nnum_views: {rows * cols}\n")
+
+
+def test_opencv_yaml_refuses_an_absurd_grid_quickly(tmp_path):
+    _opencv_header_only(tmp_path / "c.yaml", 300, 300)
+    start = time.perf_counter()
+    with pytest.raises(CalibrationFileError, match=rf"c\.yaml: num_views: declares 90000 views; .* {MAX_IMPORT_VIEWS}"):
+        import_calibration(tmp_path / "c.yaml", "opencv-yaml")
+    assert time.perf_counter() - start < REFUSAL_TIME_LIMIT_S
+
+
+def test_opencv_yaml_imports_a_20x20_grid_quickly(tmp_path):
+    calib = make_rig(RigConfig(rows=20, cols=20, reference=210), np.random.default_rng(3))
+    path = export_calibration(calib, "opencv-yaml", tmp_path / "c.yml")
+    start = time.perf_counter()
+    back = import_calibration(path, "opencv-yaml")
+    elapsed_s = time.perf_counter() - start
+    _assert_same(back, calib)
+    assert elapsed_s < IMPORT_20X20_TIME_LIMIT_S, f"20x20 import took {elapsed_s:.2f} s"
+
+
+def test_opencv_yaml_reads_old_opencv_headers_and_refuses_xml(tmp_path, calib):
+    _write_filestorage(tmp_path / "c.yaml", _opencv_entries(calib))
+    text = (tmp_path / "c.yaml").read_text()
+    assert text.startswith("%YAML 1.2")  # what OpenCV 5 writes; OpenCV 3 and 4 wrote %YAML:1.0
+    (tmp_path / "old.yaml").write_text(text.replace("%YAML 1.2", "%YAML:1.0", 1))
+    _assert_same(import_calibration(tmp_path / "old.yaml", "opencv-yaml"), calib)
+    fs = cv2.FileStorage(str(tmp_path / "c.xml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("grid_rows", 2)
+    fs.release()
+    with pytest.raises(CalibrationFileError, match=r"c\.xml: file: is FileStorage XML or JSON"):
+        import_calibration(tmp_path / "c.xml", "opencv-yaml")
+
+
+def test_hci_refuses_an_absurd_grid(tmp_path):
+    (tmp_path / "parameters.cfg").write_text(
+        "[intrinsics]\nfocal_length_mm = 100\nsensor_size_mm = 35\nimage_resolution_x_px = 512\n"
+        "image_resolution_y_px = 512\n[extrinsics]\nnum_cams_x = 100000\nnum_cams_y = 100000\nbaseline_mm = 1\n")
+    with pytest.raises(CalibrationFileError, match=r"parameters\.cfg: \[extrinsics\] num_cams_x, num_cams_y: "
+                                                   r"declares 10000000000 views"):
+        import_calibration(tmp_path, "hci")
+
+
+def _run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    try:
+        code = cli_main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse usage errors (exit code 2)
+        code = int(exc.code)
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("command", "fmt"), [("import", "json"), ("export", "json"), ("import", "opencv-yaml")])
+def test_cli_refuses_to_overwrite_its_input(tmp_path, calib, capsys, command, fmt):
+    path = tmp_path / ("c.json" if fmt == "json" else "c.yml")
+    if fmt == "json":
+        calib.save(path)
+    else:
+        export_calibration(calib, fmt, path)
+    before = path.read_bytes()
+    flag = "--from" if command == "import" else "--to"
+    # the same file through another spelling of its path
+    code, err = _run_cli([command, path, flag, fmt, "-o", tmp_path / "." / path.name], capsys)
+    assert code == 1
+    assert f"is the input {path}" in err
+    assert path.read_bytes() == before
+
+
+def test_cli_import_refuses_to_overwrite_a_scene_file(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    text = "cam0=[1000 0 300; 0 1000 200; 0 0 1]\ncam1=[1000 0 310; 0 1000 200; 0 0 1]\nbaseline=100\nwidth=600\n" \
+           "height=400\n"
+    (scene / "calib.txt").write_text(text)
+    code, err = _run_cli(["import", scene, "--from", "middlebury", "-o", scene / "calib.txt"], capsys)
+    assert code == 1 and "calib.txt" in err
+    assert (scene / "calib.txt").read_text() == text
+
+
+def test_cli_refuses_a_missing_output_folder_before_reading(tmp_path, calib, capsys):
+    missing = tmp_path / "missing"
+    # the input does not exist either: the output must be the first thing checked
+    for argv in (["import", tmp_path / "nowhere.json", "--from", "json", "-o", missing / "o.json"],
+                 ["export", tmp_path / "nowhere.json", "--to", "kalibr", "-o", missing / "camchain.yaml"],
+                 ["export", tmp_path / "nowhere.json", "--to", "colmap", "-o", missing / "sparse"]):
+        code, err = _run_cli(argv, capsys)
+        assert code == 2
+        assert f"folder {missing} does not exist" in err
+        assert not missing.exists()
+
+
+def test_cli_refuses_an_output_of_the_wrong_kind(tmp_path, calib, capsys):
+    calib.save(tmp_path / "in.json")
+    (tmp_path / "folder").mkdir()
+    code, err = _run_cli(["import", tmp_path / "in.json", "--from", "json", "-o", tmp_path / "folder"], capsys)
+    assert code == 2 and f"{tmp_path / 'folder'} is a folder" in err
+    code, err = _run_cli(["export", tmp_path / "in.json", "--to", "opencv-yaml", "-o", tmp_path / "folder"], capsys)
+    assert code == 2 and "is a folder" in err
+    (tmp_path / "file.txt").write_text("x")
+    code, err = _run_cli(["export", tmp_path / "in.json", "--to", "colmap", "-o", tmp_path / "file.txt"], capsys)
+    assert code == 2 and "is a file" in err
+    assert (tmp_path / "file.txt").read_text() == "x"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into any folder")
+def test_cli_refuses_an_unwritable_output_folder(tmp_path, calib, capsys):
+    calib.save(tmp_path / "in.json")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        code, err = _run_cli(["import", tmp_path / "in.json", "--from", "json", "-o", locked / "o.json"], capsys)
+    finally:
+        locked.chmod(0o700)
+    assert code == 1 and f"folder {locked} is not writable" in err

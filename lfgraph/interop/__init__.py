@@ -1,0 +1,128 @@
+"""Calibration import and export in other tools' formats ("interoperability").
+
+Two entry points: `export_calibration(calib, fmt, path)` and `import_calibration(path, fmt, grid)`; `input_paths`
+names what an import reads (so a caller can refuse to overwrite it). Every file is written atomically (a temporary
+sibling renamed onto the final name), so a crash never leaves half a file.
+
+One module per format, each documenting its layout: `opencv_yaml` (``opencv-yaml``, export and import), `kalibr`
+(``kalibr``, export and import), `colmap` (``colmap``, export and import), `json_format` (``json``, export and
+import), `middlebury` (``middlebury``, import) and `hci` (``hci``, import); `common` holds the shared validation and
+the grid rules of imports. Common conventions: views are always row-major on the grid; poses are in metres; pixels
+follow OpenCV's convention, the centre of the top-left pixel is ``(0, 0)``, except where a format says otherwise.
+
+Grids on import: ``grid`` is a `ViewGrid`, a ``(rows, cols)`` pair or None. Its view count and shape must match
+the file's (the error names the file and the key). A `ViewGrid` whose reference differs from the file's re-expresses
+all poses relative to that view (refused when the file holds a rectification, which is tied to its reference);
+a ``(rows, cols)`` pair keeps the file's reference. At most `MAX_IMPORT_VIEWS` views are imported.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from lfgraph.calibration import Calibration
+from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, opencv_yaml
+from lfgraph.interop.colmap import COLMAP_CAMERA_MODELS, COLMAP_MODEL_FILES, COLMAP_PIXEL_OFFSET_PX
+from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike, in_folder
+from lfgraph.interop.kalibr import KALIBR_DISTORTION_MODELS
+
+__all__ = [
+    "COLMAP_CAMERA_MODELS",
+    "COLMAP_MODEL_FILES",
+    "COLMAP_PIXEL_OFFSET_PX",
+    "EXPORT_FORMATS",
+    "IMPORT_FORMATS",
+    "KALIBR_DISTORTION_MODELS",
+    "MAX_IMPORT_VIEWS",
+    "MM_PER_M",
+    "FILE_FORMATS",
+    "export_calibration",
+    "import_calibration",
+    "input_paths",
+]
+
+_WRITERS: dict[str, Callable[[Calibration, Path], None]] = {
+    "opencv-yaml": opencv_yaml.write,
+    "kalibr": kalibr.write,
+    "colmap": colmap.write,
+    "json": json_format.write,
+}
+_READERS: dict[str, Callable[[Path, GridLike], Calibration]] = {
+    "opencv-yaml": opencv_yaml.read,
+    "kalibr": kalibr.read,
+    "colmap": colmap.read,
+    "json": json_format.read,
+    "middlebury": middlebury.read,
+    "hci": hci.read,
+}
+EXPORT_FORMATS: tuple[str, ...] = tuple(_WRITERS)
+IMPORT_FORMATS: tuple[str, ...] = tuple(_READERS)
+FILE_FORMATS: tuple[str, ...] = ("opencv-yaml", "kalibr", "json")  # exports that write one file (colmap: a folder)
+
+
+def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
+    """Write a calibration in another tool's format (see each format's module).
+
+    Args:
+        calib: the calibration to write.
+        fmt: one of `EXPORT_FORMATS`: ``opencv-yaml``, ``kalibr``, ``colmap``, ``json``.
+        path: the output file; for ``colmap`` a folder (created, or replaced if it holds only COLMAP model files).
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: unknown format, an incomplete stored rectification (``opencv-yaml``), or a ``colmap`` folder
+            that holds other files.
+        OSError: the output cannot be written.
+    """
+    writer = _WRITERS.get(fmt)
+    if writer is None:
+        raise ValueError(f"unknown export format {fmt!r}; valid formats: {', '.join(EXPORT_FORMATS)}")
+    out = Path(path)
+    writer(calib, out)
+    return out
+
+
+def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calibration:
+    """Read a calibration written by another tool (see each format's module).
+
+    Args:
+        path: the file (for ``colmap`` the model folder; for ``middlebury`` and ``hci`` also the scene folder).
+        fmt: one of `IMPORT_FORMATS`: ``opencv-yaml``, ``kalibr``, ``colmap``, ``json``, ``middlebury``, ``hci``.
+        grid: the view grid, as a `ViewGrid` (its reference becomes the calibration's reference) or ``(rows, cols)``
+            (the file's reference is kept); required for ``kalibr`` and for a ``colmap`` folder without the
+            ``# lfgraph grid`` comment, optional (and then checked against the file) otherwise.
+
+    Returns:
+        The calibration, row-major views, poses relative to the reference view. Metrics are empty and the
+        rectification None for every format but ``json``.
+
+    Raises:
+        ValueError: unknown format. `CalibrationFileError` (a ValueError) naming the file and the key: a missing
+            file or key, a malformed or non-finite number, a matrix of the wrong shape or not a rotation, a grid
+            whose shape or view count does not match the file, more than `MAX_IMPORT_VIEWS` views.
+    """
+    reader = _READERS.get(fmt)
+    if reader is None:
+        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
+    return reader(Path(path), grid)
+
+
+def input_paths(path: PathLike, fmt: str) -> tuple[Path, ...]:
+    """The paths `import_calibration(path, fmt)` reads: ``path`` and, for a folder, the files in it that it reads.
+
+    Raises:
+        ValueError: unknown format.
+    """
+    if fmt not in _READERS:
+        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
+    source = Path(path)
+    if fmt == "colmap":
+        return (source, *(source / name for name in sorted(COLMAP_MODEL_FILES)))
+    if fmt == "middlebury":
+        return tuple(dict.fromkeys((source, in_folder(source, middlebury.CALIB_FILE))))
+    if fmt == "hci":
+        return tuple(dict.fromkeys((source, in_folder(source, hci.PARAMETERS_FILE))))
+    return (source,)

@@ -1,0 +1,141 @@
+"""``kalibr`` (export, import): Kalibr's ``camchain.yaml``, read and written with PyYAML.
+
+``cam0 .. camN-1`` in row-major view order, each with ``camera_model: pinhole``, ``intrinsics: [fu, fv, pu, pv]``,
+``distortion_model: radtan``, ``distortion_coeffs: [k1, k2, p1, p2]``, ``resolution: [w, h]`` and a ``rostopic``;
+``cam1 ..`` also hold ``T_cn_cnm1`` (4x4), which maps points of camera n-1 into camera n:
+``view_T_ref(n) @ inv(view_T_ref(n-1))``. Kalibr stores neither grid nor reference, so import needs ``grid``; the
+chain is re-expressed relative to the grid's reference view (view 0 when ``grid`` is a plain ``(rows, cols)``).
+
+Export writes what Kalibr's own ``yaml.dump`` writes: block mappings, lists of numbers in flow style and
+``T_cn_cnm1`` as a block list of flow rows; PyYAML writes every float with a ``.`` (``1.0e-05``), so YAML 1.1
+readers such as Kalibr's read it back as a float. Import takes any YAML (block or flow lists, comments, a ``---``
+start); other keys Kalibr writes (``cam_overlaps``, ``timeshift_cam_imu``, ``T_cam_imu``, ...) are ignored.
+``distortion_model: none`` is read as zero distortion; ``equidistant`` and ``fov`` are refused, as are other
+camera models (``omni``, ...). A key given twice is refused (PyYAML would keep the last silently).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lfgraph.calibration import Calibration
+from lfgraph.geometry import invert_T
+from lfgraph.interop.common import (
+    GridLike,
+    array,
+    build,
+    fail,
+    fit_grid,
+    intrinsics,
+    load_yaml,
+    read_text,
+    required_grid,
+    transform,
+    whole,
+)
+from lfgraph.io_utils import write_text_atomic
+
+KALIBR_DISTORTION_MODELS = ("radtan", "none")
+_CAM_KEY = re.compile(r"cam(\d+)")
+
+
+def _floats(values: Any) -> list[float]:
+    """Plain Python floats (PyYAML's safe dumper refuses numpy scalars)."""
+    return [float(v) for v in values]
+
+
+def camchain(calib: Calibration) -> dict[str, dict[str, Any]]:
+    """The camchain as the mapping Kalibr reads (``cam0``, ``cam1``, ...), in view order."""
+    w, h = calib.image_size_px
+    chain: dict[str, dict[str, Any]] = {}
+    for v in range(calib.num_views):
+        intr = calib.intrinsics[v]
+        cam: dict[str, Any] = {}
+        if v > 0:
+            # view_T_ref(v) @ inv(view_T_ref(v - 1)), with inv(view_T_ref) = ref_T_view already at hand
+            cn_T_cnm1 = calib.view_T_ref(v) @ calib.ref_T_view[v - 1]  # noqa: N806
+            cn_T_cnm1[3] = [0.0, 0.0, 0.0, 1.0]
+            cam["T_cn_cnm1"] = [_floats(row) for row in cn_T_cnm1]
+        cam |= {
+            "camera_model": "pinhole",
+            "intrinsics": _floats([intr.fx, intr.fy, intr.cx, intr.cy]),
+            "distortion_model": "radtan",
+            "distortion_coeffs": _floats([intr.k1, intr.k2, intr.p1, intr.p2]),
+            "resolution": [int(w), int(h)],
+            "rostopic": f"/lfgraph/{calib.grid.name(v)}/image_raw",
+        }
+        chain[f"cam{v}"] = cam
+    return chain
+
+
+def write(calib: Calibration, path: Path) -> None:
+    header = (f"# Kalibr camera chain written by lfgraph: {calib.grid} grid, views row-major (cam0 = view 0), "
+              f"reference view {calib.grid.reference}\n"
+              "# T_cn_cnm1 maps points of camera n-1 into camera n (metres)\n")
+    # default_flow_style=None: lists of scalars in flow style, the rest block style, as Kalibr's yaml.dump writes
+    body = yaml.safe_dump(camchain(calib), default_flow_style=None, sort_keys=False, width=1_000_000)
+    write_text_atomic(path, header + body)
+
+
+def read(path: Path, grid: GridLike) -> Calibration:
+    data = load_yaml(read_text(path), path)
+    if not isinstance(data, dict):
+        raise fail(path, "file", "must be a YAML mapping of cameras (cam0, cam1, ...)")
+    cams = sorted(int(m.group(1)) for k in data if isinstance(k, str) and (m := _CAM_KEY.fullmatch(k)))
+    if not cams:
+        raise fail(path, "cam0", "is missing (no camN entries)")
+    n = len(cams)
+    for i in range(n):
+        if f"cam{i}" not in data:
+            raise fail(path, f"cam{i}", f"is missing (found {', '.join(f'cam{c}' for c in cams)})")
+    ref_grid = required_grid(grid, n, path, "cam*", reference=0)
+
+    def get(cam: str, key: str) -> Any:
+        entry = data[cam]
+        if not isinstance(entry, dict):
+            raise fail(path, cam, "must be a mapping")
+        if key not in entry:
+            raise fail(path, f"{cam}.{key}", "is missing")
+        return entry[key]
+
+    views, size = [], None
+    cn_T_c0 = [np.eye(4)]  # noqa: N806 - camera n from camera 0, chained
+    for i in range(n):
+        cam = f"cam{i}"
+        model = get(cam, "camera_model")
+        if model != "pinhole":
+            raise fail(path, f"{cam}.camera_model", f"must be 'pinhole', got {model!r}")
+        fu, fv, pu, pv = array(get(cam, "intrinsics"), (4,), path, f"{cam}.intrinsics")
+        dist_model = get(cam, "distortion_model")
+        if dist_model not in KALIBR_DISTORTION_MODELS:
+            raise fail(path, f"{cam}.distortion_model", f"must be one of {', '.join(KALIBR_DISTORTION_MODELS)} "
+                                                        f"(lfgraph models k1 k2 p1 p2), got {dist_model!r}")
+        if dist_model == "radtan":
+            dist = array(get(cam, "distortion_coeffs"), (4,), path, f"{cam}.distortion_coeffs")
+        else:
+            dist = np.zeros(4)
+        K = np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]])  # noqa: N806
+        views.append(intrinsics(path, f"{cam}.intrinsics", K, dist))
+        res = array(get(cam, "resolution"), (2,), path, f"{cam}.resolution")
+        cam_size = (whole(res[0], path, f"{cam}.resolution"), whole(res[1], path, f"{cam}.resolution"))
+        if size is None:
+            size = cam_size
+        elif cam_size != size:
+            raise fail(path, f"{cam}.resolution", f"is {list(cam_size)}, but cam0's is {list(size)}; lfgraph needs "
+                                                  f"one image size for all views")
+        if i > 0:
+            key = f"{cam}.T_cn_cnm1"
+            T = transform(array(get(cam, "T_cn_cnm1"), (4, 4), path, key), path, key)  # noqa: N806
+            cn_T_c0.append(T @ cn_T_c0[-1])
+    ref = ref_grid.reference
+    c0_T_ref = invert_T(cn_T_c0[ref])  # noqa: N806
+    # ref_T_view = inv(view_T_c0 @ c0_T_ref)
+    ref_T_view = np.stack([invert_T(cn_T_c0[v] @ c0_T_ref) for v in range(n)])  # noqa: N806
+    ref_T_view[ref] = np.eye(4)
+    calib = build(path, "cam*", ref_grid, size, views, ref_T_view)
+    return fit_grid(calib, grid, path, "cam*")

@@ -1,0 +1,217 @@
+"""``opencv-yaml`` (export, import): one ``cv2.FileStorage`` YAML file.
+
+Top level ``grid_rows``, ``grid_cols``, ``reference``, ``image_width``, ``image_height``, ``num_views``; per view
+``i``: ``K_i`` (3x3), ``D_i`` (1x5: k1 k2 p1 p2 k3 with k3 = 0), ``R_i`` (3x3) and ``T_i`` (3x1, metres) with
+``x_view = R_i x_ref + T_i`` (= ``calib.view_T_ref(i)``, the convention of ``cv2.stereoCalibrate``).
+
+A stored rectification adds ``rect_image_width``, ``rect_image_height`` (the rectified image size), ``K_r`` (3x3),
+and per view ``R_rect_i`` (3x3, rectified from view; the role of ``cv2.stereoRectify``'s R1/R2) and ``P_i`` (3x4) in
+``cv2.stereoRectify``'s P1/P2 convention: ``P_i = [K_r | p_i]`` maps points of the *rectified reference frame*
+(``x = R_rect_from_ref x_ref``, origin at the reference view's centre, as stereoRectify's frame of rectified
+camera 1) to rectified pixels of view i, with ``p_i = -K_r R_rect_from_ref c_i`` and ``c_i`` the view's ideal grid
+position (lfgraph's rectified projection, re-expressed). Hence
+``cv2.initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, rect_image_height), m1type)`` (which uses
+``P_i``'s left 3x3 as the new camera matrix) gives exactly lfgraph's rectified view i (`lfgraph.rectification
+.build_maps`). Import reads the calibration, not the rectification (recompute that with ``lfgraph rectify``):
+``K_r``, ``R_rect_i`` and ``P_i`` alone do not make a complete lfgraph rectification.
+
+Import parses the file once with PyYAML's parser (libyaml when available) and walks its node tree:
+``cv2.FileStorage`` looks every key up by a linear scan of the top-level map, which made import quadratic in the view
+count (a 300x300 grid, 360,000 keys, took minutes). Both OpenCV's ``%YAML:1.0``
+and ``%YAML 1.2`` headers are read; FileStorage's XML and JSON flavours are refused (re-save them as YAML). A
+header declaring more than `MAX_IMPORT_VIEWS` views is refused before the file is parsed.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from lfgraph.calibration import Calibration
+from lfgraph.geometry import invert_T, make_T
+from lfgraph.grid import ViewGrid
+from lfgraph.interop.common import (
+    GridLike,
+    array,
+    build,
+    check_reference_pose,
+    check_view_count,
+    compose_yaml,
+    fail,
+    fit_grid,
+    intrinsics,
+    read_text,
+    rotation,
+    whole,
+)
+from lfgraph.io_utils import atomic_path
+from lfgraph.rectification import stored_rectification
+
+_OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML[: ]\s*\d+\.\d+[^\n]*\n")  # OpenCV 3/4 write %YAML:1.0, OpenCV 5 %YAML 1.2
+# cv2.FileStorage writes these for non-finite numbers; YAML 1.1 spells them .nan/.NaN/.inf only
+_OPENCV_SPECIAL_FLOATS = {".nan": float("nan"), ".inf": float("inf"), "+.inf": float("inf"), "-.inf": float("-inf")}
+_HEADER_COUNT = re.compile(r"^(grid_rows|grid_cols|num_views)[ \t]*:[ \t]*(\d+)[ \t]*(?:#.*)?$", re.MULTILINE)
+_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"  # what the parser makes of FileStorage's !!opencv-matrix
+
+
+def rectified_projection(K_r: np.ndarray, P_lfgraph: np.ndarray) -> np.ndarray:  # noqa: N803
+    """lfgraph's rectified projection (reference-frame points) in OpenCV's P1/P2 convention (rectified-frame points).
+
+    ``P_lfgraph = K_r [R | -R c]`` with ``R = rect_R_ref``; re-expressed for ``x_rect = R x_ref`` it is
+    ``P_lfgraph @ diag(R^T, 1) = [K_r | -K_r R c]``: the last column is unchanged and the left block is exactly
+    ``K_r``, so it is built from those two pieces rather than by a matrix product that would round.
+    """
+    return np.column_stack([K_r, P_lfgraph[:, 3]])
+
+
+def write(calib: Calibration, path: Path) -> None:
+    rect = stored_rectification(calib)  # RectificationError (a ValueError) naming the field when incomplete
+    w, h = calib.image_size_px
+    with atomic_path(path) as tmp:
+        # FORMAT_YAML: FileStorage would otherwise choose XML for a name that does not end in .yaml/.yml
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+        if not fs.isOpened():
+            raise OSError(f"{path}: cannot be written by cv2.FileStorage")
+        try:
+            fs.writeComment("lfgraph calibration: views row-major; x_view = R_i x_ref + T_i (metres); "
+                            "D_i = k1 k2 p1 p2 k3")
+            for key, value in (("grid_rows", calib.grid.rows), ("grid_cols", calib.grid.cols),
+                               ("reference", calib.grid.reference), ("image_width", w), ("image_height", h),
+                               ("num_views", calib.num_views)):
+                fs.write(key, int(value))
+            for i in range(calib.num_views):
+                intr = calib.intrinsics[i]
+                view_T_ref = calib.view_T_ref(i)  # noqa: N806
+                fs.write(f"K_{i}", intr.K)
+                fs.write(f"D_{i}", intr.dist_cv.reshape(1, 5))
+                fs.write(f"R_{i}", view_T_ref[:3, :3])
+                fs.write(f"T_{i}", view_T_ref[:3, 3].reshape(3, 1))
+            if rect is not None:
+                fs.writeComment("rectification: initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, "
+                                "rect_image_height)) gives lfgraph's rectified view i; P_i as stereoRectify's P1/P2")
+                fs.write("rect_image_width", int(rect.image_size_px[0]))
+                fs.write("rect_image_height", int(rect.image_size_px[1]))
+                fs.write("K_r", rect.K_r)
+                for i in range(calib.num_views):
+                    fs.write(f"R_rect_{i}", rect.rect_R_view[i])
+                    fs.write(f"P_{i}", rectified_projection(rect.K_r, rect.P[i]))
+        finally:
+            fs.release()
+
+
+@dataclass(frozen=True)
+class _Matrix:
+    """An ``!!opencv-matrix`` as text, validated by `_matrix` once its key is known."""
+
+    rows: Any
+    cols: Any
+    data: list[Any] | None
+
+
+def _text(node: yaml.Node | None) -> Any:
+    """A scalar node's text; None for no node; any other node as it is (the reader then names the key)."""
+    return node.value if isinstance(node, yaml.ScalarNode) else node
+
+
+def _plain(node: yaml.Node) -> Any:
+    """A top-level value as text, a `_Matrix`, or the node itself when it is neither."""
+    if isinstance(node, yaml.MappingNode) and node.tag == _MATRIX_TAG:
+        fields = {str(k.value): v for k, v in node.value}
+        data = fields.get("data")
+        items = None if data is None else data.value if isinstance(data, yaml.SequenceNode) else [data]
+        return _Matrix(_text(fields.get("rows")), _text(fields.get("cols")),
+                       None if items is None else [_text(item) for item in items])
+    return _text(node)
+
+
+def _top_level(root: yaml.Node | None, path: Path) -> dict[str, Any]:
+    """The top-level mapping as ``{key: text | _Matrix | node}``; a key given twice is refused (naming its line)."""
+    if not isinstance(root, yaml.MappingNode):
+        raise fail(path, "file", "must be a YAML mapping of keys (grid_rows, K_0, ...)")
+    entries: dict[str, Any] = {}
+    for key_node, value_node in root.value:
+        key = str(key_node.value)
+        if key in entries:
+            raise fail(path, f"line {key_node.start_mark.line + 1}", f"{key!r} appears twice")
+        entries[key] = _plain(value_node)
+    return entries
+
+
+def _number(value: Any, path: Path, key: str) -> Any:
+    if not isinstance(value, str):
+        raise fail(path, key, "must be a number")
+    return _OPENCV_SPECIAL_FLOATS.get(value.lower(), value)
+
+
+def _matrix(entries: dict[str, Any], key: str, shape: tuple[int, ...] | None, path: Path) -> np.ndarray:
+    """An ``!!opencv-matrix`` (one channel) as a finite float64 array of ``shape`` (any size when None)."""
+    if key not in entries:
+        raise fail(path, key, "is missing")
+    m = entries[key]
+    if not isinstance(m, _Matrix):
+        raise fail(path, key, "must be an !!opencv-matrix")
+    for name in ("rows", "cols", "data"):
+        if getattr(m, name) is None:
+            raise fail(path, key, f"!!opencv-matrix without {name}")
+    rows = whole(_number(m.rows, path, f"{key}.rows"), path, f"{key}.rows")
+    cols = whole(_number(m.cols, path, f"{key}.cols"), path, f"{key}.cols")
+    values = [_number(v, path, key) for v in m.data]
+    if len(values) != rows * cols:
+        raise fail(path, key, f"!!opencv-matrix of {rows}x{cols} holds {len(values)} numbers (one channel expected)")
+    try:
+        m = np.array(values, dtype=np.float64)  # numpy parses the text; `array` re-checks it one by one if this fails
+    except ValueError:
+        m = np.array(values, dtype=object)
+    return array(m.reshape(rows, cols), shape or (rows * cols,), path, key)
+
+
+def read(path: Path, grid: GridLike) -> Calibration:
+    if not path.is_file():
+        raise fail(path, "file", "does not exist" if not path.exists() else "is not a file")
+    text = read_text(path)
+    if text.lstrip()[:1] in ("<", "{"):
+        raise fail(path, "file", "is FileStorage XML or JSON; lfgraph reads the YAML flavour (re-save it with "
+                                 "cv2.FileStorage under a .yaml name)")
+    # Refuse an absurd grid from the header alone: parsing a file of 100,000 views is already minutes of work.
+    header = {m.group(1): int(m.group(2)) for m in _HEADER_COUNT.finditer(text)}
+    if "num_views" in header:
+        check_view_count(header["num_views"], path, "num_views")
+    if "grid_rows" in header and "grid_cols" in header:
+        check_view_count(header["grid_rows"] * header["grid_cols"], path, "grid_rows, grid_cols")
+    yaml_text = _OPENCV_DIRECTIVE.sub("%YAML 1.1\n", text, count=1)  # PyYAML cannot read OpenCV 3/4's %YAML:1.0
+    entries = compose_yaml(yaml_text, path, lambda root: _top_level(root, path))
+
+    def integer(key: str, minimum: int) -> int:
+        if key not in entries:
+            raise fail(path, key, "is missing")
+        return whole(_number(entries[key], path, key), path, key, minimum)
+
+    rows, cols = integer("grid_rows", 1), integer("grid_cols", 1)
+    reference = integer("reference", 0)
+    size = (integer("image_width", 1), integer("image_height", 1))
+    num_views = integer("num_views", 1)
+    check_view_count(num_views, path, "num_views")
+    if num_views != rows * cols:
+        raise fail(path, "num_views", f"is {num_views}, but grid_rows x grid_cols = {rows}x{cols} needs {rows * cols}")
+    try:
+        file_grid = ViewGrid(rows, cols, reference)
+    except ValueError as exc:
+        raise fail(path, "reference", str(exc)) from None
+    views, poses = [], []
+    for i in range(num_views):
+        K = _matrix(entries, f"K_{i}", (3, 3), path)  # noqa: N806
+        dist = _matrix(entries, f"D_{i}", None, path)  # 4, 5 or more coefficients; those past p2 must be 0
+        views.append(intrinsics(path, f"K_{i}, D_{i}", K, dist))
+        R = rotation(_matrix(entries, f"R_{i}", (3, 3), path), path, f"R_{i}")  # noqa: N806
+        view_T_ref = make_T(R, _matrix(entries, f"T_{i}", (3, 1), path).ravel())  # noqa: N806
+        if i == reference:
+            check_reference_pose(view_T_ref, path, f"R_{i}, T_{i}")
+        poses.append(invert_T(view_T_ref))
+    calib = build(path, "num_views", file_grid, size, views, np.stack(poses))
+    return fit_grid(calib, grid, path, "num_views")
