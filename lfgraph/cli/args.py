@@ -93,40 +93,50 @@ def check_rerun(args: argparse.Namespace) -> bool:
 
 
 def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file (resolved, or hard links)."""
+    if a.resolve() == b.resolve():
+        return True
     try:
-        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
-    except OSError:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist: they cannot be one file
         return False
 
 
-def check_output_file(path: Path, inputs: Iterable[Path] = (), overwritable: Iterable[Path] = (),
-                      overwrite: bool = False, flag: str = "-o") -> None:
-    """Refuse, before any work, an output file that cannot be written or that is one of the command's inputs.
+def check_output_file(output: Path, inputs: Iterable[Path] = (), overwritable: Iterable[Path] = (),
+                      overwrite: bool = False, is_folder: bool = False, flag: str = "-o") -> None:
+    """Refuse, before any work, an output that would destroy an input or cannot be written.
 
     Args:
-        path: the output file.
-        inputs: files the command reads (images of the capture, ...): never an output.
+        output: the output path.
+        inputs: every path the command reads (images of the capture, the file being imported, ...).
         overwritable: inputs that may be replaced in place with ``overwrite`` (a calibration refined in place).
         overwrite: the user's explicit ``--overwrite``.
+        is_folder: the output is a folder (a COLMAP model), not a file.
 
     Raises:
-        UsageError: naming the path and the problem.
+        ValueError: the output is one of the inputs, or its folder is not writable (exit code 1).
+        UsageError: its folder is missing or not a folder; a file output that is an existing folder, or a folder
+            output that is an existing file (exit code 2).
     """
-    path = Path(path)
-    for src in overwritable:
-        if _same_file(path, Path(src)) and not overwrite:
-            raise UsageError(f"{flag} {path} is the input calibration; choose another file or pass --overwrite to "
-                             f"replace it")
-    for src in inputs:
-        if _same_file(path, Path(src)):
-            raise UsageError(f"{flag} {path} is one of this command's inputs; it would be destroyed")
-    if path.is_dir():
-        raise UsageError(f"{flag} {path} is a folder; give the output file's path")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UsageError(f"{flag} {path}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise UsageError(f"{flag} {path}: not writable")
+    output = Path(output)
+    for source in overwritable:
+        if _same_file(output, Path(source)) and not overwrite:
+            raise ValueError(f"{flag} {output}: is the input calibration; refusing to overwrite it (pass --overwrite "
+                             f"to replace it in place)")
+    for source in inputs:
+        if _same_file(output, Path(source)):
+            raise ValueError(f"{flag} {output}: is the input {source}; refusing to overwrite it, write elsewhere")
+    folder = output.parent
+    if not folder.exists():
+        raise UsageError(f"{flag} {output}: folder {folder} does not exist")
+    if not folder.is_dir():
+        raise UsageError(f"{flag} {output}: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK) or (output.is_file() and not os.access(output, os.W_OK)):
+        raise ValueError(f"{flag} {output}: not writable")
+    if is_folder and output.exists() and not output.is_dir():
+        raise UsageError(f"{flag} {output} is a file; this format writes a model folder")
+    if not is_folder and output.is_dir():
+        raise UsageError(f"{flag} {output} is a folder; give the output file's path")
 
 
 def check_output_folder(path: Path, input_root: Path | None = None, flag: str = "-o") -> None:

@@ -14,52 +14,11 @@ folder), is a usage error (exit code 2), as for ``calibrate`` and ``refine``. No
 from __future__ import annotations
 
 import argparse
-import os
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from lfgraph.cli.args import EXIT_OK, UsageError, grid_size
+from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size
 from lfgraph.interop import EXPORT_FORMATS, FILE_FORMATS, IMPORT_FORMATS, input_paths
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    """Whether two paths name one file or folder (through symbolic links, ``..`` and hard links)."""
-    if a.resolve() == b.resolve():
-        return True
-    try:
-        return os.path.samefile(a, b)
-    except OSError:  # one of them does not exist: they cannot be one file
-        return False
-
-
-def check_output(output: Path, inputs: Sequence[Path], is_folder: bool) -> None:
-    """Refuse an output that would destroy an input or cannot be written, before any input is read.
-
-    Args:
-        output: the ``-o`` path.
-        inputs: every path the command reads (`lfgraph.interop.input_paths` for ``import``).
-        is_folder: the output is a folder (``colmap``), not a file.
-
-    Raises:
-        ValueError: ``output`` is one of ``inputs``, or its folder is not writable (exit code 1).
-        UsageError: its folder is missing or not a folder; a file output that is an existing folder, or a folder
-            output that is an existing file (exit code 2).
-    """
-    for source in inputs:
-        if _same_file(output, source):
-            raise ValueError(f"-o {output}: is the input {source}; refusing to overwrite it, write elsewhere")
-    folder = output.parent
-    if not folder.exists():
-        raise UsageError(f"-o {output}: folder {folder} does not exist")
-    if not folder.is_dir():
-        raise UsageError(f"-o {output}: {folder} is not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"-o {output}: folder {folder} is not writable")
-    if is_folder and output.exists() and not output.is_dir():
-        raise UsageError(f"-o {output} is a file; this format writes a model folder")
-    if not is_folder and output.is_dir():
-        raise UsageError(f"-o {output} is a folder; give the output file's path")
 
 
 def _view_index(text: str) -> int:
@@ -77,7 +36,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from lfgraph.calibration import Calibration
     from lfgraph.interop import export_calibration
 
-    check_output(args.output, (args.calibration,), is_folder=args.fmt not in FILE_FORMATS)
+    check_output_file(args.output, (args.calibration,), is_folder=args.fmt not in FILE_FORMATS)
     calib = Calibration.load(args.calibration)
     out = export_calibration(calib, args.fmt, args.output)
     print(f"wrote {out} ({args.fmt}: {calib.num_views} views, {calib.grid} grid, reference view "
@@ -95,7 +54,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     from lfgraph.grid import ViewGrid
     from lfgraph.interop import import_calibration
 
-    check_output(args.output, input_paths(args.source, args.fmt), is_folder=False)
+    check_output_file(args.output, input_paths(args.source, args.fmt), is_folder=False)
     grid: Any = args.grid
     if args.reference is not None:
         if grid is None:
