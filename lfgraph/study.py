@@ -87,7 +87,9 @@ def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], 
     except (ValueError, TypeError) as exc:
         raise ValueError(f"{out_csv}: a row does not parse ({exc}); fix the file or choose another -o") from None
     todo = [t for t in trials if not trial_rows(t) <= done]
-    rows: list[dict[str, Any]] = list(existing)
+    # a trial that runs again replaces whatever part of its rows survived (a cut-short file)
+    redo = set().union(*(trial_rows(t) for t in todo)) if todo else set()
+    rows: list[dict[str, Any]] = [r for r in existing if row_key(r) not in redo]
     if not todo:
         return rows
     with open_executor(executor_spec, jobs) as ex, tqdm(total=len(trials), initial=len(trials) - len(todo),

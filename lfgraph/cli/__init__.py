@@ -40,13 +40,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (test harnesses and tqdm swap it)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+
+    @property
+    def stream(self):  # noqa: ANN201
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value) -> None:  # noqa: ANN001
+        pass
+
+
 def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     """The library logs through ``logging.getLogger("lfgraph")``; the CLI shows it on standard error."""
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     logger = logging.getLogger("lfgraph")
     logger.setLevel(level)
     if not any(getattr(h, "_lfgraph_cli", False) for h in logger.handlers):
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _StderrHandler()
         handler.setFormatter(logging.Formatter(LOG_FORMAT))
         handler._lfgraph_cli = True  # type: ignore[attr-defined]
         logger.addHandler(handler)

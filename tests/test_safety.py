@@ -1,0 +1,198 @@
+"""Inputs and outputs a user can trust (issue 19): no command destroys its input, bad outputs fail before the work,
+nothing is left behind by a killed run, and damaged files give messages instead of tracebacks."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lfgraph.calibration import Calibration, CalibrationFileError
+from lfgraph.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, main
+from lfgraph.datasets.rig import RigConfig, make_rig
+from lfgraph.rectification import RectificationError, compute_rectification
+from lfgraph.report import alignment_table
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--jobs", "2", "--quiet"]
+WORKER_EXIT_S = 10.0  # orphaned pool workers must be gone within this after their parent is killed
+
+
+@pytest.fixture(scope="module")
+def boards(tmp_path_factory):
+    out = tmp_path_factory.mktemp("safety") / "boards"
+    assert main(["synth", "checkerboard", str(out), "--scene", "small-2x2", "--frames", "6", "--jobs", "2",
+                 "--quiet"]) == 0
+    return out
+
+
+def run(args, capsys):
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exc:  # argparse's usage errors
+        code = exc.code
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
+def test_calibrate_refuses_to_write_over_an_input_image(boards, capsys):
+    image = next(boards.glob("*/r00_c00.png"))
+    before = image.read_bytes()
+    code, text = run(["calibrate", boards, *SMALL, "-o", image], capsys)
+    assert code == EXIT_BAD_INPUT and str(image) in text and "refusing to overwrite" in text
+    assert image.read_bytes() == before
+
+
+def test_refine_refuses_its_inputs_and_overwrites_a_calibration_only_when_asked(boards, tmp_path, capsys):
+    calib = boards / "truth.json"
+    image = next(boards.glob("*/r00_c00.png"))
+    before = calib.read_bytes(), image.read_bytes()
+    for target in (calib, image):
+        code, text = run(["refine", calib, boards, "-o", target, "--quiet"], capsys)
+        assert code == EXIT_BAD_INPUT and str(target) in text
+    assert (calib.read_bytes(), image.read_bytes()) == before
+    assert "--overwrite" in run(["refine", calib, boards, "-o", calib, "--quiet"], capsys)[1]
+
+
+def test_outputs_that_cannot_be_written_fail_before_any_work(boards, tmp_path, capsys):
+    start = time.perf_counter()
+    code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path], capsys)  # a folder
+    assert code == EXIT_USAGE and "is a folder" in text
+    code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path / "missing" / "c.json"], capsys)
+    assert code == EXIT_USAGE and "does not exist" in text
+    code, text = run(["rectify", boards / "truth.json", boards, "-o", boards / "inside"], capsys)
+    assert code == EXIT_USAGE and "inside the input" in text
+    assert time.perf_counter() - start < 5.0  # no detection ran (it takes longer than this on these images)
+
+
+def test_absurd_image_size_and_huge_numbers_give_messages(tmp_path, capsys):
+    code, text = run(["synth", "scene", tmp_path / "x", "--image-size", "1000000x1000000"], capsys)
+    assert code == EXIT_USAGE and "larger than any camera" in text
+    calib = make_rig(RigConfig(rows=1, cols=2), np.random.default_rng(0))
+    data = calib.to_dict()
+    data["views"][0]["K"][0][0] = 10**400
+    path = tmp_path / "big.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(CalibrationFileError, match=r"big.json.*K.*out of range"):
+        Calibration.load(path)
+
+
+def test_a_corrupt_detection_cache_is_rebuilt_with_a_warning(boards, tmp_path, capsys):
+    out = tmp_path / "c.json"
+    assert run(["calibrate", boards, *SMALL, "-o", out], capsys)[0] == EXIT_OK
+    cache = boards / ".lfgraph-detections.npz"
+    assert cache.exists()
+    cache.write_bytes(b"not a zip file")
+    code, text = run(["calibrate", boards, *SMALL, "-o", out], capsys)
+    assert code == EXIT_OK and "unreadable detection cache" in text
+    assert cache.read_bytes()[:2] == b"PK"  # rewritten as a valid npz
+
+
+def test_a_truncated_study_csv_reruns_the_cut_rows(tmp_path, capsys):
+    csv = tmp_path / "cal.csv"
+    args = ["study", "calibration", "--scene", "small-2x2", "--frames", "5", "--sigma-px", "0.1", "--trials", "1",
+            "--jobs", "1", "--quiet", "-o", csv]
+    assert run(args, capsys)[0] == EXIT_OK
+    full = csv.read_text()
+    csv.write_text(full[: len(full) - 15])  # the last row cut short
+    code, text = run(args, capsys)
+    assert code == EXIT_OK and "incomplete row" in text
+    assert csv.read_text() == full
+
+
+def test_rectify_refuses_views_that_barely_overlap():
+    calib = make_rig(RigConfig(rows=1, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    turned = calib.ref_T_view.copy()
+    angle = np.radians(53.0)  # the second view looks 53 degrees to the side: a sliver of common view (was -3x-3 px)
+    turned[1, :3, :3] = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    with pytest.raises(RectificationError, match="barely overlap"):
+        compute_rectification(calib.replace(ref_T_view=turned), "valid")
+
+
+def test_alignment_table_of_a_stereo_pair_says_what_it_lacks():
+    from lfgraph.alignment import Alignment
+
+    text = alignment_table([("rectified", Alignment(0.2, float("nan"), float("nan"), 120, 0, 0))])
+    assert "nan" not in text and "needs 3+ views" in text and "120" in text
+
+
+# ------------------------------------------------------------------------------------------------ killed runs
+def _children(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")  # a zombie has exited
+
+
+def _kill_when_workers_run(cmd: list[str], cwd: Path) -> list[int]:
+    """Start ``cmd``, wait for its pool workers, kill -9 the parent; returns the workers' pids."""
+    proc = subprocess.Popen([sys.executable, "-m", "lfgraph", *cmd], cwd=cwd, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    workers: list[int] = []
+    while time.monotonic() < deadline and proc.poll() is None:
+        workers = _children(proc.pid)
+        if len(workers) >= 2:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None and workers, "the command finished before its workers could be seen"
+    time.sleep(0.5)  # let them start working
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return workers
+
+
+def _wait_gone(pids: list[int]) -> list[int]:
+    deadline = time.monotonic() + WORKER_EXIT_S
+    while time.monotonic() < deadline:
+        alive = [p for p in pids if _running(p)]
+        if not alive:
+            return []
+        time.sleep(0.1)
+    return [p for p in pids if _running(p)]
+
+
+def test_killed_rectify_leaves_no_worker_and_the_next_run_cleans_its_partial_folder(tmp_path):
+    calib = make_rig(RigConfig(rows=2, cols=2, image_size_px=(1024, 768), focal_px=800.0), np.random.default_rng(0))
+    calib.save(tmp_path / "calib.json")
+    yy, xx = np.mgrid[0:768, 0:1024]
+    for f in range(40):
+        for name in ("r00_c00", "r00_c01", "r01_c00", "r01_c01"):
+            image = (127 + 100 * np.sin(xx / (20 + f)) * np.cos(yy / 30)).astype(np.uint8)
+            (tmp_path / "cap" / f"{f:03d}").mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(tmp_path / "cap" / f"{f:03d}" / f"{name}.jpg"), image)
+    cmd = ["rectify", "calib.json", "cap", "-o", "out", "--jobs", "2", "--quiet"]
+    workers = _kill_when_workers_run(cmd, tmp_path)
+    assert _wait_gone(workers) == []
+    assert not (tmp_path / "out").exists()
+    assert list(tmp_path.glob(".out.*")), "a killed run cannot clean up; the next run must"
+    done = subprocess.run([sys.executable, "-m", "lfgraph", *cmd], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert not list(tmp_path.glob(".out.*")) and len(list((tmp_path / "out").iterdir())) == 41
+
+
+def test_killed_study_leaves_no_worker(tmp_path):
+    cmd = ["study", "calibration", "--scene", "small-2x2", "--frames", "5,10", "--sigma-px", "0.1,0.3",
+           "--trials", "6", "--jobs", "2", "--quiet", "-o", "s.csv"]
+    workers = _kill_when_workers_run(cmd, tmp_path)
+    assert _wait_gone(workers) == []
