@@ -192,7 +192,7 @@ def test_killed_rectify_leaves_no_worker_and_the_next_run_cleans_its_partial_fol
 
 
 def test_killed_study_leaves_no_worker(tmp_path):
-    cmd = ["study", "calibration", "--scene", "small-2x2", "--frames", "5,10", "--sigma-px", "0.1,0.3",
+    cmd = ["study", "calibration", "--scene", "small-2x2", "--frames", "4,8", "--sigma-px", "0.1,0.3",
            "--trials", "6", "--jobs", "2", "--quiet", "-o", "s.csv"]
     workers = _kill_when_workers_run(cmd, tmp_path)
     assert _wait_gone(workers) == []
