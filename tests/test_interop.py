@@ -802,3 +802,9 @@ def test_cli_refuses_an_output_of_the_wrong_kind(tmp_path, calib, capsys):
     code, err = _run_cli(["export", tmp_path / "in.json", "--to", "colmap", "-o", tmp_path / "file.txt"], capsys)
     assert code == 2 and "is a file" in err
     assert (tmp_path / "file.txt").read_text() == "x"
+
+
+def test_the_cli_lists_the_formats_the_library_has():
+    from lfgraph.cli import interop as cli_interop
+
+    assert cli_interop.EXPORT_FORMATS == EXPORT_FORMATS and cli_interop.IMPORT_FORMATS == IMPORT_FORMATS

@@ -18,7 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size
-from lfgraph.interop import EXPORT_FORMATS, FILE_FORMATS, IMPORT_FORMATS, input_paths
+
+# the format names as lfgraph.interop defines them (tests/test_interop.py checks they agree), here so that building
+# the parser does not import the format modules (OpenCV, GTSAM)
+EXPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json")
+IMPORT_FORMATS = (*EXPORT_FORMATS, "middlebury", "hci")
 
 
 def _view_index(text: str) -> int:
@@ -34,7 +38,7 @@ def _view_index(text: str) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     """Read ``args.calibration`` (calibration.json) and write it as ``args.fmt`` to ``args.output``."""
     from lfgraph.calibration import Calibration
-    from lfgraph.interop import export_calibration
+    from lfgraph.interop import FILE_FORMATS, export_calibration
 
     check_output_file(args.output, (args.calibration,), is_folder=args.fmt not in FILE_FORMATS)
     calib = Calibration.load(args.calibration)
@@ -52,7 +56,7 @@ def cmd_import(args: argparse.Namespace) -> int:
             or cannot be written (`check_output`), or a bad input file (the message names the file and the key).
     """
     from lfgraph.grid import ViewGrid
-    from lfgraph.interop import import_calibration
+    from lfgraph.interop import import_calibration, input_paths
 
     check_output_file(args.output, input_paths(args.source, args.fmt), is_folder=False)
     grid: Any = args.grid

@@ -6,8 +6,6 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lfgraph.cli.args import (
     EXIT_OK,
     UsageError,
@@ -25,6 +23,8 @@ from lfgraph.cli.args import (
 
 def cmd_depth_error(args: argparse.Namespace) -> int:
     import json
+
+    import numpy as np
 
     from lfgraph.depth import depth_error_m
     from lfgraph.report import format_table
@@ -123,6 +123,8 @@ def _shake_summary(rows) -> str:
 
 
 def cmd_study_calibration(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.report import format_table
     from lfgraph.study import (

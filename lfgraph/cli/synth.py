@@ -7,8 +7,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lfgraph.cli.args import EXIT_OK, UsageError, grid_size, image_size, jobs_default, non_negative, positive_int
 
 
@@ -34,6 +32,8 @@ def _synth_rig(args: argparse.Namespace, named):
 
 def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
     import dataclasses
+
+    import numpy as np
 
     from lfgraph.board import BoardSpec
     from lfgraph.datasets.checkerboard import make_checkerboard_truth, write_checkerboard_dataset
@@ -68,6 +68,8 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
 
 
 def cmd_synth_scene(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
     from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
     from lfgraph.datasets.scenes import get_scene
