@@ -1,0 +1,123 @@
+"""`detect_board` on real images (tests/data), against OpenCV's most accurate detector and the boards' own colours."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lfgraph.board import BoardSpec, detect_board
+
+DATA = Path(__file__).parent / "data"
+SB_ACCURATE_FLAGS = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+# Agreement with findChessboardCornersSB(EXHAUSTIVE | ACCURACY), px. The two disagree by 0.1-0.4 px RMS on these
+# images, mostly along the outermost row or column (up to ~1.3 px on 640x480 frames, where cornerSubPix with any
+# window from 2 to 8 px agrees with itself): OpenCV is a reference, not the truth.
+SB_AGREEMENT_MEDIAN_PX = 0.25
+SB_AGREEMENT_RMS_PX = 0.5
+TURN_AGREEMENT_PX = 0.05  # the same image turned by 180° must give the same physical corners
+# Left-right corner offsets of a near-parallel pair vary with depth over a tilted board, by about a square on these
+# close-up pairs; listing one view's corners reversed moves them by up to the whole board (8-10 squares).
+STEREO_DISPARITY_SPREAD_SQUARES = 2.0
+COLOUR_CONTRAST_GREY = 40  # grey-level gap between the dark and the light square at corner 0
+PROBE_SQUARES = 0.25  # how far from corner 0 the square colours are read, in squares along the grid
+
+CASES = [
+    ("opencv_stereo/left01.jpg", BoardSpec(9, 6, 1.0)),
+    ("opencv_stereo/right01.jpg", BoardSpec(9, 6, 1.0)),
+    ("opencv_stereo/left12.jpg", BoardSpec(9, 6, 1.0)),
+    ("opencv_stereo/right12.jpg", BoardSpec(9, 6, 1.0)),
+    ("pycalib/00000002.jpg", BoardSpec(10, 7, 1.0)),
+    ("pycalib/00000012.jpg", BoardSpec(10, 7, 1.0)),
+    ("boofcv_bumblebee2/left01.jpg", BoardSpec(4, 6, 0.03)),
+    ("boofcv_trinocular/right10.jpg", BoardSpec(13, 9, 1.0)),
+]
+
+
+def _load(name: str) -> np.ndarray:
+    img = cv2.imread(str(DATA / name), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, f"missing test image {DATA / name}"
+    return img
+
+
+def _sb_accurate(gray: np.ndarray, board: BoardSpec) -> np.ndarray | None:
+    found, corners = cv2.findChessboardCornersSB(gray, board.pattern_size, flags=SB_ACCURATE_FLAGS)
+    return corners.reshape(-1, 2).astype(np.float64) if found else None
+
+
+def _match_reversal(ref: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """OpenCV may list the corners from either end: turn ``ref`` to the order nearer ``corners``."""
+    same = np.linalg.norm(ref - corners, axis=1).mean()
+    flipped = np.linalg.norm(ref[::-1] - corners, axis=1).mean()
+    return ref if same <= flipped else ref[::-1]
+
+
+@pytest.mark.parametrize(("name", "board"), CASES, ids=[c[0] for c in CASES])
+def test_finds_the_board_where_sb_accurate_does_and_agrees_with_it(name, board):
+    gray = _load(name)
+    ref = _sb_accurate(gray, board)
+    assert ref is not None, "premise: OpenCV's SB detector finds this board"
+    corners = detect_board(gray, board)
+    assert corners is not None, f"{name}: board missed"
+    assert corners.shape == (board.num_corners, 2)
+    dist = np.linalg.norm(corners - _match_reversal(ref, corners), axis=1)
+    assert np.median(dist) <= SB_AGREEMENT_MEDIAN_PX, f"median {np.median(dist):.3f} px"
+    assert np.sqrt(np.mean(dist**2)) <= SB_AGREEMENT_RMS_PX, f"RMS {np.sqrt(np.mean(dist**2)):.3f} px"
+
+
+def test_finds_a_board_the_fast_check_misses():
+    gray = _load("pycalib/00000012.jpg")
+    board = BoardSpec(10, 7, 1.0)
+    fast = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    assert not cv2.findChessboardCorners(gray, board.pattern_size, flags=fast)[0], "premise: the fast check misses it"
+    assert detect_board(gray, board) is not None
+
+
+def test_finds_a_board_only_the_sb_detector_sees():
+    gray = _load("boofcv_trinocular/right10.jpg")
+    board = BoardSpec(13, 9, 1.0)
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    assert not cv2.findChessboardCorners(gray, board.pattern_size, flags=flags)[0], "premise: needs the fallback"
+    assert detect_board(gray, board) is not None
+
+
+@pytest.mark.parametrize(("name", "board"), [c for c in CASES if not c[1].is_symmetric],
+                         ids=[c[0] for c in CASES if not c[1].is_symmetric])
+def test_corner_zero_follows_the_board_colours(name, board):
+    """`BoardSpec`: the square diagonally before corner 0 is black, its neighbour along the first row is white."""
+    gray = _load(name)
+    corners = detect_board(gray, board)
+    grid = corners.reshape(board.rows, board.cols, 2)
+    along_row, along_col = grid[0, 1] - grid[0, 0], grid[1, 0] - grid[0, 0]
+    # a quarter square in: the outer squares of a printed board may be cut short (OpenCV's own sample board is)
+    dark_at = grid[0, 0] - PROBE_SQUARES * (along_row + along_col)
+    light_at = grid[0, 0] + PROBE_SQUARES * (along_row - along_col)
+
+    def grey(p):
+        x, y = np.round(p).astype(int)
+        return float(np.median(gray[y - 1 : y + 2, x - 1 : x + 2]))
+
+    assert grey(light_at) - grey(dark_at) >= COLOUR_CONTRAST_GREY
+
+
+@pytest.mark.parametrize(("name", "board"), [c for c in CASES if not c[1].is_symmetric],
+                         ids=[c[0] for c in CASES if not c[1].is_symmetric])
+def test_order_does_not_depend_on_image_orientation(name, board):
+    gray = _load(name)
+    corners = detect_board(gray, board)
+    h, w = gray.shape
+    turned = detect_board(np.ascontiguousarray(gray[::-1, ::-1]), board)
+    assert turned is not None
+    back = np.column_stack([w - 1 - turned[:, 0], h - 1 - turned[:, 1]])
+    assert np.max(np.linalg.norm(back - corners, axis=1)) <= TURN_AGREEMENT_PX
+
+
+@pytest.mark.parametrize("pair", ["01", "12"])
+def test_stereo_views_list_the_same_physical_corners(pair):
+    board = BoardSpec(9, 6, 1.0)
+    left = detect_board(_load(f"opencv_stereo/left{pair}.jpg"), board)
+    right = detect_board(_load(f"opencv_stereo/right{pair}.jpg"), board)
+    spacing = np.median(np.linalg.norm(np.diff(left.reshape(board.rows, board.cols, 2), axis=1), axis=-1))
+    offsets = right - left  # a near-parallel pair: about one disparity for every corner, unless the order flipped
+    spread = np.max(np.linalg.norm(offsets - np.median(offsets, axis=0), axis=1))
+    assert spread <= STEREO_DISPARITY_SPREAD_SQUARES * spacing, f"spread {spread / spacing:.2f} squares"
