@@ -12,7 +12,7 @@ without frame f, place frame f's board by PnP with those intrinsics, RMS of its 
 predict a left-out frame better. On rendered boards the error against the true corners is reported too.
 
 Sets live in ``../shared/data`` (or ``--data``); missing ones are skipped. The BoofCV trinocular set is subsampled
-(every second frame) to keep the run under ~3 minutes.
+(every third frame) to keep the run under ~3 minutes.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ SETS = (
     RealSet("bumblebee2", "boofcv_bumblebee2_stereo", {"left": "left*.jpg", "right": "right*.jpg"},
             BoardSpec(4, 6, 0.03)),
     RealSet("trinocular", "boofcv_trinocular", {c: f"{c}/{c}*.jpg" for c in ("left", "middle", "right")},
-            BoardSpec(13, 9, 1.0), step=2),
+            BoardSpec(13, 9, 1.0), step=3),
     RealSet("pycalib", "pycalib_chessboard", {"cam": "*.jpg"}, BoardSpec(10, 7, 1.0)),
     RealSet("caliscope", "caliscope_4cam_rig/chessboard_intrinsic", {f"cam_{i}": f"cam_{i}_*.jpg" for i in range(4)},
             BoardSpec(9, 6, 1.0)),
