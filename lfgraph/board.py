@@ -235,6 +235,8 @@ def _fit_saddles(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.
     shift[ok] = np.linalg.solve(normals[ok], p[ok][:, [3, 5], None])[..., 0]
     ok &= np.linalg.norm(shift, axis=1) < SADDLE_MAX_SHIFT_SQUARES * square_px
     ok &= p[:, 6] < SADDLE_MAX_EDGE_WIDTH_SQUARES * square_px
+    h, w = gray.shape
+    ok &= np.all((pts >= 0) & (pts <= np.array([w - 1, h - 1], dtype=np.float32)), axis=(1, 2))  # no made-up pixels
     return corners + np.where(ok[:, None], shift, 0.0)
 
 
