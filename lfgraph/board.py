@@ -307,10 +307,11 @@ def detect_board(image: np.ndarray, board: BoardSpec) -> np.ndarray | None:
 
     Measured against ``findChessboardCornersSB(EXHAUSTIVE | ACCURACY)`` on five real sets (``benchmarks/detection.py``;
     per camera, k1-k2 ``calibrateCamera`` on the frames both found, leave-one-frame-out PnP error in px): it finds
-    every board SB finds (and one more), in 0.06-0.28 of SB's time per camera (0.18 over all 123 images), with a
-    lower leave-one-out error on every set: OpenCV stereo 0.180 / 0.165 vs 0.245 / 0.235, Bumblebee2 0.081 / 0.082
-    vs 0.106 / 0.116, BoofCV trinocular 0.089-0.092 vs 0.281-0.285, pycalib 0.295 vs 0.303, caliscope cam 0 0.692
-    vs 0.700. On rendered boards with known corners: 0.014 px RMS (SB: 0.124 px, the previous detector: 0.034 px).
+    every board SB finds (and one more), in 0.06-0.32 of SB's time per camera (0.14 over all 111 images; images
+    without a board cost most, up to ~0.5, as they need the SB fallback), with a lower leave-one-out error on every
+    set: OpenCV stereo 0.180 / 0.165 vs 0.245 / 0.235, Bumblebee2 0.081 / 0.082 vs 0.106 / 0.116, BoofCV trinocular
+    0.088-0.105 vs 0.282-0.300, pycalib 0.295 vs 0.303, caliscope cam 0 0.692 vs 0.700. On rendered boards with
+    known corners: 0.014 px RMS (SB: 0.124 px, the previous detector: 0.034 px).
 
     Args:
         image: (H, W) uint8 grayscale (or (H, W, 3) BGR, converted).
