@@ -21,7 +21,7 @@ from lfgraph.parallel import run_tasks
 
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
-CACHE_VERSION = 3  # bump whenever detection changes its output
+CACHE_VERSION = 4  # bump whenever detection changes its output (3: ChArUco boards; 4: window selection + saddle fit)
 
 
 @dataclass(frozen=True)
