@@ -20,6 +20,69 @@ from lfgraph.parallel import run_tasks
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
 CACHE_VERSION = 3  # bump whenever detection changes its output
+PLANAR_TOLERANCE_M = 1e-6  # object points with |z| above this are not a planar target in its own z = 0 plane
+
+
+@dataclass(frozen=True, eq=False)
+class PointBoard:
+    """A planar target described only by its points, e.g. a circle grid or an AprilGrid detected by another tool.
+
+    It answers what the calibration routes ask of a board (`object_points`, `num_corners`, `is_symmetric`), so
+    detections from any detector go through both routes, the joint graph and the reports unchanged. Its point
+    order is whatever the detector reports (never reordered: `is_symmetric` is False).
+
+    Attributes:
+        points_m: (C, 3) point positions in the target's frame, metres; the target must be planar with z = 0
+            (OpenCV's Zhang initialisation, used by both routes, needs z = 0).
+        name: a label for messages, e.g. the file the points came from.
+    """
+
+    points_m: np.ndarray
+    name: str = "object points"
+
+    kind = "points"
+    is_symmetric = False
+
+    def __post_init__(self) -> None:
+        pts = np.array(self.points_m, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"{self.name}: object points must be a (C, 3) array in metres, got shape {pts.shape}")
+        if pts.shape[0] < MIN_CORNERS_PER_BOARD:
+            raise ValueError(f"{self.name}: a target needs at least {MIN_CORNERS_PER_BOARD} points, got {pts.shape[0]}")
+        if not np.all(np.isfinite(pts)):
+            raise ValueError(f"{self.name}: object points hold NaN or infinity")
+        z = np.abs(pts[:, 2]).max()
+        if z > PLANAR_TOLERANCE_M:
+            raise ValueError(f"{self.name}: object points must lie in the target's z = 0 plane (a planar target), "
+                             f"but |z| reaches {z:g} m")
+        extent = np.ptp(pts[:, :2], axis=0)
+        if np.linalg.matrix_rank(pts[:, :2] - pts[:, :2].mean(axis=0), tol=1e-9 * max(extent.max(), 1e-12)) < 2:
+            raise ValueError(f"{self.name}: object points lie on one line; a planar target needs a 2-D spread")
+        if len(np.unique(np.round(pts[:, :2], 9), axis=0)) != pts.shape[0]:
+            raise ValueError(f"{self.name}: object points hold duplicates (two points at one position)")
+        pts[:, 2] = 0.0
+        pts.setflags(write=False)
+        object.__setattr__(self, "points_m", pts)
+
+    @property
+    def num_corners(self) -> int:
+        return int(self.points_m.shape[0])
+
+    @property
+    def spacing_m(self) -> float:
+        """Median distance from a point to its nearest neighbour (the pitch of a grid target), metres."""
+        xy = self.points_m[:, :2]
+        d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+        np.fill_diagonal(d, np.inf)
+        return float(np.median(d.min(axis=1)))
+
+    def object_points(self) -> np.ndarray:
+        """(C, 3) point positions in the target frame, metres (a copy)."""
+        return self.points_m.copy()
+
+    def __str__(self) -> str:
+        w, h = np.ptp(self.points_m[:, :2], axis=0) * 1000
+        return f"{self.num_corners} points spanning {w:g} x {h:g} mm ({self.name})"
 
 
 @dataclass(frozen=True)
@@ -31,7 +94,7 @@ class BoardObservations:
     with corners along one line, all invalid).
 
     Attributes:
-        board: the board (checkerboard or ChArUco).
+        board: the board (checkerboard or ChArUco), or a `PointBoard` for points detected by another tool.
         grid: the view grid.
         image_size_px: (width, height) of every view.
         corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
@@ -40,7 +103,7 @@ class BoardObservations:
         sources: (F,) per frame the files it came from (for messages); may be empty for synthetic corners.
     """
 
-    board: BoardSpec
+    board: BoardSpec | PointBoard
     grid: ViewGrid
     image_size_px: tuple[int, int]
     corners_px: np.ndarray
@@ -107,7 +170,7 @@ class BoardObservations:
                                  tuple(self.sources[i] for i in idx) if self.sources else ())
 
 
-def observations_from_arrays(board: BoardSpec, grid: ViewGrid, image_size_px: tuple[int, int],
+def observations_from_arrays(board: BoardSpec | PointBoard, grid: ViewGrid, image_size_px: tuple[int, int],
                              corners_px: np.ndarray, valid: np.ndarray) -> BoardObservations:
     """Wrap synthetic (V, F, C, 2) corners, e.g. from `make_corner_observations`."""
     names = tuple(f"{f:03d}" for f in range(np.asarray(corners_px).shape[1]))
