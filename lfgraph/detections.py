@@ -189,6 +189,8 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
         images = (capture.load_view(frame, v) for v in range(capture.grid.num_views))
     detect = detect_charuco if board.kind == "charuco" else detect_board
     for v, img in enumerate(images):
+        if capture.is_missing(frame, v):
+            continue  # no image of this view in this frame (missing="unseen"): the board was not seen
         corners = detect(img, board)
         if corners is not None:
             out[v] = corners
@@ -197,13 +199,20 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
 
 def _cache_key(capture: CaptureSet, board: BoardSpec) -> str:
     files = []
-    for frame_files in capture.files:
-        for p in frame_files:
-            st = p.stat()
-            files.append([os.path.relpath(p, capture.root), st.st_size, st.st_mtime_ns])
+    # a video layout lists the same view videos for every frame: each file once, with the number of frames used
+    paths = dict.fromkeys(capture.files[0]) if capture.layout == "video" else \
+        (p for frame_files in capture.files for p in frame_files)
+    for p in paths:
+        if p is None:
+            files.append(None)  # a missing view image (missing="unseen")
+            continue
+        st = p.stat()
+        files.append([os.path.relpath(p, capture.root), st.st_size, st.st_mtime_ns])
     spec = {"version": CACHE_VERSION, "layout": capture.layout, "grid": [capture.grid.rows, capture.grid.cols],
             "board": [board.kind, board.cols, board.rows, board.square_m, board.marker_m, board.dictionary,
                       board.legacy_pattern, board.inverted], "files": files}
+    if capture.layout == "video":
+        spec["frames"] = len(capture)
     return hashlib.sha256(json.dumps(spec).encode()).hexdigest()
 
 
@@ -221,8 +230,10 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
                    cache: bool = True) -> tuple[BoardObservations, bool]:
     """Detect the board in every image of a capture, one frame per task on a process pool.
 
-    The result is cached in ``INPUT/.lfgraph-detections.npz``, keyed by the board, the layout and every file's
-    name, size and modification time, so a second run does not re-detect and a changed image invalidates it.
+    The result is cached in ``INPUT/.lfgraph-detections.npz``, keyed by the board, the layout, the number of
+    frames and every file's (image's or video's) name, size and modification time, so a second run does not
+    re-detect and a changed image or video invalidates it. A missing view image (``missing="unseen"``) is not
+    searched: the board counts as not seen there.
 
     Returns:
         the observations and whether they came from the cache.
@@ -246,6 +257,6 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
             except OSError:
                 pass  # a read-only input folder only costs the next run a re-detection
     valid = np.all(np.isfinite(corners), axis=-1)
-    sources = tuple(tuple(str(p) for p in files) for files in capture.files)
+    sources = tuple(tuple("(missing)" if p is None else str(p) for p in files) for files in capture.files)
     obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources)
     return obs, from_cache
