@@ -16,6 +16,7 @@ a view-frame with fewer than `MIN_CORNERS_PER_BOARD` points, or points along one
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from pathlib import Path
@@ -32,6 +33,8 @@ MULTIVIEW_GLOB = "cam_*.json"
 IMAGE_MARGIN_PX = 1.0  # observed points may lie this far outside the image (sub-pixel corners at the border)
 _FRAME_RE = re.compile(r"^frame_(\d+)$")
 NPZ_KEYS = ("object_points", "image_points", "valid")
+SUSPECT_SPACING_M = 1.0  # object points further apart than this are probably in millimetres, not metres
+log = logging.getLogger(__name__)
 
 
 class PointsError(ValueError):
@@ -60,9 +63,13 @@ def load_object_points(path: str | os.PathLike) -> PointBoard:
     if not isinstance(pts, np.ndarray) or pts.dtype.kind not in "fiu":
         raise PointsError(f"{path}: object points must be a numeric (C, 3) array in metres")
     try:
-        return PointBoard(pts, path.name)
+        board = PointBoard(pts, path.name)
     except ValueError as exc:
         raise PointsError(str(exc)) from None
+    if board.spacing_m > SUSPECT_SPACING_M:
+        log.warning("%s: neighbouring object points are %g m apart; object points must be in metres (millimetres "
+                    "give a rig %gx too large)", path, board.spacing_m, 1000)
+    return board
 
 
 def _first_outside(points: np.ndarray, valid: np.ndarray, image_size_px: tuple[int, int]) -> tuple[int, ...] | None:

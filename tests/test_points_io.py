@@ -188,6 +188,12 @@ def test_object_points_are_checked(tmp_path, points, message):
         load_detections(DATA, "opencv-multiview", (1, 2), SIZE, tmp_path / "obj.npy")
 
 
+def test_millimetre_object_points_are_flagged(tmp_path, caplog):
+    np.save(tmp_path / "obj_mm.npy", np.load(OBJ) * 1000)
+    load_detections(DATA, "opencv-multiview", (1, 2), SIZE, tmp_path / "obj_mm.npy")
+    assert "obj_mm.npy: neighbouring object points are 80 m apart" in caplog.text
+
+
 def test_npz_errors_name_the_key(tmp_path):
     obs = load_detections(DATA, "opencv-multiview", (1, 2), SIZE, OBJ)
     good = {"object_points": obs.board.object_points(), "image_points": obs.corners_px, "valid": obs.valid}
