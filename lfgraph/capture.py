@@ -6,9 +6,14 @@ Layouts (views row-major):
 - ``mosaic``: ``DIR/<frame>.<ext>``, one image per frame with the views tiled row-major.
 - ``hci``: ``input_Cam000.<ext>`` ... (row-major index) in one folder (one frame) or in per-frame folders.
 - ``pairs``: ``left<id>.<ext>`` / ``right<id>.<ext>`` stereo sets (OpenCV's sample), a 1x2 grid, frames by ``<id>``.
+- ``video``: ``DIR/<name>.<ext>``, one video per view, views in natural name order (``cam_0.mp4``, ``cam_1.mp4``,
+  ... row-major); frame f is the f-th decoded frame of every video; the capture has as many frames as the shortest
+  video (`CaptureSet.notes` says so when the lengths differ).
 
 ``open_capture`` checks names and presence of every file and the size of the first frame's images; every image's
-size and readability are checked when its frame is loaded.
+size and readability are checked when its frame is loaded. A frame that lacks a view's image is an error unless
+``missing="unseen"``: that view-frame then has no file (None in `CaptureSet.files`), loads as a black image and
+counts as "board not seen".
 """
 
 from __future__ import annotations
@@ -26,7 +31,11 @@ from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
+LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs", "video")
+MISSING_VIEW = ("error", "unseen")  # what a frame without one of its view images is
+VIDEO_GRAB_AHEAD = 16  # a reader this few frames behind decodes forward; further (or backwards) it seeks
+VIDEO_READERS = 16  # open video readers kept per process
 _VIEW_RE = re.compile(r"^r(\d+)_c(\d+)$")
 _HCI_RE = re.compile(r"^input_Cam(\d+)$")
 _PAIR_RE = re.compile(r"^(left|right)(.*)$")
@@ -43,6 +52,86 @@ def _natural_key(name: str) -> list:
 def _images(folder: Path) -> list[Path]:
     return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS),
                   key=lambda p: _natural_key(p.name))
+
+
+def _videos(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS),
+                  key=lambda p: _natural_key(p.name))
+
+
+# per process: path -> [reader, index of the frame its next read() returns]; a capture pickled to a worker
+# process opens its own readers there, and frames asked for in order are decoded sequentially
+_READERS: dict[str, list] = {}
+_READERS_PID = [os.getpid()]
+_INHERITED: list = []  # readers a forked process inherited: never used nor released there (FFmpeg's threads did
+# not survive the fork; touching them can hang), only kept from being garbage-collected
+
+
+def _video_reader(path: Path) -> list:
+    if _READERS_PID[0] != os.getpid():
+        _INHERITED.extend(_READERS.values())
+        _READERS.clear()
+        _READERS_PID[0] = os.getpid()
+    key = str(path)
+    entry = _READERS.pop(key, None)
+    if entry is None:
+        reader = cv2.VideoCapture(key)
+        if not reader.isOpened():
+            raise CaptureError(f"{path}: cannot open this video (missing, unreadable or an unsupported codec)")
+        entry = [reader, 0]
+        while len(_READERS) >= VIDEO_READERS:
+            _READERS.pop(next(iter(_READERS)))[0].release()
+    _READERS[key] = entry  # most recently used last
+    return entry
+
+
+def close_videos() -> None:
+    """Release the video readers this process keeps open."""
+    if _READERS_PID[0] != os.getpid():
+        return
+    while _READERS:
+        _READERS.popitem()[1][0].release()
+
+
+def _read_video_frame(path: Path, index: int, grayscale: bool) -> np.ndarray:
+    """Frame ``index`` (0-based) of a video, decoding forward when the reader is close behind, else seeking."""
+    entry = _video_reader(path)
+    reader, next_index = entry
+    if not 0 <= index - next_index <= VIDEO_GRAB_AHEAD:
+        reader.set(cv2.CAP_PROP_POS_FRAMES, index)
+    else:
+        for _ in range(index - next_index):
+            if not reader.grab():
+                break
+    ok, img = reader.read()
+    if not ok or img is None:
+        entry[1] = -VIDEO_GRAB_AHEAD - 1  # unknown position: seek next time
+        raise CaptureError(f"{path}: cannot decode frame {index} of this video")
+    entry[1] = index + 1
+    if grayscale and img.ndim == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if not grayscale and img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    return img
+
+
+def _video_info(path: Path) -> tuple[int, tuple[int, int]]:
+    """(frame count, (width, height)) of a video; frames are counted by decoding when the container does not say."""
+    reader = cv2.VideoCapture(str(path))
+    try:
+        if not reader.isOpened():
+            raise CaptureError(f"{path}: cannot open this video (unreadable or an unsupported codec)")
+        ok, img = reader.read()
+        if not ok or img is None:
+            raise CaptureError(f"{path}: cannot decode the first frame of this video")
+        count = int(reader.get(cv2.CAP_PROP_FRAME_COUNT))
+        if count <= 0:
+            count = 1
+            while reader.grab():
+                count += 1
+        return count, (img.shape[1], img.shape[0])
+    finally:
+        reader.release()
 
 
 def _read(path: Path, grayscale: bool) -> np.ndarray:
@@ -78,19 +167,22 @@ class CaptureSet:
 
     Attributes:
         root: the input folder.
-        layout: ``folders``, ``mosaic``, ``hci`` or ``pairs``.
+        layout: ``folders``, ``mosaic``, ``hci``, ``pairs`` or ``video``.
         grid: the view grid.
         frame_names: one name per frame, in order.
-        files: per frame, the view files in row-major order (one file for a mosaic).
+        files: per frame, the view files in row-major order (one file for a mosaic; the view's video for
+            ``video``); None for a view image missing from its frame (only with ``missing="unseen"``).
         image_size_px: (width, height) of one view, from the first frame.
+        notes: what the user should know about the input (videos of different lengths, missing view images).
     """
 
     root: Path
     layout: str
     grid: ViewGrid
     frame_names: tuple[str, ...]
-    files: tuple[tuple[Path, ...], ...]
+    files: tuple[tuple[Path | None, ...], ...]
     image_size_px: tuple[int, int]
+    notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.frame_names)
@@ -100,6 +192,10 @@ class CaptureSet:
         n = len(self) if limit is None else min(len(self), limit)
         for f in range(n):
             yield self.load_frame(f, grayscale)
+
+    def all_paths(self) -> list[Path]:
+        """Every file the capture reads (missing views left out)."""
+        return [p for f in range(len(self)) for p in self.paths(f) if p is not None]
 
     def paths(self, frame: int) -> tuple[Path, ...]:
         return self.files[frame]
@@ -116,16 +212,29 @@ class CaptureSet:
             return views
         return np.stack([self.load_view(frame, v, grayscale) for v in range(self.grid.num_views)])
 
+    def is_missing(self, frame: int, view: int) -> bool:
+        """The frame has no image of this view (``missing="unseen"``): its board counts as not seen."""
+        return self.layout != "mosaic" and self.files[frame][view] is None
+
     def load_view(self, frame: int, view: int, grayscale: bool = True) -> np.ndarray:
-        """One view of one frame, (H, W) or (H, W, 3)."""
+        """One view of one frame, (H, W) or (H, W, 3); black for a missing view image (``missing="unseen"``)."""
         if self.layout == "mosaic":
             return self.load_frame(frame, grayscale)[view]
         path = self.files[frame][view]
-        img = _read(path, grayscale)
+        w, h = self.image_size_px
+        if path is None:
+            return np.zeros((h, w) if grayscale else (h, w, 3), np.uint8)
+        if self.layout == "video":
+            if not 0 <= frame < len(self):
+                raise IndexError(f"frame {frame} out of range 0..{len(self) - 1}")
+            img = _read_video_frame(path, frame, grayscale)
+        else:
+            img = _read(path, grayscale)
         h, w = img.shape[:2]
         if (w, h) != self.image_size_px:
-            first = self.files[0][0]
-            raise CaptureError(f"{path}: image is {w}x{h} px but {first} is "
+            first = next(p for p in self.files[0] if p is not None)
+            what = f"frame {frame} is" if self.layout == "video" else "image is"
+            raise CaptureError(f"{path}: {what} {w}x{h} px but {first} is "
                                f"{self.image_size_px[0]}x{self.image_size_px[1]}; all views must have one size")
         return img
 
@@ -134,8 +243,9 @@ class CaptureSet:
             yield self.load_frame(f)
 
 
-def _view_files(folder: Path, grid: ViewGrid) -> tuple[Path, ...] | None:
-    """Row-major view files of one frame folder (rRR_cCC or input_CamNNN names), None when it has neither."""
+def _view_files(folder: Path, grid: ViewGrid, missing: str = "error") -> tuple[Path | None, ...] | None:
+    """Row-major view files of one frame folder (rRR_cCC or input_CamNNN names), None when it has neither; a view
+    without a file is an error, or None in the tuple with ``missing="unseen"``."""
     found: dict[int, Path] = {}
     positions = []
     for p in _images(folder):
@@ -158,10 +268,11 @@ def _view_files(folder: Path, grid: ViewGrid) -> tuple[Path, ...] | None:
     if rows > grid.rows or cols > grid.cols:
         raise CaptureError(f"{folder}: the grid does not match the files: they reach row {rows - 1}, column "
                            f"{cols - 1}, but the grid is {grid} (rows 0..{grid.rows - 1}, columns 0..{grid.cols - 1})")
-    missing = [grid.name(v) for v in range(grid.num_views) if v not in found]
-    if missing:
-        raise CaptureError(f"{folder}: missing view(s) {', '.join(missing)} of the {grid} grid")
-    return tuple(found[v] for v in range(grid.num_views))
+    absent = [grid.name(v) for v in range(grid.num_views) if v not in found]
+    if absent and missing == "error":
+        raise CaptureError(f"{folder}: missing view(s) {', '.join(absent)} of the {grid} grid (--missing-view unseen "
+                           f"counts a missing view image as 'board not seen')")
+    return tuple(found.get(v) for v in range(grid.num_views))
 
 
 def _detect(root: Path, grid: ViewGrid) -> str:
@@ -169,6 +280,7 @@ def _detect(root: Path, grid: ViewGrid) -> str:
     subdirs = [p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")]
     view_named = [p for p in images if _VIEW_RE.match(p.stem) or _HCI_RE.match(p.stem)]
     pair_named = [p for p in images if _PAIR_RE.match(p.stem)]
+    videos = _videos(root)
     frame_dirs = [d for d in subdirs if any(_VIEW_RE.match(p.stem) or _HCI_RE.match(p.stem) for p in _images(d))]
     candidates = []
     if view_named or frame_dirs:
@@ -179,44 +291,80 @@ def _detect(root: Path, grid: ViewGrid) -> str:
     other = [p for p in images if p not in view_named and p not in pair_named]
     if other:
         candidates.append("mosaic")
+    if videos:
+        candidates.append("video")
     if not candidates:
-        raise CaptureError(f"{root}: no images found (looked for {', '.join(IMAGE_EXTENSIONS)} files and frame "
-                           f"folders holding rRR_cCC or input_CamNNN images)")
+        raise CaptureError(f"{root}: no images found (looked for {', '.join(IMAGE_EXTENSIONS)} files, frame "
+                           f"folders holding rRR_cCC or input_CamNNN images, and {', '.join(VIDEO_EXTENSIONS)} "
+                           f"videos)")
     if len(candidates) > 1:
         raise CaptureError(f"{root}: ambiguous layout, it holds {', '.join(candidates)} inputs "
                            f"({len(frame_dirs)} frame folders, {len(view_named)} view images, {len(other)} other "
-                           f"images); pass --layout or clean the folder")
+                           f"images, {len(videos)} videos); pass --layout or clean the folder")
     return candidates[0]
 
 
-def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layout: str = "auto") -> CaptureSet:
+def _open_videos(root: Path, grid: ViewGrid) -> CaptureSet:
+    videos = _videos(root)
+    if not videos:
+        raise CaptureError(f"{root}: no videos found (looked for {', '.join(VIDEO_EXTENSIONS)} files)")
+    if len(videos) != grid.num_views:
+        raise CaptureError(f"{root}: {len(videos)} videos ({', '.join(p.name for p in videos)}) but the {grid} grid "
+                           f"has {grid.num_views} views (one video per view, in name order, row-major)")
+    infos = [_video_info(p) for p in videos]
+    for p, (_, size) in zip(videos, infos, strict=True):
+        if size != infos[0][1]:
+            raise CaptureError(f"{p}: frames are {size[0]}x{size[1]} px but {videos[0]} has {infos[0][1][0]}x"
+                               f"{infos[0][1][1]}; all views must have one size")
+    counts = [n for n, _ in infos]
+    n = min(counts)
+    notes = []
+    if len(set(counts)) > 1:
+        lengths = ", ".join(f"{p.name} {c}" for p, c in zip(videos, counts, strict=True))
+        notes.append(f"the videos differ in length ({lengths} frames); frames are matched by index, so only the "
+                     f"first {n} are used")
+    names = tuple(f"{f:05d}" for f in range(n))
+    return CaptureSet(root, "video", grid, names, tuple(tuple(videos) for _ in range(n)), infos[0][1], tuple(notes))
+
+
+def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layout: str = "auto",
+                 missing: str = "error") -> CaptureSet:
     """Open a capture folder in one of the `LAYOUTS`; see the module docstring.
+
+    Args:
+        missing: a frame without one of its view images is an ``"error"`` (default), or ``"unseen"``: that
+            view-frame counts as "board not seen" (`MISSING_VIEW`).
 
     Raises:
         CaptureError: missing folder, no frames, missing or extra views, a grid that does not match the files,
-            unreadable first images, images of different sizes, a mosaic that does not divide into the grid.
+            unreadable first images, images of different sizes, a mosaic that does not divide into the grid,
+            unreadable videos or a number of videos other than the grid's views.
     """
     root = Path(path)
     if not isinstance(grid, ViewGrid):
         grid = ViewGrid(*grid)
     if layout not in LAYOUTS:
         raise CaptureError(f"{root}: unknown layout {layout!r}; choose from {', '.join(LAYOUTS)}")
+    if missing not in MISSING_VIEW:
+        raise CaptureError(f"{root}: unknown missing-view mode {missing!r}; choose from {', '.join(MISSING_VIEW)}")
     if not root.exists():
         raise CaptureError(f"{root}: input folder does not exist")
     if not root.is_dir():
         raise CaptureError(f"{root}: input must be a folder of images, not a file")
     if layout == "auto":
         layout = _detect(root, grid)
+    if layout == "video":
+        return _open_videos(root, grid)
     names: list[str] = []
-    files: list[tuple[Path, ...]] = []
+    files: list[tuple[Path | None, ...]] = []
     if layout in ("folders", "hci"):
-        single = _view_files(root, grid)
+        single = _view_files(root, grid, missing)
         if single is not None:
             names, files = [root.name], [single]
         else:
             for d in sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
                             key=lambda p: _natural_key(p.name)):
-                views = _view_files(d, grid)
+                views = _view_files(d, grid, missing)
                 if views is not None:
                     names.append(d.name)
                     files.append(views)
@@ -234,11 +382,12 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
                 sides[m.group(1)][m.group(2)] = p
         for side, other in (("left", "right"), ("right", "left")):
             lonely = sorted(set(sides[side]) - set(sides[other]), key=_natural_key)
-            if lonely:
-                raise CaptureError(f"{sides[side][lonely[0]]}: no {other} image for this {side} image")
-        for key in sorted(sides["left"], key=_natural_key):
+            if lonely and missing == "error":
+                raise CaptureError(f"{sides[side][lonely[0]]}: no {other} image for this {side} image (--missing-view "
+                                   f"unseen counts a missing view image as 'board not seen')")
+        for key in sorted(set(sides["left"]) | set(sides["right"]), key=_natural_key):
             names.append(key)
-            files.append((sides["left"][key], sides["right"][key]))
+            files.append((sides["left"].get(key), sides["right"].get(key)))
     if not files:
         raise CaptureError(f"{root}: no frames found for the {layout} layout")
     first = files[0]
@@ -249,16 +398,22 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
             raise CaptureError(f"{first[0]}: a {w_all}x{h_all} mosaic does not divide into a {grid} grid")
         size = (w_all // grid.cols, h_all // grid.rows)
     else:
+        present = [p for p in first if p is not None]
         sizes = []
-        for p in first:
+        for p in present:
             img = _read(p, True)
             sizes.append((img.shape[1], img.shape[0]))
-        for p, s in zip(first, sizes, strict=True):
+        for p, s in zip(present, sizes, strict=True):
             if s != sizes[0]:
-                raise CaptureError(f"{p}: image is {s[0]}x{s[1]} px but {first[0]} is {sizes[0][0]}x{sizes[0][1]}; "
-                                   f"all views must have one size")
+                raise CaptureError(f"{p}: image is {s[0]}x{s[1]} px but {present[0]} is {sizes[0][0]}x"
+                                   f"{sizes[0][1]}; all views must have one size")
         size = sizes[0]
-    return CaptureSet(root, layout, grid, tuple(names), tuple(files), size)
+    notes = []
+    absent = [(names[f], grid.name(v)) for f, views in enumerate(files) for v, p in enumerate(views) if p is None]
+    if absent:
+        listed = ", ".join(f"{name}/{view}" for name, view in absent[:5]) + (", ..." if len(absent) > 5 else "")
+        notes.append(f"{len(absent)} view image(s) missing, counted as 'board not seen': {listed}")
+    return CaptureSet(root, layout, grid, tuple(names), tuple(files), size, tuple(notes))
 
 
 def write_frame(out_dir: str | os.PathLike, frame_name: str, images: np.ndarray, grid: ViewGrid,

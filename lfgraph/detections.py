@@ -21,7 +21,70 @@ from lfgraph.parallel import run_tasks
 
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
-CACHE_VERSION = 4  # bump whenever detection changes its output (3: ChArUco boards; 4: window selection + saddle fit)
+CACHE_VERSION = 5  # bump whenever detection changes its output (3: ChArUco; 4: window selection + saddle fit; 5: video)
+PLANAR_TOLERANCE_M = 1e-6  # object points with |z| above this are not a planar target in its own z = 0 plane
+
+
+@dataclass(frozen=True, eq=False)
+class PointBoard:
+    """A planar target described only by its points, e.g. a circle grid or an AprilGrid detected by another tool.
+
+    It answers what the calibration routes ask of a board (`object_points`, `num_corners`, `is_symmetric`), so
+    detections from any detector go through both routes, the joint graph and the reports unchanged. Its point
+    order is whatever the detector reports (never reordered: `is_symmetric` is False).
+
+    Attributes:
+        points_m: (C, 3) point positions in the target's frame, metres; the target must be planar with z = 0
+            (OpenCV's Zhang initialisation, used by both routes, needs z = 0).
+        name: a label for messages, e.g. the file the points came from.
+    """
+
+    points_m: np.ndarray
+    name: str = "object points"
+
+    kind = "points"
+    is_symmetric = False
+
+    def __post_init__(self) -> None:
+        pts = np.array(self.points_m, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"{self.name}: object points must be a (C, 3) array in metres, got shape {pts.shape}")
+        if pts.shape[0] < MIN_CORNERS_PER_BOARD:
+            raise ValueError(f"{self.name}: a target needs at least {MIN_CORNERS_PER_BOARD} points, got {pts.shape[0]}")
+        if not np.all(np.isfinite(pts)):
+            raise ValueError(f"{self.name}: object points hold NaN or infinity")
+        z = np.abs(pts[:, 2]).max()
+        if z > PLANAR_TOLERANCE_M:
+            raise ValueError(f"{self.name}: object points must lie in the target's z = 0 plane (a planar target), "
+                             f"but |z| reaches {z:g} m")
+        extent = np.ptp(pts[:, :2], axis=0)
+        if np.linalg.matrix_rank(pts[:, :2] - pts[:, :2].mean(axis=0), tol=1e-9 * max(extent.max(), 1e-12)) < 2:
+            raise ValueError(f"{self.name}: object points lie on one line; a planar target needs a 2-D spread")
+        if len(np.unique(np.round(pts[:, :2], 9), axis=0)) != pts.shape[0]:
+            raise ValueError(f"{self.name}: object points hold duplicates (two points at one position)")
+        pts[:, 2] = 0.0
+        pts.setflags(write=False)
+        object.__setattr__(self, "points_m", pts)
+
+    @property
+    def num_corners(self) -> int:
+        return int(self.points_m.shape[0])
+
+    @property
+    def spacing_m(self) -> float:
+        """Median distance from a point to its nearest neighbour (the pitch of a grid target), metres."""
+        xy = self.points_m[:, :2]
+        d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+        np.fill_diagonal(d, np.inf)
+        return float(np.median(d.min(axis=1)))
+
+    def object_points(self) -> np.ndarray:
+        """(C, 3) point positions in the target frame, metres (a copy)."""
+        return self.points_m.copy()
+
+    def __str__(self) -> str:
+        w, h = np.ptp(self.points_m[:, :2], axis=0) * 1000
+        return f"{self.num_corners} points spanning {w:g} x {h:g} mm ({self.name})"
 
 
 @dataclass(frozen=True)
@@ -33,7 +96,7 @@ class BoardObservations:
     with corners along one line, all invalid).
 
     Attributes:
-        board: the board (checkerboard or ChArUco).
+        board: the board (checkerboard or ChArUco), or a `PointBoard` for points detected by another tool.
         grid: the view grid.
         image_size_px: (width, height) of every view.
         corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
@@ -42,7 +105,7 @@ class BoardObservations:
         sources: (F,) per frame the files it came from (for messages); may be empty for synthetic corners.
     """
 
-    board: BoardSpec
+    board: BoardSpec | PointBoard
     grid: ViewGrid
     image_size_px: tuple[int, int]
     corners_px: np.ndarray
@@ -109,7 +172,7 @@ class BoardObservations:
                                  tuple(self.sources[i] for i in idx) if self.sources else ())
 
 
-def observations_from_arrays(board: BoardSpec, grid: ViewGrid, image_size_px: tuple[int, int],
+def observations_from_arrays(board: BoardSpec | PointBoard, grid: ViewGrid, image_size_px: tuple[int, int],
                              corners_px: np.ndarray, valid: np.ndarray) -> BoardObservations:
     """Wrap synthetic (V, F, C, 2) corners, e.g. from `make_corner_observations`."""
     names = tuple(f"{f:03d}" for f in range(np.asarray(corners_px).shape[1]))
@@ -128,6 +191,8 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
         images = (capture.load_view(frame, v) for v in range(capture.grid.num_views))
     detect = detect_charuco if board.kind == "charuco" else detect_board
     for v, img in enumerate(images):
+        if capture.is_missing(frame, v):
+            continue  # no image of this view in this frame (missing="unseen"): the board was not seen
         corners = detect(img, board)
         if corners is not None:
             out[v] = corners
@@ -136,13 +201,20 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
 
 def _cache_key(capture: CaptureSet, board: BoardSpec) -> str:
     files = []
-    for frame_files in capture.files:
-        for p in frame_files:
-            st = p.stat()
-            files.append([os.path.relpath(p, capture.root), st.st_size, st.st_mtime_ns])
+    # a video layout lists the same view videos for every frame: each file once, with the number of frames used
+    paths = dict.fromkeys(capture.files[0]) if capture.layout == "video" else \
+        (p for frame_files in capture.files for p in frame_files)
+    for p in paths:
+        if p is None:
+            files.append(None)  # a missing view image (missing="unseen")
+            continue
+        st = p.stat()
+        files.append([os.path.relpath(p, capture.root), st.st_size, st.st_mtime_ns])
     spec = {"version": CACHE_VERSION, "layout": capture.layout, "grid": [capture.grid.rows, capture.grid.cols],
             "board": [board.kind, board.cols, board.rows, board.square_m, board.marker_m, board.dictionary,
                       board.legacy_pattern, board.inverted], "files": files}
+    if capture.layout == "video":
+        spec["frames"] = len(capture)
     return hashlib.sha256(json.dumps(spec).encode()).hexdigest()
 
 
@@ -163,8 +235,10 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
                    cache: bool = True) -> tuple[BoardObservations, bool]:
     """Detect the board in every image of a capture, one frame per task on a process pool.
 
-    The result is cached in ``INPUT/.lfgraph-detections.npz``, keyed by the board, the layout and every file's
-    name, size and modification time, so a second run does not re-detect and a changed image invalidates it.
+    The result is cached in ``INPUT/.lfgraph-detections.npz``, keyed by the board, the layout, the number of
+    frames and every file's (image's or video's) name, size and modification time, so a second run does not
+    re-detect and a changed image or video invalidates it. A missing view image (``missing="unseen"``) is not
+    searched: the board counts as not seen there.
 
     Returns:
         the observations and whether they came from the cache.
@@ -188,6 +262,6 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
             except OSError:
                 pass  # a read-only input folder only costs the next run a re-detection
     valid = np.all(np.isfinite(corners), axis=-1)
-    sources = tuple(tuple(str(p) for p in files) for files in capture.files)
+    sources = tuple(tuple("(missing)" if p is None else str(p) for p in files) for files in capture.files)
     obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources)
     return obs, from_cache

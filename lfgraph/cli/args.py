@@ -71,7 +71,7 @@ def positive_float(text: str) -> float:
     return value
 
 
-LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs")
+LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs", "video")
 
 
 RERUN_SINK_FLAGS = ("save", "connect", "serve", "stdout", "url")

@@ -17,6 +17,7 @@ from lfgraph.cli.args import (
     check_rerun,
     cli_observer,
     grid_size,
+    image_size,
     jobs_default,
     positive_float,
     positive_int,
@@ -39,39 +40,79 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 
-def cmd_calibrate(args: argparse.Namespace) -> int:
+def _board_and_config(args: argparse.Namespace):
     from lfgraph.board import BoardSpec
-    from lfgraph.capture import open_capture
-    from lfgraph.detections import detect_capture
     from lfgraph.grid import ViewGrid
-    from lfgraph.pattern import CalibrateConfig, calibrate
-    from lfgraph.report import calibration_report_text
+    from lfgraph.pattern import CalibrateConfig
 
     try:
-        board = BoardSpec.parse(args.board, args.square_mm, args.marker_mm)
+        if args.detections is None:
+            if args.board is None or args.square_mm is None:
+                raise ValueError("--board and --square-mm are needed to detect the board in images (or give "
+                                 "--detections with the points another tool found)")
+            if args.object_points is not None or args.image_size is not None:
+                raise ValueError("--object-points and --image-size go with --detections")
+            board = BoardSpec.parse(args.board, args.square_mm, args.marker_mm)
+        else:
+            given = [f"--{n.replace('_', '-')}" for n in ("board", "square_mm", "marker_mm", "layout", "missing_view")
+                     if getattr(args, n) not in (None, "auto")]
+            if given:
+                raise ValueError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to images; with "
+                                 f"--detections the target is given by its object points")
+            if args.image_size is None:
+                raise ValueError("--detections needs --image-size WIDTHxHEIGHT (the size of the images the points "
+                                 "were detected in)")
+            if args.detections == "opencv-multiview" and args.object_points is None:
+                raise ValueError("--detections opencv-multiview needs --object-points OBJ.npy ((C, 3), metres)")
+            board = None
         grid = ViewGrid(args.grid[0], args.grid[1], args.reference)
         config = CalibrateConfig(method=args.method, init=args.init, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
                                  robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    return board, grid, config
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from lfgraph.pattern import calibrate
+    from lfgraph.report import calibration_report_text
+
+    board, grid, config = _board_and_config(args)
     check_output_file(args.output)
     logging = check_rerun(args)
     start = time.perf_counter()
-    capture = open_capture(args.input, grid, args.layout)
-    check_output_file(args.output, inputs=[p for f in range(len(capture)) for p in capture.paths(f)])
-    print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
-          f"{capture.image_size_px[0]}x{capture.image_size_px[1]} px; board {board}")
-    obs, cached = detect_capture(capture, board, jobs=args.jobs, progress=not args.quiet, cache=not args.no_cache)
-    seen = obs.seen
-    print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} images "
-          f"({time.perf_counter() - start:.1f} s)")
+    capture = None
+    if args.detections is not None:
+        from lfgraph.points_io import load_detections
+
+        sources = [args.input, *Path(args.input).glob("*"), *([args.object_points] if args.object_points else [])]
+        check_output_file(args.output, inputs=sources)
+        obs = load_detections(args.input, args.detections, grid, args.image_size, args.object_points)
+        print(f"{args.input}: {args.detections} detections, {obs.num_frames} frames x {grid.num_views} views of "
+              f"{obs.image_size_px[0]}x{obs.image_size_px[1]} px; target {obs.board}")
+        seen = obs.seen
+        print(f"target seen in {seen.sum()} of {seen.size} view-frames ({obs.num_observations} points)")
+    else:
+        from lfgraph.capture import open_capture
+        from lfgraph.detections import detect_capture
+
+        capture = open_capture(args.input, grid, args.layout or "auto", missing=args.missing_view or "error")
+        check_output_file(args.output, inputs=capture.all_paths())
+        print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
+              f"{capture.image_size_px[0]}x{capture.image_size_px[1]} px; board {board}")
+        for note in capture.notes:
+            print(f"note: {note}")
+        obs, cached = detect_capture(capture, board, jobs=args.jobs, progress=not args.quiet, cache=not args.no_cache)
+        seen = obs.seen
+        print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} "
+              f"images ({time.perf_counter() - start:.1f} s)")
     with rerun_session(args, grid, logging) as logger:
         if logger is not None:
             logger.set_measurements(obs.num_observations)
         calib, report = calibrate(obs, config, cli_observer(logger))
         calib.save(args.output)
         if logger is not None:
-            logger.calibration_result(calib, obs, report, capture.load_frame(0))
+            logger.calibration_result(calib, obs, report, capture.load_frame(0) if capture is not None else None)
     print(calibration_report_text(calib, report))
     print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
     return EXIT_OK
@@ -104,17 +145,30 @@ def add_parsers(sub: Any) -> None:
     info.add_argument("--json", action="store_true", help="print grid, per-view parameters and metrics as JSON")
     info.set_defaults(func=cmd_info)
 
-    cal = sub.add_parser("calibrate", help="calibrate the array from checkerboard captures (paper Section 3.2)")
-    cal.add_argument("input", type=Path, help="capture folder (see --layout)")
+    cal = sub.add_parser("calibrate", help="calibrate the array from checkerboard captures (paper Section 3.2), or "
+                                           "from points another tool detected (--detections)")
+    cal.add_argument("input", type=Path, help="capture folder (see --layout); with --detections the folder of "
+                                              "cam_*.json files (opencv-multiview) or the .npz file (npz)")
     cal.add_argument("--grid", type=grid_size, required=True, help="ROWSxCOLS of the array, e.g. 4x4")
-    cal.add_argument("--board", required=True,
+    cal.add_argument("--board",
                      help="checkerboard inner corners COLSxROWS (OpenCV patternSize), e.g. 11x8; or a ChArUco board "
                           "charuco:SQUARESXxSQUARESY:DICT_NAME[:legacy][:inverted] (squares, as OpenCV counts them), "
                           "e.g. charuco:4x5:DICT_4X4_1000 with --marker-mm")
-    cal.add_argument("--square-mm", type=positive_float, required=True, help="square side in millimetres")
+    cal.add_argument("--square-mm", type=positive_float, help="square side in millimetres (with --board)")
     cal.add_argument("--marker-mm", type=positive_float,
                      help="ChArUco marker side in millimetres (with --board charuco:SQUARESXxSQUARESY:DICT_...)")
-    cal.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
+    cal.add_argument("--layout", choices=LAYOUT_CHOICES, help="input layout (default: detect)")
+    cal.add_argument("--missing-view", choices=("error", "unseen"),
+                     help="a frame that lacks a view's image: error (default) or treat that view-frame as 'board "
+                          "not seen'")
+    det = cal.add_argument_group("points detected by another tool (instead of images)")
+    det.add_argument("--detections", choices=("opencv-multiview", "npz"),
+                     help="opencv-multiview: INPUT holds one cam_*.json per view (OpenCV FileStorage JSON, a "
+                          "frame_N node of 2C numbers per frame the camera saw the target); npz: INPUT is a .npz "
+                          "with object_points (C, 3) m, image_points (V, F, C, 2) px, valid (V, F, C)")
+    det.add_argument("--object-points", type=Path, metavar="OBJ.npy",
+                     help="(C, 3) target points in metres, z = 0 (for --detections opencv-multiview)")
+    det.add_argument("--image-size", type=image_size, metavar="WxH", help="size of the images the points come from")
     cal.add_argument("--reference", type=int, default=0, help="reference view, row-major index (default 0)")
     cal.add_argument("--method", choices=("joint", "paper"), default="joint",
                      help="joint: one GTSAM graph over all views and frames (default); paper: per-view Zhang + "
