@@ -27,6 +27,8 @@ _EXPORTS = {
     "BoardSpec": "lfgraph.board",
     "BoardObservations": "lfgraph.detections",
     "detect_capture": "lfgraph.detections",
+    "PointBoard": "lfgraph.detections",
+    "load_detections": "lfgraph.points_io",
     "CaptureSet": "lfgraph.capture",
     "CaptureError": "lfgraph.capture",
     "open_capture": "lfgraph.capture",
@@ -58,9 +60,9 @@ _SUBMODULES = ("viz", "factors", "datasets", "pattern", "refinement")
 __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
            "CaptureSet", "DriftReport", "GraphContext", "Init", "Intrinsics", "Method", "Observer", "Observers",
-           "RefineConfig", "RefinementReport", "RobustKernel", "Stage", "StageEnd", "TriangulationFilter",
-           "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "open_capture", "rectify", "refine",
-           "viz", "factors", "datasets", "pattern", "refinement"]
+           "PointBoard", "RefineConfig", "RefinementReport", "RobustKernel", "Stage", "StageEnd",
+           "TriangulationFilter", "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "load_detections",
+           "open_capture", "rectify", "refine", "viz", "factors", "datasets", "pattern", "refinement"]
 
 
 def __getattr__(name: str) -> Any:
@@ -82,7 +84,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.calibration import Calibration, CalibrationFileError
     from lfgraph.camera import Intrinsics
     from lfgraph.capture import CaptureError, CaptureSet, open_capture
-    from lfgraph.detections import BoardObservations, detect_capture
+    from lfgraph.detections import BoardObservations, PointBoard, detect_capture
     from lfgraph.drift import DriftReport, check
     from lfgraph.evaluation import CalibrationErrors, evaluate
     from lfgraph.factors.hooks import GraphContext
@@ -93,6 +95,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.pattern.initial import CalibrationInputError
     from lfgraph.pattern.pipeline import calibrate
     from lfgraph.pattern.scoring import CalibrationReport
+    from lfgraph.points_io import load_detections
     from lfgraph.rectification import rectify
     from lfgraph.refinement.config import RefineConfig, Stage, TriangulationFilter
     from lfgraph.refinement.report import RefinementReport

@@ -243,6 +243,9 @@ class CaptureSet:
             yield self.load_frame(f)
 
 
+MAX_LISTED = 5  # an error lists at most this many missing views
+
+
 def _view_files(folder: Path, grid: ViewGrid, missing: str = "error") -> tuple[Path | None, ...] | None:
     """Row-major view files of one frame folder (rRR_cCC or input_CamNNN names), None when it has neither; a view
     without a file is an error, or None in the tuple with ``missing="unseen"``."""
@@ -270,7 +273,12 @@ def _view_files(folder: Path, grid: ViewGrid, missing: str = "error") -> tuple[P
                            f"{cols - 1}, but the grid is {grid} (rows 0..{grid.rows - 1}, columns 0..{grid.cols - 1})")
     absent = [grid.name(v) for v in range(grid.num_views) if v not in found]
     if absent and missing == "error":
-        raise CaptureError(f"{folder}: missing view(s) {', '.join(absent)} of the {grid} grid (--missing-view unseen "
+        if len(absent) > len(found):  # most of the grid is not there: the grid, not a file, is wrong
+            raise CaptureError(f"{folder}: holds {len(found)} view image(s) but the {grid} grid has {grid.num_views} "
+                               f"views ({len(absent)} missing, e.g. {', '.join(absent[:MAX_LISTED])}); check --grid")
+        listed = ", ".join(absent[:MAX_LISTED]) + (f" and {len(absent) - MAX_LISTED} more"
+                                                    if len(absent) > MAX_LISTED else "")
+        raise CaptureError(f"{folder}: missing view(s) {listed} of the {grid} grid (--missing-view unseen "
                            f"counts a missing view image as 'board not seen')")
     return tuple(found.get(v) for v in range(grid.num_views))
 
@@ -351,8 +359,14 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
         raise CaptureError(f"{root}: input folder does not exist")
     if not root.is_dir():
         raise CaptureError(f"{root}: input must be a folder of images, not a file")
+    guessed = ""
     if layout == "auto":
         layout = _detect(root, grid)
+        if layout == "mosaic":
+            # no file name says anything about views: say so, so that a later error can be read in that light
+            guessed = (f"layout guessed as 'mosaic' (no file is named like another layout: rRR_cCC or input_CamNNN "
+                       f"views in frame folders, left*/right* pairs, or one video per view), so each image is one "
+                       f"frame holding the {grid} views tiled row-major; pass --layout if that is wrong")
     if layout == "video":
         return _open_videos(root, grid)
     names: list[str] = []
@@ -395,7 +409,8 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
         img = _read(first[0], True)
         h_all, w_all = img.shape[:2]
         if h_all % grid.rows or w_all % grid.cols:
-            raise CaptureError(f"{first[0]}: a {w_all}x{h_all} mosaic does not divide into a {grid} grid")
+            raise CaptureError(f"{first[0]}: a {w_all}x{h_all} mosaic does not divide into a {grid} grid"
+                               + (f"; {guessed}" if guessed else ""))
         size = (w_all // grid.cols, h_all // grid.rows)
     else:
         present = [p for p in first if p is not None]
@@ -408,7 +423,7 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
                 raise CaptureError(f"{p}: image is {s[0]}x{s[1]} px but {present[0]} is {sizes[0][0]}x"
                                    f"{sizes[0][1]}; all views must have one size")
         size = sizes[0]
-    notes = []
+    notes = [guessed] if guessed else []
     absent = [(names[f], grid.name(v)) for f, views in enumerate(files) for v, p in enumerate(views) if p is None]
     if absent:
         listed = ", ".join(f"{name}/{view}" for name, view in absent[:5]) + (", ..." if len(absent) > 5 else "")

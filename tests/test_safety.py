@@ -196,3 +196,17 @@ def test_killed_study_leaves_no_worker(tmp_path):
            "--trials", "6", "--jobs", "2", "--quiet", "-o", "s.csv"]
     workers = _kill_when_workers_run(cmd, tmp_path)
     assert _wait_gone(workers) == []
+
+
+def test_a_guessed_layout_is_said_and_a_wrong_grid_is_summarised(tmp_path, capsys):
+    for name in ("im0.png", "im1.png"):  # Middlebury-style names match no layout
+        cv2.imwrite(str(tmp_path / name), np.zeros((100, 301), np.uint8))
+    code, text = run(["calibrate", tmp_path, *SMALL, "-o", tmp_path / "c.json"], capsys)
+    assert code == EXIT_BAD_INPUT and "layout guessed as 'mosaic'" in text and "--layout" in text
+    frame = tmp_path / "frames" / "000"
+    frame.mkdir(parents=True)
+    for name in ("r00_c00", "r00_c01"):
+        cv2.imwrite(str(frame / f"{name}.png"), np.zeros((24, 32), np.uint8))
+    code, text = run(["calibrate", tmp_path / "frames", "--grid", "1000x1000", "--board", "7x5", "--square-mm", "15",
+                      "-o", tmp_path / "c.json"], capsys)
+    assert code == EXIT_BAD_INPUT and "check --grid" in text and len(text) < 2000

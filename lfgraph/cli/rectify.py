@@ -72,6 +72,8 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     check_output_folder(out, args.input)
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
+    for note in capture.notes:
+        print(f"note: {note}")
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     logging = check_rerun(args)
     rect = compute_rectification(calib, args.crop)
@@ -112,6 +114,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
+    for note in capture.notes:
+        print(f"note: {note}")
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     report = check(calib, capture.frames(args.max_frames))
     drifted = report.rms_px > args.max_px

@@ -45,6 +45,8 @@ def cmd_refine(args: argparse.Namespace) -> int:
             raise UsageError(f"--reference {args.reference} is not a view of the {calib.grid} grid")
         calib = with_reference(calib, args.reference)
     capture = open_capture(args.input, calib.grid, args.layout)
+    for note in capture.notes:
+        print(f"note: {note}")
     check_output_file(args.output, inputs=capture.all_paths())
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
