@@ -121,6 +121,8 @@ def test_view_with_two_frames_is_calibrated_with_a_warning(rendered, tmp_path, c
     assert main(["calibrate", str(src), *SMALL_ARGS, "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "view 2 (r01_c00) saw the board in only 2 frame(s)" in text
+    blanked = sorted(src.glob("*/r01_c00.png"))[2:]
+    assert f"board not found in: {blanked[0]}" in text  # the images without a board are named
     assert Calibration.load(out).num_views == 4
 
 

@@ -73,7 +73,20 @@ def _board_and_config(args: argparse.Namespace):
     return board, grid, config
 
 
+def _view_label(capture, frame: int, view: int) -> str | None:
+    """The file of one view-frame (with the view's name where one file holds several views); None if missing."""
+    paths = capture.paths(frame)
+    if len(paths) == capture.grid.num_views:
+        return None if paths[view] is None else str(paths[view])
+    return f"{paths[0]} ({capture.grid.name(view)})"
+
+
+MAX_MISSED_LISTED = 10  # images without a detected board named in the output
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from lfgraph.pattern import calibrate
     from lfgraph.report import calibration_report_text
 
@@ -106,6 +119,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         seen = obs.seen
         print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} "
               f"images ({time.perf_counter() - start:.1f} s)")
+        missed = [_view_label(capture, int(f), int(v)) for f, v in zip(*np.nonzero(~seen.T), strict=True)]
+        missed = [m for m in missed if m is not None]
+        if missed:
+            shown = ", ".join(str(p) for p in missed[:MAX_MISSED_LISTED])
+            print(f"board not found in: {shown}" + (f" and {len(missed) - MAX_MISSED_LISTED} more"
+                                                    if len(missed) > MAX_MISSED_LISTED else ""))
     with rerun_session(args, grid, logging) as logger:
         if logger is not None:
             logger.set_measurements(obs.num_observations)
