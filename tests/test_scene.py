@@ -119,5 +119,12 @@ def test_scene_dataset_is_seeded_and_job_independent(tmp_path):
     assert (tmp_path / "a" / "original.json").exists() and not (tmp_path / "b" / "original.json").exists()
     write_scene_dataset(tmp_path / "m", calib, cfg, frames=1, seed=1, layout="mosaic", jobs=1, progress=False)
     assert cv2.imread(str(tmp_path / "m" / "000.png"), 0).shape == (128, 192)
+    # one frame on 2 jobs: its views are split over two tasks, same files
+    write_scene_dataset(tmp_path / "s", calib, cfg, frames=1, seed=1, jobs=2, progress=False)
+    write_scene_dataset(tmp_path / "sm", calib, cfg, frames=1, seed=1, layout="mosaic", jobs=2, progress=False)
+    for name in ("000/r00_c00.png", "000/r01_c01.png"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "s" / name).read_bytes()
+    assert (tmp_path / "m" / "000.png").read_bytes() == (tmp_path / "sm" / "000.png").read_bytes()
+    assert sorted(p.name for p in (tmp_path / "sm").iterdir()) == ["000.png", "truth.json"]
     with pytest.raises(ValueError, match="scene kind"):
         SceneConfig(kind="forest")

@@ -342,15 +342,19 @@ def _checker_rows(uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray, offsets: np
     one integer u and one integer v, each flipping the colour, so black covers t1 + (1 - t2) of it when it starts
     black (t1 <= t2 the crossings as fractions of the sub-row, 1 when none) and t2 - t1 otherwise.
     """
-    start = uv0[:, None, :] + offsets[None, :, None] * j_y[:, None, :] - 0.5 * j_x[:, None, :]  # (E, n, 2)
-    end = start + j_x[:, None, :]
-    f_start, f_end = np.floor(start), np.floor(end)
-    crossed = f_start != f_end
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(crossed, (np.maximum(f_start, f_end) - start) / (end - start), 1.0)
-    t1, t2 = t.min(axis=2), t.max(axis=2)
-    starts_black = (f_start.sum(axis=2).astype(np.int64) & 1) == 0
-    black = np.where(starts_black, 1.0 - (t2 - t1), t2 - t1).mean(axis=1)
+    # float32: board coordinates below ~100 squares keep 1e-5 squares (< 1e-3 px) of precision
+    uv0, j_x, j_y, offsets = (a.astype(np.float32) for a in (uv0, j_x, j_y, offsets))
+    t = []
+    parity = 0
+    for c in range(2):  # u, then v: (E, n) arrays
+        start = uv0[:, c, None] + offsets[None, :] * j_y[:, c, None] - 0.5 * j_x[:, c, None]
+        end = start + j_x[:, c, None]
+        f_start, f_end = np.floor(start), np.floor(end)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t.append(np.where(f_start != f_end, (np.maximum(f_start, f_end) - start) / j_x[:, c, None], 1.0))
+        parity = parity + f_start.astype(np.int32)
+    t1, t2 = np.minimum(t[0], t[1]), np.maximum(t[0], t[1])
+    black = np.where((parity & 1) == 0, 1.0 - (t2 - t1), t2 - t1).mean(axis=1)
     return (BLACK_LEVEL * black + WHITE_LEVEL * (1.0 - black)).astype(np.float32)
 
 
@@ -403,8 +407,12 @@ def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, i
     if config.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma_px)
     if rng is not None and config.noise_sigma > 0:
-        img = img + config.noise_sigma * rng.standard_normal(img.shape)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        noise = rng.standard_normal(img.shape)  # float64, the same stream as before issue 16
+        noise *= config.noise_sigma
+        noise += img
+        img = noise
+    np.rint(img, out=img)
+    return np.clip(img, 0, 255, out=img).astype(np.uint8)
 
 
 def iter_view_images(calib: Calibration, truth: CheckerboardTruth, config: CheckerboardConfig, seed: int,

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +28,7 @@ from lfgraph.camera import Intrinsics
 from lfgraph.datasets.loaders import write_frame
 from lfgraph.datasets.render import LensRays, clip_polygon_near, plane_maps, sample_rays
 from lfgraph.geometry import rotation_from_rotvec
+from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
 
 PLANE_EDGE_ON_M3 = 1e-12  # |normal . centre| below this (axes in metres): the camera lies in the quad's plane
@@ -256,15 +259,23 @@ def _render_view(scene: Scene, textures: list[np.ndarray] | None, intrinsics: In
 
 
 def _render_frame_task(args: tuple) -> int:
-    calib_json, config, seed, frame, out_dir, layout = args
+    """Render views ``views`` of one frame; all of them go through ``write_frame`` in ``layout``, a part of them
+    is written as one PNG per view (``folders``) for the parent to assemble."""
+    calib_json, config, seed, frame, views, out_dir, layout = args
     calib = Calibration.from_dict(json.loads(calib_json))
     scene = make_scene(config, np.random.default_rng([seed, frame]))
     textures = [q.texture.astype(np.float32) for q in scene.quads]  # converted once for all views
-    images = np.stack([
-        _render_view(scene, textures, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v), config,
-                     np.random.default_rng([seed, frame, v]))
-        for v in range(calib.num_views)])
-    write_frame(out_dir, f"{frame:03d}", images, calib.grid, layout=layout)
+    images = [_render_view(scene, textures, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v), config,
+                           np.random.default_rng([seed, frame, v])) for v in views]
+    if len(views) == calib.num_views:
+        write_frame(out_dir, f"{frame:03d}", np.stack(images), calib.grid, layout=layout)
+        return frame
+    for v, img in zip(views, images, strict=True):
+        path = Path(out_dir) / f"{frame:03d}" / f"{calib.grid.name(v)}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            if not cv2.imwrite(str(tmp), img):
+                raise OSError(f"could not write {path}")
     return frame
 
 
@@ -273,14 +284,30 @@ def write_scene_dataset(out_dir: str | os.PathLike, calib: Calibration, config: 
                         original: Calibration | None = None) -> None:
     """Render ``frames`` random scenes seen by ``calib`` to ``out_dir`` with ``truth.json`` (and ``original.json``).
 
-    Frame f's scene is drawn from (seed, f) and its noise from (seed, f, view), so any ``jobs`` gives the same files.
+    One task per frame; with fewer frames than ``jobs``, each frame's views are split over several tasks (each
+    draws the frame's scene itself) so that every process has work. Frame f's scene is drawn from (seed, f) and
+    its noise from (seed, f, view), so any ``jobs`` gives the same files.
     """
     if layout not in ("folders", "mosaic"):
         raise ValueError(f"layout must be 'folders' or 'mosaic', got {layout!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tasks = [(calib.to_json(), config, seed, f, str(out), layout) for f in range(frames)]
-    run_tasks(_render_frame_task, tasks, jobs, "rendering frames", "frame", progress)
+    n_jobs = max(1, jobs or os.cpu_count() or 1)
+    parts = min(calib.num_views, -(-n_jobs // max(frames, 1)))
+    views = [list(c) for c in np.array_split(np.arange(calib.num_views), parts)]
+    render_dir = out if parts == 1 or layout == "folders" else Path(tempfile.mkdtemp(prefix=".render-", dir=out))
+    tasks = [(calib.to_json(), config, seed, f, [int(v) for v in vs], str(render_dir), layout)
+             for f in range(frames) for vs in views]
+    try:
+        run_tasks(_render_frame_task, tasks, jobs, "rendering frames", "frame", progress)
+        if render_dir != out:
+            for f in range(frames):
+                images = np.stack([cv2.imread(str(render_dir / f"{f:03d}" / f"{calib.grid.name(v)}.png"),
+                                              cv2.IMREAD_GRAYSCALE) for v in range(calib.num_views)])
+                write_frame(out, f"{f:03d}", images, calib.grid, layout=layout)
+    finally:
+        if render_dir != out:
+            shutil.rmtree(render_dir, ignore_errors=True)
     calib.save(out / "truth.json")
     if original is not None:
         original.save(out / "original.json")
