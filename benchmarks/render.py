@@ -9,6 +9,7 @@ Cases, all measured in this run on this machine:
 * ``paper-4x4`` checkerboard set: 16 views x 40 frames of 960x960. The new renderer writes the whole set with
   ``write_checkerboard_dataset``. Old and new render ``--old-frames`` frames of ``--old-views`` views in this
   process; the old set time is extrapolated the same way (per-image and per-view ray costs swapped).
+  ``s_per_view`` is per rendered image, in this process, noise-free, PNG writing excluded.
 * ``test rig`` checkerboards (the accuracy case of tests/test_checkerboard.py: 2x2 views of 640x480, k1 = -0.12,
   noise-free, blur 0.8 px): RMS of OpenCV-detected corners vs the true projections; the test's limit is 0.05 px.
 
@@ -42,7 +43,6 @@ from render_reference import (
 from lfgraph.board import BoardSpec, detect_board
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
-    ViewRays,
     make_checkerboard_truth,
     render_checkerboard_view,
     write_checkerboard_dataset,
@@ -123,6 +123,15 @@ def _corner_rms(images, truths) -> tuple[float, int]:
     return (float(np.sqrt(np.mean(np.concatenate(err)))) if err else float("nan")), len(err)
 
 
+def _timed(fn, items) -> tuple[list, list[float]]:
+    out, seconds = [], []
+    for item in items:
+        start = time.perf_counter()
+        out.append(fn(item))
+        seconds.append(time.perf_counter() - start)
+    return out, seconds
+
+
 def _mad(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(np.abs(a.astype(np.float64) - b.astype(np.float64))))
 
@@ -141,21 +150,20 @@ def scene_case(args, rows: list) -> bool:
         start = time.perf_counter()
         write_scene_dataset(Path(tmp) / "new", calib, cfg, frames=1, seed=0, jobs=args.jobs, progress=False)
         new_frame_s = time.perf_counter() - start
-    # per view, in this process (lens rays computed cold for each view)
-    old_s, new_s, peer_s, diff_new, diff_peer, depth_err = [], [], [], [], [], []
+    # per view, in this process; each renderer in its own loop (interleaving them slows the new one by sharing
+    # caches and allocator with the old one's ~1 GB of temporaries); lens rays computed cold for each view
+    sample_rays.cache_clear()
+    news, new_s = _timed(lambda v: render_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v), quiet),
+                         views)
+    olds, old_s = _timed(lambda v: render_scene_view_reference(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
+                                                               quiet), views)
+    peers, peer_s = _timed(lambda v: peer_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
+                                                     _peer_lens_map(calib.intrinsics[v], size)), views)
+    diff_new = [_mad(a, b) for a, b in zip(news, olds, strict=True)]
+    diff_peer = [_mad(a, b) for a, b in zip(peers, olds, strict=True)]
+    depth_err = []
     for v in views:
         intr, T = calib.intrinsics[v], calib.view_T_ref(v)  # noqa: N806
-        start = time.perf_counter()
-        old = render_scene_view_reference(scene, intr, size, T, quiet)
-        old_s.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        new = render_scene_view(scene, intr, size, T, quiet)
-        new_s.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        peer = peer_scene_view(scene, intr, size, T, _peer_lens_map(intr, size))
-        peer_s.append(time.perf_counter() - start)
-        diff_new.append(_mad(new, old))
-        diff_peer.append(_mad(peer, old))
         d_new = render_scene_depth(scene, intr, size, T)
         d_old = render_scene_depth_reference(scene, intr, size, T)
         assert np.array_equal(np.isnan(d_new), np.isnan(d_old))
@@ -200,36 +208,32 @@ def board_set_case(args, rows: list) -> bool:
         peer_set_s = time.perf_counter() - start
     views = np.linspace(0, calib.num_views - 1, args.old_views).round().astype(int)
     frames = np.linspace(0, n_frames - 1, args.old_frames).round().astype(int)
-    old_rays_s, old_img_s, new_img_s = [], [], []
-    imgs = {"old": [], "new": [], "peer": []}
-    truths = []
+    pairs = [(int(v), int(f)) for v in views for f in frames]
+
+    def pose(v: int, f: int) -> np.ndarray:
+        return calib.view_T_ref(v) @ truth.ref_T_board[f]
+
+    sample_rays.cache_clear()  # the new renderer computes each view's rays on its first image
+    new_imgs, new_img_s = _timed(lambda vf: render_checkerboard_view(calib.intrinsics[vf[0]], size, pose(*vf),
+                                                                     cfg.board, quiet), pairs)
+    old_rays = {}
+    old_rays_s = []
     for v in views:
-        intr = calib.intrinsics[v]
         start = time.perf_counter()
-        rays = OldViewRays.compute(intr, size)
+        old_rays[int(v)] = OldViewRays.compute(calib.intrinsics[v], size)
         old_rays_s.append(time.perf_counter() - start)
-        maps = _peer_lens_map(intr, size)
-        for f in frames:
-            T = calib.view_T_ref(v) @ truth.ref_T_board[f]  # noqa: N806
-            start = time.perf_counter()
-            imgs["old"].append(render_checkerboard_view_reference(intr, size, T, cfg.board, quiet, None, rays))
-            old_img_s.append(time.perf_counter() - start)
-            start = time.perf_counter()
-            imgs["new"].append(render_checkerboard_view(intr, size, T, cfg.board, quiet))
-            new_img_s.append(time.perf_counter() - start)
-            imgs["peer"].append(peer_board_view(intr, size, T, cfg.board, maps, texture))
-            truths.append((cfg.board, truth.corners_px[v, f]))
+    old_imgs, old_img_s = _timed(lambda vf: render_checkerboard_view_reference(
+        calib.intrinsics[vf[0]], size, pose(*vf), cfg.board, quiet, None, old_rays[vf[0]]), pairs)
+    peer_maps = {int(v): _peer_lens_map(calib.intrinsics[v], size) for v in views}
+    imgs = {"old": old_imgs, "new": new_imgs,
+            "peer": [peer_board_view(calib.intrinsics[v], size, pose(v, f), cfg.board, peer_maps[v], texture)
+                     for v, f in pairs]}
+    truths = [(cfg.board, truth.corners_px[v, f]) for v, f in pairs]
     old_view, new_view = np.mean(old_img_s), np.mean(new_img_s)
-    # The old writer differed only in the renderer: the new set's wall time with the per-image and per-view render
-    # costs swapped for the old ones (PNG writing, noise, process start-up counted as measured).
-    new_rays_s = []
-    for v in views:
-        sample_rays.cache_clear()
-        start = time.perf_counter()
-        ViewRays.compute(calib.intrinsics[v], size)
-        new_rays_s.append(time.perf_counter() - start)
-    old_set = new_set_s + ((old_view - new_view) * n
-                           + (np.mean(old_rays_s) - np.mean(new_rays_s)) * calib.num_views) / args.jobs
+    # The old writer differed only in the renderer: the new set's wall time with the per-image render cost swapped
+    # for the old one (PNG writing, noise, process start-up counted as measured). The new per-image time includes
+    # its cold rays spread over --old-frames images (not 40), so this understates the old set: conservative.
+    old_set = new_set_s + ((old_view - new_view) * n + np.mean(old_rays_s) * calib.num_views) / args.jobs
     rms = {k: _corner_rms(imgs[k], truths) for k in imgs}
     note = f"{len(views)}x{len(frames)} images"
     rows += [
