@@ -2,30 +2,33 @@
 
 Cases, all measured in this run on this machine:
 
-* ``paper-5x5`` textured scene frame: 25 views of 512x512, 2x2 samples per pixel. The new renderer writes the
-  whole frame with ``write_scene_dataset`` (``--jobs`` processes, start-up, scene generation and PNGs included).
-  Old and new render ``--old-views`` views in this process (lens rays computed cold); the old frame time is
-  extrapolated as the new frame's wall time plus (old - new) per-view time x 25 views / ``--jobs``.
+* ``paper-5x5`` textured scene frame: 25 views of 512x512, 2x2 samples per pixel, as ``lfgraph synth scene``.
+  The new renderer writes the whole frame with ``write_scene_dataset`` (``--jobs`` processes; start-up, scene
+  generation and PNGs included). Old, new and peer each render ``--old-views`` views in this process (lens rays
+  cold); the old frame is extrapolated as the new frame plus (old - new) per view x 25 views (wall: / ``--jobs``).
 * ``paper-4x4`` checkerboard set: 16 views x 40 frames of 960x960. The new renderer writes the whole set with
   ``write_checkerboard_dataset``. Old and new render ``--old-frames`` frames of ``--old-views`` views in this
-  process; the old set time is extrapolated the same way (per-image and per-view ray costs swapped).
-  ``s_per_view`` is per rendered image, in this process, noise-free, PNG writing excluded.
+  process; the old set is extrapolated the same way, plus the old per-view rays. Per-view times are per image,
+  noise-free, PNG writing excluded.
 * ``test rig`` checkerboards (the accuracy case of tests/test_checkerboard.py: 2x2 views of 640x480, k1 = -0.12,
   noise-free, blur 0.8 px): RMS of OpenCV-detected corners vs the true projections; the test's limit is 0.05 px.
 
 The peer does the least an OpenCV user would: per view, ``cv2.warpPerspective`` (bilinear) of each planar texture
 into a pinhole image of the view's size (painter's order, far to near; a board drawn at 40 px per square) and the
 lens applied with ``cv2.remap`` through a map from ``cv2.undistortPoints`` (once per lens); no anti-aliasing, no
-margin for the lens (barrel-distorted corners see background), single process, board PNGs written as well.
+margin for the lens (barrel-distorted corners see background), one process (its wall time divided by ``--jobs``).
 
-Image differences are mean absolute grey levels of noise-free renders of the same views, against the old renderer.
-Timings are wall-clock on a shared machine: compare the ratios, which come from the same run.
+Columns: wall and CPU time per view (ms) and per set (s), speed vs old (wall and CPU), RMS of detected corners vs
+truth (px; detection may fail on a few peer images), mean absolute grey-level difference from the old renderer
+(noise-free renders of the same views). The machine is shared: wall times swing with the other users' load, CPU
+times (this process plus the writers' worker pools) much less; compare ratios from the same run.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import resource
 import sys
 import tempfile
 import time
@@ -123,13 +126,25 @@ def _corner_rms(images, truths) -> tuple[float, int]:
     return (float(np.sqrt(np.mean(np.concatenate(err)))) if err else float("nan")), len(err)
 
 
-def _timed(fn, items) -> tuple[list, list[float]]:
-    out, seconds = [], []
+def _clock() -> tuple[float, float]:
+    """(wall, CPU) seconds; CPU counts this process and its finished children (the writers' worker pools)."""
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.perf_counter(), time.process_time() + ch.ru_utime + ch.ru_stime
+
+
+def _since(start: tuple[float, float]) -> tuple[float, float]:
+    now = _clock()
+    return now[0] - start[0], now[1] - start[1]
+
+
+def _timed(fn, items) -> tuple[list, np.ndarray]:
+    """Outputs of ``fn`` over ``items`` and the mean (wall, CPU) seconds per item."""
+    out, spent = [], []
     for item in items:
-        start = time.perf_counter()
+        start = _clock()
         out.append(fn(item))
-        seconds.append(time.perf_counter() - start)
-    return out, seconds
+        spent.append(_since(start))
+    return out, np.mean(spent, axis=0)
 
 
 def _mad(a: np.ndarray, b: np.ndarray) -> float:
@@ -139,7 +154,8 @@ def _mad(a: np.ndarray, b: np.ndarray) -> float:
 def scene_case(args, rows: list) -> bool:
     named = get_scene("paper-5x5")
     calib = make_rig(named.rig, np.random.default_rng(0))
-    cfg = SceneConfig(depth_m=named.scene_depth_m)
+    near, far = named.scene_depth_m
+    cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4)  # as `lfgraph synth scene`
     quiet = dataclasses.replace(cfg, noise_sigma=0.0)
     size = calib.image_size_px
     views = np.linspace(0, calib.num_views - 1, args.old_views).round().astype(int)
@@ -147,20 +163,18 @@ def scene_case(args, rows: list) -> bool:
     n = calib.num_views
     # new: the whole frame through the writer (processes, scene generation, PNGs)
     with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
+        start = _clock()
         write_scene_dataset(Path(tmp) / "new", calib, cfg, frames=1, seed=0, jobs=args.jobs, progress=False)
-        new_frame_s = time.perf_counter() - start
+        new_frame = np.array(_since(start))
     # per view, in this process; each renderer in its own loop (interleaving them slows the new one by sharing
     # caches and allocator with the old one's ~1 GB of temporaries); lens rays computed cold for each view
     sample_rays.cache_clear()
-    news, new_s = _timed(lambda v: render_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v), quiet),
-                         views)
-    olds, old_s = _timed(lambda v: render_scene_view_reference(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
-                                                               quiet), views)
-    peers, peer_s = _timed(lambda v: peer_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
-                                                     _peer_lens_map(calib.intrinsics[v], size)), views)
-    diff_new = [_mad(a, b) for a, b in zip(news, olds, strict=True)]
-    diff_peer = [_mad(a, b) for a, b in zip(peers, olds, strict=True)]
+    news, new_view = _timed(lambda v: render_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v), quiet),
+                            views)
+    olds, old_view = _timed(lambda v: render_scene_view_reference(scene, calib.intrinsics[v], size,
+                                                                  calib.view_T_ref(v), quiet), views)
+    peers, peer_view = _timed(lambda v: peer_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
+                                                        _peer_lens_map(calib.intrinsics[v], size)), views)
     depth_err = []
     for v in views:
         intr, T = calib.intrinsics[v], calib.view_T_ref(v)  # noqa: N806
@@ -168,18 +182,20 @@ def scene_case(args, rows: list) -> bool:
         d_old = render_scene_depth_reference(scene, intr, size, T)
         assert np.array_equal(np.isnan(d_new), np.isnan(d_old))
         depth_err.append(float(np.nanmax(np.abs(d_new - d_old))))
-    old_view, new_view, peer_view = np.mean(old_s), np.mean(new_s), np.mean(peer_s)
-    # the old writer: the new frame's wall time with the per-view render cost swapped for the old one
-    old_frame = new_frame_s + (old_view - new_view) * n / args.jobs
+    # the old writer: the new frame with the per-view render cost swapped for the old one (wall: spread over jobs)
+    old_frame = new_frame + (old_view - new_view) * n / np.array([args.jobs, 1])
+    peer_frame = peer_view * n / np.array([args.jobs, 1])
+    mad = {k: np.mean([_mad(a, b) for a, b in zip(imgs, olds, strict=True)]) for k, imgs in (("new", news),
+                                                                                          ("peer", peers))}
     rows += [
-        ["scene paper-5x5, old (ray cast)", n, old_view, old_frame, 1.0, None, 0.0, f"{len(views)} views, extrap."],
-        ["scene paper-5x5, new", n, new_view, new_frame_s, old_frame / new_frame_s, None, np.mean(diff_new),
-         f"view {old_view / new_view:.0f}x; frame via writer"],
-        ["scene paper-5x5, opencv peer", n, peer_view, peer_view * n / args.jobs, old_view / peer_view, None,
-         np.mean(diff_peer), "no AA, painter"],
+        _row("scene paper-5x5, old (ray cast)", n, old_view, old_frame, old_frame, None, 0.0,
+             f"{len(views)} views, extrap."),
+        _row("scene paper-5x5, new", n, new_view, new_frame, old_frame, None, mad["new"], "frame: writer"),
+        _row("scene paper-5x5, opencv peer", n, peer_view, peer_frame, old_frame, None, mad["peer"],
+             "no AA, painter; extrap."),
     ]
     print(f"scene depth maps: new vs old max |dz| = {max(depth_err):.2e} m (same NaN pattern)")
-    return new_frame_s <= SCENE_FRAME_TARGET_S
+    return new_frame[0] <= SCENE_FRAME_TARGET_S
 
 
 def board_set_case(args, rows: list) -> bool:
@@ -191,21 +207,21 @@ def board_set_case(args, rows: list) -> bool:
     size = calib.image_size_px
     n_frames, n = cfg.frames, calib.num_views * cfg.frames
     quiet = dataclasses.replace(cfg, noise_sigma=0.0)
+    texture = peer_board_texture(cfg.board)
     with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
+        start = _clock()
         write_checkerboard_dataset(Path(tmp) / "new", calib, truth, cfg, seed=0, jobs=args.jobs, progress=False)
-        new_set_s = time.perf_counter() - start
+        new_set = np.array(_since(start))
         peer_dir = Path(tmp) / "peer"
         peer_dir.mkdir()
-        texture = peer_board_texture(cfg.board)
-        start = time.perf_counter()
+        start = _clock()
         for v in range(calib.num_views):
             maps = _peer_lens_map(calib.intrinsics[v], size)
             for f in range(n_frames):
                 img = peer_board_view(calib.intrinsics[v], size, calib.view_T_ref(v) @ truth.ref_T_board[f], cfg.board,
                                       maps, texture)
                 cv2.imwrite(str(peer_dir / f"{v:02d}_{f:03d}.png"), img)
-        peer_set_s = time.perf_counter() - start
+        peer_set = np.array(_since(start)) / np.array([args.jobs, 1])  # one process; wall as if on --jobs cores
     views = np.linspace(0, calib.num_views - 1, args.old_views).round().astype(int)
     frames = np.linspace(0, n_frames - 1, args.old_frames).round().astype(int)
     pairs = [(int(v), int(f)) for v in views for f in frames]
@@ -214,38 +230,39 @@ def board_set_case(args, rows: list) -> bool:
         return calib.view_T_ref(v) @ truth.ref_T_board[f]
 
     sample_rays.cache_clear()  # the new renderer computes each view's rays on its first image
-    new_imgs, new_img_s = _timed(lambda vf: render_checkerboard_view(calib.intrinsics[vf[0]], size, pose(*vf),
-                                                                     cfg.board, quiet), pairs)
-    old_rays = {}
-    old_rays_s = []
-    for v in views:
-        start = time.perf_counter()
-        old_rays[int(v)] = OldViewRays.compute(calib.intrinsics[v], size)
-        old_rays_s.append(time.perf_counter() - start)
-    old_imgs, old_img_s = _timed(lambda vf: render_checkerboard_view_reference(
-        calib.intrinsics[vf[0]], size, pose(*vf), cfg.board, quiet, None, old_rays[vf[0]]), pairs)
+    new_imgs, new_view = _timed(lambda vf: render_checkerboard_view(calib.intrinsics[vf[0]], size, pose(*vf),
+                                                                    cfg.board, quiet), pairs)
+    old_rays, old_rays_spent = _timed(lambda v: OldViewRays.compute(calib.intrinsics[v], size), views)
+    rays_of = dict(zip((int(v) for v in views), old_rays, strict=True))
+    old_imgs, old_view = _timed(lambda vf: render_checkerboard_view_reference(
+        calib.intrinsics[vf[0]], size, pose(*vf), cfg.board, quiet, None, rays_of[vf[0]]), pairs)
     peer_maps = {int(v): _peer_lens_map(calib.intrinsics[v], size) for v in views}
     imgs = {"old": old_imgs, "new": new_imgs,
             "peer": [peer_board_view(calib.intrinsics[v], size, pose(v, f), cfg.board, peer_maps[v], texture)
                      for v, f in pairs]}
     truths = [(cfg.board, truth.corners_px[v, f]) for v, f in pairs]
-    old_view, new_view = np.mean(old_img_s), np.mean(new_img_s)
-    # The old writer differed only in the renderer: the new set's wall time with the per-image render cost swapped
-    # for the old one (PNG writing, noise, process start-up counted as measured). The new per-image time includes
-    # its cold rays spread over --old-frames images (not 40), so this understates the old set: conservative.
-    old_set = new_set_s + ((old_view - new_view) * n + np.mean(old_rays_s) * calib.num_views) / args.jobs
-    rms = {k: _corner_rms(imgs[k], truths) for k in imgs}
+    # The old writer differed only in the renderer: the new set with the per-image render cost swapped for the
+    # old one (PNG writing, noise, process start-up counted as measured). The new per-image time includes its
+    # cold rays spread over --old-frames images (not 40), so this understates the old set: conservative.
+    per_core = np.array([args.jobs, 1])
+    old_set = new_set + ((old_view - new_view) * n + old_rays_spent * calib.num_views) / per_core
+    rms = {k: _corner_rms(imgs[k], truths)[0] for k in imgs}
+    mad = {k: np.mean([_mad(a, b) for a, b in zip(imgs[k], imgs["old"], strict=True)]) for k in ("new", "peer")}
     note = f"{len(views)}x{len(frames)} images"
     rows += [
-        ["board paper-4x4, old", n, old_view, old_set, 1.0, rms["old"][0], 0.0, note + ", extrap. (see doc)"],
-        ["board paper-4x4, new", n, new_view, new_set_s, old_set / new_set_s, rms["new"][0],
-         np.mean([_mad(a, b) for a, b in zip(imgs["new"], imgs["old"], strict=True)]),
-         f"image {old_view / new_view:.1f}x; set via writer"],
-        ["board paper-4x4, opencv peer", n, peer_set_s / n, peer_set_s / args.jobs, old_set / (peer_set_s / args.jobs),
-         rms["peer"][0], np.mean([_mad(a, b) for a, b in zip(imgs["peer"], imgs["old"], strict=True)]),
-         "no AA; 1 process, /jobs"],
+        _row("board paper-4x4, old", n, old_view, old_set, old_set, rms["old"], 0.0, note + ", extrap."),
+        _row("board paper-4x4, new", n, new_view, new_set, old_set, rms["new"], mad["new"], "set: writer"),
+        _row("board paper-4x4, opencv peer", n, None, peer_set, old_set, rms["peer"], mad["peer"],
+             "no AA; 1 process"),
     ]
-    return new_set_s <= BOARD_SET_TARGET_S
+    return new_set[0] <= BOARD_SET_TARGET_S
+
+
+def _row(case, images, per_view, per_set, old_set, rms, mad, note) -> list:
+    """A table row; ``per_view``, ``per_set`` and ``old_set`` are (wall, CPU) seconds."""
+    pv = (None, None) if per_view is None else (1e3 * per_view[0], 1e3 * per_view[1])
+    return [case, images, *pv, per_set[0], per_set[1], old_set[0] / per_set[0], old_set[1] / per_set[1], rms, mad,
+            note]
 
 
 def accuracy_case(rows: list) -> bool:
@@ -270,7 +287,8 @@ def accuracy_case(rows: list) -> bool:
     n = len(truths)
     for k, label in (("old", "old"), ("new", "new"), ("peer", "opencv peer")):
         diff = 0.0 if k == "old" else np.mean([_mad(a, b) for a, b in zip(imgs[k], imgs["old"], strict=True)])
-        rows.append([f"board test rig, {label}", n, None, None, None, rms[k][0], diff, f"{rms[k][1]} boards found"])
+        rows.append([f"board test rig, {label}", n, None, None, None, None, None, None, rms[k][0], diff,
+                     f"{rms[k][1]} boards found"])
     return rms["new"][0] <= CORNER_RMS_LIMIT_PX
 
 
@@ -285,8 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     ok_board = board_set_case(args, rows)
     ok_acc = accuracy_case(rows)
     print(f"render benchmark: {args.jobs} jobs; old renderer extrapolated from the images it rendered (see note)")
-    print(format_table(["case", "images", "s_per_view", "s_per_set", "speed_vs_old", "corner_rms_px",
-                        "mad_vs_old_grey", "note"], rows, floatfmt=".3g"))
+    print(format_table(["case", "images", "ms_view", "cpu_ms_view", "s_set", "cpu_s_set", "x_old_wall", "x_old_cpu",
+                        "corner_rms_px", "mad_old_grey", "note"], rows, floatfmt=".3g"))
     print(f"targets: scene frame <= {SCENE_FRAME_TARGET_S} s, board set <= {BOARD_SET_TARGET_S} s, "
           f"new corner RMS <= {CORNER_RMS_LIMIT_PX} px (test rig), renderers >= {SPEEDUP_TARGET:.0f}x old")
     return 0 if ok_scene and ok_board and ok_acc else 1
