@@ -303,8 +303,10 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
 
     Pixels well inside the squares (their whole footprint) are integrated exactly along n sub-rows: along a
     sub-row both board coordinates are linear, so the colour flips where u or v crosses an integer, and the
-    covered fraction follows in closed form (`_checker_rows`). The others (near the board's outline, or with
-    squares narrower than `ANALYTIC_MAX_SQUARES_PER_PX`) are point-sampled N x N.
+    covered fraction follows in closed form (`_checker_rows`). Pixels near the squares' border or the board's
+    outline are integrated along sub-rows too, over the pieces between the crossings of any colour boundary
+    (`_outline_rows`). The rest (squares or margins narrower than `ANALYTIC_MAX_SQUARES_PER_PX`, a board partly
+    behind the camera) are point-sampled N x N.
     """
     d_dx, d_dy = rays.derivatives(rows, cols)
     xy0 = rays.lens.xy[rows, cols]
@@ -325,6 +327,10 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
     a = np.flatnonzero(analytic)
     out[a] = _checker_rows(uv0[a], j_x[a], j_y[a], offsets)
     s = np.flatnonzero(~analytic)
+    if len(s) and not partly_behind:
+        values, ok = _outline_rows(board, uv0[s], j_x[s], j_y[s], offsets, background)
+        out[s[ok]] = values[ok]
+        s = s[~ok]
     if len(s):
         ox, oy = (o.ravel() for o in np.meshgrid(offsets, offsets))
         samples = xy0[s, None, :] + d_dx[s, None, :] * ox[None, :, None] + d_dy[s, None, :] * oy[None, :, None]
@@ -333,6 +339,39 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
             uv_s[(samples @ g[2, :2] + g[2, 2]) <= 0] = np.nan
         out[s] = _board_grey(board, uv_s, background).mean(axis=1)
     return out
+
+
+def _outline_rows(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray, offsets: np.ndarray,
+                  background: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact mean grey along sub-rows at ``offsets`` (pixels) of each pixel, for any part of the board.
+
+    The colour is constant between consecutive boundary lines along u (the outline, the squares' border, the
+    squares' edges) and along v. A sub-row crossing at most one line of each kind splits into at most three
+    pieces, each coloured by its midpoint (`_board_grey`) and weighted by its length.
+
+    Returns:
+        (E,) float32 grey levels and (E,) True where every sub-row crossed at most one line of each kind (the
+        others are not computed).
+    """
+    m = board.margin_squares
+    start = uv0[:, None, :] + offsets[None, :, None] * j_y[:, None, :] - 0.5 * j_x[:, None, :]  # (E, n, 2)
+    step = np.broadcast_to(j_x[:, None, :], start.shape)
+    t = np.ones(start.shape)
+    ok = np.ones(len(uv0), dtype=bool)
+    for c, size in enumerate((board.cols, board.rows)):
+        lines = np.unique(np.r_[-1.0 - m, np.arange(-1, size + 1, dtype=float), size + m])
+        i_start = np.searchsorted(lines, start[..., c], side="right")
+        i_end = np.searchsorted(lines, start[..., c] + step[..., c], side="right")
+        ok &= np.abs(i_start - i_end).max(axis=1) <= 1
+        crossed = i_start != i_end
+        line = lines[np.clip(np.maximum(i_start, i_end) - 1, 0, len(lines) - 1)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t[..., c] = np.where(crossed, (line - start[..., c]) / step[..., c], 1.0)
+    t1, t2 = np.minimum(t[..., 0], t[..., 1]), np.maximum(t[..., 0], t[..., 1])
+    grey = np.zeros(t1.shape)
+    for weight, mid in ((t1, 0.5 * t1), (t2 - t1, 0.5 * (t1 + t2)), (1.0 - t2, 0.5 * (t2 + 1.0))):
+        grey += weight * _board_grey(board, start + mid[..., None] * step, background)
+    return grey.mean(axis=1).astype(np.float32), ok
 
 
 def _checker_rows(uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray, offsets: np.ndarray) -> np.ndarray:
