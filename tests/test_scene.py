@@ -166,3 +166,18 @@ def test_intersecting_quads_keep_the_nearer_surface_per_pixel():
     truth = np.minimum(2.0 / (1.0 - 0.5 * x), 2.0 / (1.0 + 0.5 * x)).reshape(h, w)
     assert not np.isnan(depth).any()
     assert np.max(np.abs(depth - truth)) < DEPTH_EXACT_M
+
+
+def test_rendering_several_views_at_once_matches_one_by_one():
+    from lfgraph.datasets.scene import render_scene_views
+
+    calib = _rig(size=(96, 64), f=90.0)
+    cfg = SceneConfig(objects=3, texels_per_m_at_1m=200)
+    scene = make_scene(cfg, np.random.default_rng(4))
+    many = render_scene_views(scene, calib, cfg, [3, 1], [np.random.default_rng(3), np.random.default_rng(1)])
+    for img, v in zip(many, [3, 1], strict=True):
+        one = render_scene_view(scene, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v), cfg,
+                                np.random.default_rng(v))
+        assert np.array_equal(img, one)
+    with pytest.raises(ValueError, match="one rng per view"):
+        render_scene_views(scene, calib, cfg, [0, 1], [None])

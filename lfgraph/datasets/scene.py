@@ -243,6 +243,26 @@ def render_scene_view(scene: Scene, intrinsics: Intrinsics, image_size_px: tuple
     return _render_view(scene, None, intrinsics, image_size_px, view_T_ref, config, rng)
 
 
+def render_scene_views(scene: Scene, calib: Calibration, config: SceneConfig, views: list[int] | None = None,
+                       rngs: list[np.random.Generator | None] | None = None) -> np.ndarray:
+    """(len(views), H, W) uint8: `render_scene_view` for several views of one scene, textures prepared once.
+
+    Args:
+        scene: the scene.
+        calib: the array (intrinsics and poses of the views).
+        config: supersampling, blur, noise.
+        views: view indices (default: all).
+        rngs: one noise source per view (None entries or None: no noise).
+    """
+    views = list(range(calib.num_views)) if views is None else list(views)
+    rngs = [None] * len(views) if rngs is None else list(rngs)
+    if len(rngs) != len(views):
+        raise ValueError(f"need one rng per view, got {len(rngs)} for {len(views)} views")
+    textures = [q.texture.astype(np.float32) for q in scene.quads]
+    return np.stack([_render_view(scene, textures, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v),
+                                  config, rng) for v, rng in zip(views, rngs, strict=True)])
+
+
 def _render_view(scene: Scene, textures: list[np.ndarray] | None, intrinsics: Intrinsics,
                  image_size_px: tuple[int, int], view_T_ref: np.ndarray, config: SceneConfig,  # noqa: N803
                  rng: np.random.Generator | None) -> np.ndarray:
@@ -264,11 +284,9 @@ def _render_frame_task(args: tuple) -> int:
     calib_json, config, seed, frame, views, out_dir, layout = args
     calib = Calibration.from_dict(json.loads(calib_json))
     scene = make_scene(config, np.random.default_rng([seed, frame]))
-    textures = [q.texture.astype(np.float32) for q in scene.quads]  # converted once for all views
-    images = [_render_view(scene, textures, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v), config,
-                           np.random.default_rng([seed, frame, v])) for v in views]
+    images = render_scene_views(scene, calib, config, views, [np.random.default_rng([seed, frame, v]) for v in views])
     if len(views) == calib.num_views:
-        write_frame(out_dir, f"{frame:03d}", np.stack(images), calib.grid, layout=layout)
+        write_frame(out_dir, f"{frame:03d}", images, calib.grid, layout=layout)
         return frame
     for v, img in zip(views, images, strict=True):
         path = Path(out_dir) / f"{frame:03d}" / f"{calib.grid.name(v)}.png"
