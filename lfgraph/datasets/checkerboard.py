@@ -4,8 +4,9 @@ The renderer is exact up to the anti-aliasing: every pixel centre is undistorted
 (once per lens, `lfgraph.datasets.render.sample_rays`) and mapped to the board plane by its homography
 (`cv2.perspectiveTransform`, only over the pixels that can see the board). Pixels whose 3x3 neighbourhood changes
 colour hold an edge and are averaged over their area, with the undistortion linearised inside the pixel (its
-curvature over half a pixel is far below 1e-4 px): inside the squares in closed form along N sub-rows, near the
-board's outline by N x N point samples. All other pixels take the colour at their centre.
+curvature over half a pixel is far below 1e-4 px): exactly along each of N sub-rows (the colour is piecewise
+constant between the crossings of square edges and outline), N x N point samples where that does not apply. All
+other pixels take the colour at their centre.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ class CheckerboardConfig:
         blur_sigma_px: Gaussian blur of the rendered image (0 = none).
         noise_sigma: sensor noise, grey levels std (0 = none).
         background_level: grey level behind the board.
-        supersample: N for the N x N samples of pixels on an edge.
+        supersample: N for the N sub-rows (N x N samples where sub-rows do not apply) of pixels on an edge.
         margin_px: a board counts as visible in a view when its whole printed outline is this far inside.
     """
 
@@ -404,9 +405,8 @@ def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, i
 
     Every pixel centre's ray (undistorted once per lens, `ViewRays`) is mapped to the board by the plane's
     homography (`cv2.perspectiveTransform`, only over the window of pixels that can see the board) and takes the
-    colour there. Pixels whose 3x3 neighbourhood changes colour hold an edge and are supersampled N x N, the
-    undistortion linearised inside the pixel (its curvature over half a pixel is far below 1e-4 px) and each
-    sample mapped exactly by the homography; the samples are averaged.
+    colour there. Pixels whose 3x3 neighbourhood changes colour hold an edge and take their mean colour over N
+    sub-rows, each integrated exactly with the lens and homography linearised inside the pixel (`_edge_pixels`).
 
     Args:
         intrinsics: the view's lens.
