@@ -24,7 +24,7 @@ import numpy as np
 from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics, transform_points
-from lfgraph.datasets.render import NEAR_PLANE_M, LensRays, clip_polygon_near, sample_rays
+from lfgraph.datasets.render import NEAR_PLANE_M, LensRays, clip_polygon_near, inverse_from_columns, sample_rays
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
@@ -313,8 +313,9 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
     xy0 = rays.lens.xy[rows, cols]
     # Jacobian of the homography (normalised -> squares) at the pixel centre, chained with the lens derivatives
     g = to_squares
-    w0 = xy0 @ g[2, :2] + g[2, 2]
-    uv0 = np.stack([xy0 @ g[0, :2] + g[0, 2], xy0 @ g[1, :2] + g[1, 2]], axis=1) / w0[:, None]
+    # elementwise, not BLAS: the same rounding on any thread count
+    w0, u0, v0 = (xy0[:, 0] * g[r, 0] + xy0[:, 1] * g[r, 1] + g[r, 2] for r in (2, 0, 1))
+    uv0 = np.stack([u0, v0], axis=1) / w0[:, None]
     dp = (g[None, :2, :2] - uv0[:, :, None] * g[None, 2:3, :2]) / w0[:, None, None]  # (E, 2, 2)
     j_x = np.einsum("eij,ej->ei", dp, d_dx)  # (E, 2) d(u, v) / d(pixel x)
     j_y = np.einsum("eij,ej->ei", dp, d_dy)
@@ -337,7 +338,7 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
         samples = xy0[s, None, :] + d_dx[s, None, :] * ox[None, :, None] + d_dy[s, None, :] * oy[None, :, None]
         uv_s = cv2.perspectiveTransform(samples.reshape(-1, 1, 2), to_squares).reshape(len(s), n * n, 2)
         if partly_behind:
-            uv_s[(samples @ g[2, :2] + g[2, 2]) <= 0] = np.nan
+            uv_s[(samples[..., 0] * g[2, 0] + samples[..., 1] * g[2, 1] + g[2, 2]) <= 0] = np.nan
         out[s] = _board_grey(board, uv_s, background).mean(axis=1)
     return out
 
@@ -425,8 +426,9 @@ def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, i
     # the 3x3 edge test needs one pixel of background around the board; one more absorbs rounding
     window = rays.lens.roi(visible[:, :2] / visible[:, 2:], margin=EDGE_WINDOW_MARGIN_PX) if len(visible) else None
     if window is not None:
-        H = np.column_stack([view_T_board[:3, 0], view_T_board[:3, 1], view_T_board[:3, 3]])  # noqa: N806
-        to_squares = np.diag([1 / board.square_m, 1 / board.square_m, 1.0]) @ np.linalg.inv(H)
+        # normalised coordinates -> board squares: the inverse of the homography [r1 r2 t], rows scaled
+        to_squares = inverse_from_columns(view_T_board[:3, 0], view_T_board[:3, 1], view_T_board[:3, 3])
+        to_squares[:2] /= board.square_m
         xy = rays.lens.xy32[window]
         uv = cv2.perspectiveTransform(xy, to_squares)
         if len(visible) != 4 or np.any(outline[:, 2] < NEAR_PLANE_M):

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 
 from lfgraph.camera import Intrinsics
@@ -70,7 +69,7 @@ def sample_rays(intrinsics: Intrinsics, image_size_px: tuple[int, int], supersam
 
     The lens is undistorted exactly (`Intrinsics.undistort`, Newton) on a coarse grid, one node per
     ``UNDISTORT_GRID_STRIDE_PX`` pixels, and interpolated to every sample by separable 6-point Lagrange polynomials
-    (two matrix products, `cv2.gemm`). The undistortion is smooth: the interpolation error is ~1e-7 px in float64
+    (6-tap sums along x, then y). The undistortion is smooth: the interpolation error is ~1e-7 px in float64
     (pixel centres) and ~1e-4 px in float32 (supersampled grids), at a small fraction of the cost of Newton
     iteration at every sample. Samples whose stencil holds a node beyond the lens fold (NaN) are undistorted
     exactly.
@@ -87,15 +86,21 @@ def sample_rays(intrinsics: Intrinsics, image_size_px: tuple[int, int], supersam
     # Pixel centres (n = 1: boards, depth maps) in float64; supersampled grids are only rendered, float32 suffices.
     dtype = np.float64 if n == 1 else np.float32
     nodes = np.where(bad[..., None], 0.0, nodes).astype(dtype)
-    wx = _lagrange_weights(np.arange(w * n) / s + pad, len(kx)).astype(dtype)  # (W n, Kx)
-    wy = _lagrange_weights(np.arange(h * n) / s + pad, len(ky)).astype(dtype)  # (H n, Ky)
-    # cv2.gemm rather than numpy's BLAS: OpenBLAS threads fight the other processes on a shared machine (10x slower)
-    planes = [cv2.gemm(cv2.gemm(wy, np.ascontiguousarray(nodes[..., c]), 1.0, None, 0.0), wx, 1.0, None, 0.0,
-                       flags=cv2.GEMM_2_T) for c in range(2)]  # x, y: (H n, W n) each
+    base_x, wx = _lagrange_taps(np.arange(w * n) / s + pad, dtype)  # (W n,), (W n, TAPS)
+    base_y, wy = _lagrange_taps(np.arange(h * n) / s + pad, dtype)
+    # Elementwise sums over the taps, not matrix products: BLAS (numpy's and cv2.gemm's) rounds differently with
+    # different thread counts, and renders must not depend on the executor's threading.
+    planes = []
+    for c in range(2):  # x, y: (H n, W n) each
+        along_x = sum(wx[:, j] * nodes[:, base_x + j, c] for j in range(LAGRANGE_TAPS))  # (Ky, W n)
+        plane = along_x[base_y] * wy[:, 0, None]
+        for j in range(1, LAGRANGE_TAPS):
+            plane += along_x[base_y + j] * wy[:, j, None]
+        planes.append(plane)
     if bad.any():
         # Samples whose stencil holds a node beyond the lens fold: undistort them exactly.
-        reach = (wy != 0).astype(np.float64) @ bad.astype(np.float64) @ (wx != 0).astype(np.float64).T
-        rows, cols = np.nonzero(reach)
+        bad_x = np.logical_or.reduce([bad[:, base_x + j] for j in range(LAGRANGE_TAPS)])
+        rows, cols = np.nonzero(np.logical_or.reduce([bad_x[base_y + j] for j in range(LAGRANGE_TAPS)]))
         exact = intrinsics.undistort(np.column_stack([_sample_to_pixel(cols, n), _sample_to_pixel(rows, n)]))
         for c in range(2):
             planes[c][rows, cols] = exact[:, c]
@@ -113,18 +118,16 @@ def _sample_to_pixel(index: np.ndarray, n: int) -> np.ndarray:
     return (np.asarray(index, dtype=np.float64) + 0.5) / n - 0.5
 
 
-def _lagrange_weights(pos: np.ndarray, num_nodes: int) -> np.ndarray:
-    """(M, num_nodes) weights of local Lagrange interpolation of order LAGRANGE_TAPS - 1 at node coordinates pos."""
+def _lagrange_taps(pos: np.ndarray, dtype: type) -> tuple[np.ndarray, np.ndarray]:
+    """First node and (M, LAGRANGE_TAPS) weights of local Lagrange interpolation at node coordinates ``pos``."""
     base = np.floor(pos).astype(np.int64) - (LAGRANGE_TAPS // 2 - 1)
     frac = pos - base  # position relative to the first tap, in [TAPS/2 - 1, TAPS/2)
-    weights = np.zeros((len(pos), num_nodes))
+    weights = np.ones((len(pos), LAGRANGE_TAPS))
     for j in range(LAGRANGE_TAPS):
-        wj = np.ones(len(pos))
         for m in range(LAGRANGE_TAPS):
             if m != j:
-                wj *= (frac - m) / (j - m)
-        weights[np.arange(len(pos)), base + j] = wj
-    return weights
+                weights[:, j] *= (frac - m) / (j - m)
+    return base, weights.astype(dtype)
 
 
 def _undistort_grid(intrinsics: Intrinsics, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
@@ -147,6 +150,16 @@ def clip_polygon_near(points: np.ndarray, near_m: float = NEAR_PLANE_M) -> np.nd
     return np.array(out).reshape(-1, 3)
 
 
+def inverse_from_columns(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Inverse of the 3x3 matrix with columns ``a, b, c``, by cross products.
+
+    Elementwise arithmetic only, so the result does not depend on the BLAS/LAPACK thread count (OpenBLAS's LU
+    rounds differently with 1 and 2 threads, which made renders differ between process pools and Dask workers).
+    """
+    rows = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)])
+    return rows / float(np.sum(a * rows[0]))
+
+
 def plane_maps(origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Homography and inverse-depth row of the plane ``origin + s axis_u + t axis_v`` (camera frame).
 
@@ -155,7 +168,6 @@ def plane_maps(origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray) -> tu
         and ``inv_depth`` (1, 3) with ``1 / z = inv_depth @ (x, y, 1)`` for the ray's hit of the plane (<= 0 when
         the hit is behind the camera or the ray is parallel to the plane).
     """
-    M = np.column_stack([axis_u, axis_v, origin])  # noqa: N806 - (s, t, 1) -> camera-frame point
     normal = np.cross(axis_u, axis_v)
     # normal @ origin = 0 only for a plane through the camera centre, seen edge-on; callers skip those.
-    return np.linalg.inv(M), (normal / float(normal @ origin))[None, :]
+    return inverse_from_columns(axis_u, axis_v, origin), (normal / float(np.sum(normal * origin)))[None, :]

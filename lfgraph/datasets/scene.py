@@ -179,18 +179,19 @@ def _prepare(scene: Scene, view_T_ref: np.ndarray, textures: list[np.ndarray] | 
     out = []
     for i, q in enumerate(scene.quads):
         c, a, b = R @ q.centre + t, R @ q.axis_u, R @ q.axis_v
-        if abs(float(np.cross(a, b) @ c)) < PLANE_EDGE_ON_M3:
+        if abs(float(np.sum(np.cross(a, b) * c))) < PLANE_EDGE_ON_M3:
             continue  # the plane contains the camera centre: seen edge-on, it covers no area
         outline = clip_polygon_near(np.array([c - a - b, c + a - b, c + a + b, c - a + b]))
         if len(outline) == 0:
             continue
         st_H, inv_depth = plane_maps(c, a, b)  # noqa: N806
         th, tw = q.texture.shape
-        # texel centres at (k + 0.5) / w of the [-1, 1] range: column = (s + 1) / 2 * w - 0.5
-        st_to_texel = np.array([[tw / 2, 0.0, tw / 2 - 0.5], [0.0, th / 2, th / 2 - 0.5], [0.0, 0.0, 1.0]])
+        # texel centres at (k + 0.5) / w of the [-1, 1] range: column = (s + 1) / 2 * w - 0.5 (written out rather
+        # than a matrix product, whose BLAS rounding may depend on the thread count)
+        texel_H = np.stack([tw / 2 * st_H[0] + (tw / 2 - 0.5) * st_H[2], th / 2 * st_H[1] + (th / 2 - 0.5) * st_H[2],  # noqa: N806
+                            st_H[2]])
         texture = textures[i] if textures is not None else q.texture.astype(np.float32)
-        out.append(_PreparedQuad(st_to_texel @ st_H, inv_depth, outline[:, :2] / outline[:, 2:],
-                                 texture, (tw - 0.5, th - 0.5)))
+        out.append(_PreparedQuad(texel_H, inv_depth, outline[:, :2] / outline[:, 2:], texture, (tw - 0.5, th - 0.5)))
     return out
 
 
