@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import resource
 import sys
 import tempfile
@@ -308,10 +309,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--old-frames", type=int, default=3, help="board frames per view for the old renderer")
     args = parser.parse_args(argv)
     rows: list = []
+    load_before = os.getloadavg()[0]
     ok_scene = scene_case(args, rows)
     ok_board = board_set_case(args, rows)
     ok_acc = accuracy_case(rows)
-    print(f"render benchmark: {args.jobs} jobs; old renderer extrapolated from the images it rendered (see note)")
+    print(f"render benchmark: {args.jobs} jobs on {os.cpu_count()} cores, load average {load_before:.1f} before and "
+          f"{os.getloadavg()[0]:.1f} after (wall times suffer above ~{os.cpu_count()}); old renderer extrapolated "
+          f"from the images it rendered (see note)")
     print(format_table(["case", "images", "ms_view", "cpu_ms_view", "s_set", "cpu_s_set", "x_old_wall", "x_old_cpu",
                         "corner_rms_px", "mad_old_grey", "note"], rows, floatfmt=".3g"))
     print(f"targets: scene frame <= {SCENE_FRAME_TARGET_S} s, board set <= {BOARD_SET_TARGET_S} s, "
