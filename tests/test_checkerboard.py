@@ -145,3 +145,29 @@ def test_symmetric_board_order_does_not_depend_on_what_opencv_reports(setup):
     corners = detect_board(img, cfg.board)
     np.testing.assert_allclose(_canonical_order(img, corners[::-1].copy(), cfg.board), corners)
     assert np.max(np.abs(corners - truth.corners_px[1, 0])) < 0.2
+
+
+EDGE_COVERAGE_TOLERANCE_GREY = 0.5 + 1e-6  # the rendered image is rounded to whole grey levels
+
+
+def test_edge_pixels_take_the_exact_covered_area():
+    """A fronto-parallel board, no lens distortion, no blur: a pixel cut by a vertical square edge at 80 % of its
+    width must hold the area-weighted mean of the two squares (8x8 point samples would give 75 % or 87.5 %)."""
+    from lfgraph.camera import Intrinsics
+    from lfgraph.datasets.checkerboard import BLACK_LEVEL, WHITE_LEVEL, render_checkerboard_view
+    from lfgraph.geometry import make_T
+
+    f_px, square_m, z_m = 500.0, 0.02, 1.0  # 10 px per square
+    intr = Intrinsics(f_px, f_px, 100.0, 80.0)
+    board = BoardSpec(7, 5, square_m)
+    edge_px = 120.3  # board corner (0, 0), i.e. the edge between square columns -1 and 0, at this image x
+    top_px = 60.0
+    view_T_board = make_T(np.eye(3), [(edge_px - 100.0) / f_px * z_m, (top_px - 80.0) / f_px * z_m, z_m])  # noqa: N806
+    cfg = CheckerboardConfig(board=board, blur_sigma_px=0.0, noise_sigma=0.0)
+    img = render_checkerboard_view(intr, (200, 160), view_T_board, board, cfg).astype(float)
+    rows = slice(int(top_px) + 2, int(top_px) + 8)  # inside square row 0, away from horizontal edges
+    col = int(round(edge_px))  # the pixel [119.5, 120.5] is 80 % left of the edge: square (-1, 0) white, (0, 0) black
+    left = (edge_px - (col - 0.5))
+    expected = left * WHITE_LEVEL + (1 - left) * BLACK_LEVEL
+    assert np.all(np.abs(img[rows, col] - expected) <= EDGE_COVERAGE_TOLERANCE_GREY), img[rows, col]
+    assert np.all(img[rows, col - 1] == WHITE_LEVEL) and np.all(img[rows, col + 1] == BLACK_LEVEL)

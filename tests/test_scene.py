@@ -119,5 +119,65 @@ def test_scene_dataset_is_seeded_and_job_independent(tmp_path):
     assert (tmp_path / "a" / "original.json").exists() and not (tmp_path / "b" / "original.json").exists()
     write_scene_dataset(tmp_path / "m", calib, cfg, frames=1, seed=1, layout="mosaic", jobs=1, progress=False)
     assert cv2.imread(str(tmp_path / "m" / "000.png"), 0).shape == (128, 192)
+    # one frame on 2 jobs: its views are split over two tasks, same files
+    write_scene_dataset(tmp_path / "s", calib, cfg, frames=1, seed=1, jobs=2, progress=False)
+    write_scene_dataset(tmp_path / "sm", calib, cfg, frames=1, seed=1, layout="mosaic", jobs=2, progress=False)
+    for name in ("000/r00_c00.png", "000/r01_c01.png"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "s" / name).read_bytes()
+    assert (tmp_path / "m" / "000.png").read_bytes() == (tmp_path / "sm" / "000.png").read_bytes()
+    assert sorted(p.name for p in (tmp_path / "sm").iterdir()) == ["000.png", "truth.json"]
     with pytest.raises(ValueError, match="scene kind"):
         SceneConfig(kind="forest")
+
+
+RAY_ROUND_TRIP_LIMIT_PX = {1: 1e-6, 2: 1e-3}  # float64 pixel centres; float32 supersampled grid
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_cached_lens_rays_project_back_onto_their_samples(supersample):
+    from lfgraph.camera import Intrinsics
+    from lfgraph.datasets.render import sample_rays
+
+    intr = Intrinsics(300.0, 310.0, 161.0, 118.0, k1=-0.15, k2=0.02, p1=1e-3, p2=-2e-3)
+    w, h, n = 320, 240, supersample
+    rays = sample_rays(intr, (w, h), n)
+    assert rays.xy.shape == (h * n, w * n, 2)
+    rows, cols = np.meshgrid(np.arange(h * n), np.arange(w * n), indexing="ij")
+    sample_px = np.column_stack([(cols.ravel() + 0.5) / n - 0.5, (rows.ravel() + 0.5) / n - 0.5])
+    # the forward lens model is the ground truth: projecting each ray must land on its sample
+    back = intr.project(rays.xy.reshape(-1, 2).astype(np.float64))
+    assert np.max(np.abs(back - sample_px)) <= RAY_ROUND_TRIP_LIMIT_PX[n]
+
+
+def test_intersecting_quads_keep_the_nearer_surface_per_pixel():
+    """Two planes crossing each other (painter's order cannot draw them): depth is the nearer plane everywhere."""
+    calib = _rig()
+    intr = calib.intrinsics[0]
+    tex = np.full((8, 8), 100, np.uint8)
+    # z = 2 + X / 2 and z = 2 - X / 2, both wider than the view
+    a = TexturedQuad(np.array([0.0, 0, 2.0]), np.array([2.0, 0, 1.0]), np.array([0, 2.0, 0]), tex)
+    b = TexturedQuad(np.array([0.0, 0, 2.0]), np.array([2.0, 0, -1.0]), np.array([0, 2.0, 0]), tex)
+    depth = render_scene_depth(Scene((a, b)), intr, calib.image_size_px, np.eye(4))
+    w, h = calib.image_size_px
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    xy = intr.undistort(np.column_stack([u.ravel(), v.ravel()]))
+    x = xy[:, 0]
+    # ray (x, y, 1) meets z = 2 + k X with X = x z: z = 2 / (1 - k x)
+    truth = np.minimum(2.0 / (1.0 - 0.5 * x), 2.0 / (1.0 + 0.5 * x)).reshape(h, w)
+    assert not np.isnan(depth).any()
+    assert np.max(np.abs(depth - truth)) < DEPTH_EXACT_M
+
+
+def test_rendering_several_views_at_once_matches_one_by_one():
+    from lfgraph.datasets.scene import render_scene_views
+
+    calib = _rig(size=(96, 64), f=90.0)
+    cfg = SceneConfig(objects=3, texels_per_m_at_1m=200)
+    scene = make_scene(cfg, np.random.default_rng(4))
+    many = render_scene_views(scene, calib, cfg, [3, 1], [np.random.default_rng(3), np.random.default_rng(1)])
+    for img, v in zip(many, [3, 1], strict=True):
+        one = render_scene_view(scene, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v), cfg,
+                                np.random.default_rng(v))
+        assert np.array_equal(img, one)
+    with pytest.raises(ValueError, match="one rng per view"):
+        render_scene_views(scene, calib, cfg, [0, 1], [None])
