@@ -135,7 +135,7 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     """Render the trial's frames with a shaken rig (in memory) and refine from the original with every config."""
     from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
-    from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
+    from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.evaluation import evaluate_calibration
     from lfgraph.refinement import RefineConfig, refine
@@ -150,10 +150,8 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     frames = []
     for f in range(trial.frames):
         scene = make_scene(cfg, np.random.default_rng([trial.seed, 2, f]))
-        frames.append(np.stack([render_scene_view(scene, truth.intrinsics[v], truth.image_size_px,
-                                                  truth.view_T_ref(v), cfg,
-                                                  np.random.default_rng([trial.seed, 3, f, v]))
-                                for v in range(truth.num_views)]))
+        frames.append(render_scene_views(scene, truth, cfg, rngs=[np.random.default_rng([trial.seed, 3, f, v])
+                                                                  for v in range(truth.num_views)]))
 
     def rot_rms(c) -> float:
         return float(np.sqrt(np.mean(evaluate_calibration(c, truth).rotation_deg ** 2)))
