@@ -18,6 +18,7 @@ from lfgraph.cli.args import (
     jobs_default,
     positive_float,
     positive_int,
+    reports_to_stderr,
     rerun_session,
 )
 
@@ -35,6 +36,11 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    with reports_to_stderr(args):
+        return _calibrate(args)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     from lfgraph.board import BoardSpec
     from lfgraph.capture import open_capture
     from lfgraph.detections import detect_capture
@@ -53,6 +59,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise UsageError(f"-o {args.output} is a folder; give the calibration file's path")
     if not args.output.parent.exists():
         raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    if args.plots is not None and args.plots.exists() and not args.plots.is_dir():
+        raise UsageError(f"--plots {args.plots} is a file; give a folder for the report figures")
     logging = check_rerun(args)
     start = time.perf_counter()
     capture = open_capture(args.input, grid, args.layout)
@@ -62,14 +70,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     seen = obs.seen
     print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} images "
           f"({time.perf_counter() - start:.1f} s)")
-    with rerun_session(args, grid, logging) as logger:
+    with rerun_session(args, grid, logging, "calibrate") as logger:
         if logger is not None:
             logger.set_measurements(obs.num_observations)
         calib, report = calibrate(obs, config, cli_observer(logger))
         calib.save(args.output)
         if logger is not None:
-            logger.calibration_result(calib, obs, report, capture.load_frame(0))
+            logger.calibration_result(calib, obs, report, capture.load_frame)
     print(calibration_report_text(calib, report))
+    if args.plots is not None:
+        from lfgraph.viz.figures import calibration_report_figures
+
+        for path in calibration_report_figures(calib, obs, report, args.plots):
+            print(f"figure: {path}")
     print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
     return EXIT_OK
 
@@ -123,6 +136,9 @@ def add_parsers(sub: Any) -> None:
     cal.add_argument("--no-cache", action="store_true", help="re-detect even if INPUT/.lfgraph-detections.npz is valid")
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
+    cal.add_argument("--plots", type=Path, metavar="DIR",
+                     help="write the calibration report figures (coverage, residuals, per-frame RMS, grid deviation) "
+                          "as PNG and PDF to this folder")
     add_rerun_args(cal)
     cal.set_defaults(func=cmd_calibrate)
 
