@@ -58,6 +58,8 @@ def test_shake_figure():
     fig = make_shake_figure(shake_rows())
     transfer, rot, rms = fig.axes
     assert transfer.get_yscale() == "log"  # errors span decades
+    zero = [{**r, "transfer_px": 0.0} if r["rot_deg"] == 0 else r for r in shake_rows()]
+    assert make_shake_figure(zero).axes[0].get_yscale() == "symlog"  # no shake, no error: zero stays on the axis
     assert rms.get_yscale() == "linear"  # 0.1..0.12 px
     assert "(px)" in transfer.get_ylabel() and "(deg)" in rot.get_ylabel() and "(deg" in transfer.get_xlabel()
     assert sum(isinstance(c, PolyCollection) for c in rms.collections) == 2  # one spread band per configuration

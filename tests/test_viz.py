@@ -21,6 +21,7 @@ SMALL = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--quiet"]
 CORNERS = 7 * 5
 RDF = [3, 2, 5]  # rerun's ViewDir codes of Right, Down, Forward (OpenCV camera axes)
 FRAMES = 10
+JPEG_CORNER_TOLERANCE_PX = 0.5  # median gap of OpenCV's corners (no sub-pixel step) on the JPEG to the logged ones
 
 
 def read_rrd(path, index):
@@ -120,6 +121,29 @@ def test_calibrate_recording(calibrated):
     _, _, by_iteration = read_rrd(rrd, "iteration")
     steps = [x for x in by_iteration["/optimizer/error:Scalars:scalars"] if x is not None]
     assert len(steps) == calib.metrics["iterations"]
+
+
+def test_each_frame_shows_its_own_corners_on_its_own_image(calibrated):
+    """The corners logged on a frame are where OpenCV finds the board in the image logged on that frame."""
+    import cv2
+
+    rrd, calib = calibrated
+    _, _, rows = read_rrd(rrd, "frame")
+    checked = 0
+    for v in range(calib.num_views):
+        name = calib.grid.name(v)
+        images = last_per_frame(rows, f"/views/{name}/image:EncodedImage:blob")
+        observed = last_per_frame(rows, f"/views/{name}/observed:Points2D:positions")
+        for f, blob in images.items():
+            image = cv2.imdecode(np.asarray(blob[0], dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+            found, corners = cv2.findChessboardCorners(image, (7, 5))
+            if not found or len(observed.get(f, [])) != CORNERS:
+                continue
+            logged = np.asarray(observed[f])
+            gap_px = np.linalg.norm(corners.reshape(-1, 1, 2) - logged[None], axis=-1).min(axis=1)
+            assert np.median(gap_px) < JPEG_CORNER_TOLERANCE_PX, (name, f)  # another frame's board: tens of px
+            checked += 1
+    assert checked >= FRAMES  # most view-frames show a whole board
 
 
 def test_calibrate_blueprint(calibrated):

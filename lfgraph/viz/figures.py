@@ -19,6 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.ticker import FuncFormatter  # noqa: E402
 
 from lfgraph.io_utils import atomic_path  # noqa: E402
 
@@ -28,8 +29,10 @@ LOG_SPAN = 10.0  # a log axis when the largest positive value is this many times
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 LINESTYLES = ("-", "--", "-.", ":")
 BAND_ALPHA = 0.18
+MARKERS_PER_CURVE = 12  # dense curves carry a marker every len/MARKERS_PER_CURVE points
 COVERAGE_BINS = (16, 12)  # cells across, down for the coverage and residual maps
 ARROW_CELL_SHARE = 0.8  # the longest arrow of the residual and grid-deviation maps spans this much of a cell
+METHOD_LABELS = {"cramer-rao": "Cramér–Rao floor (joint's 1σ)", "joint": "joint graph", "paper": "paper route"}
 SHAKE_METRICS = {"transfer_px": "transfer error at infinity (px)", "rot_err_deg": "rotation error (deg)",
                  "rms_after_px": "reprojection RMS after (px)"}
 CALIBRATION_METRICS = {"fx_err_px": "fx error (px)", "pos_err_mm": "view position error (mm)",
@@ -55,12 +58,34 @@ def save(fig: Figure, stem: str | os.PathLike) -> list[Path]:
     return written
 
 
+def _plain(value: float, _pos: Any = None) -> str:
+    return f"{value:g}"
+
+
+def _plain_2_5(value: float, _pos: Any = None) -> str:
+    """Label the minor log ticks at 2 and 5 times a power of ten only."""
+    if value <= 0:
+        return ""
+    mantissa = value / 10 ** np.floor(np.log10(value) + 1e-9)
+    return f"{value:g}" if any(abs(mantissa - m) < 1e-6 for m in (2.0, 5.0)) else ""
+
+
 def maybe_log(ax: Any, values: np.ndarray, axis: str = "y") -> None:
-    """Log scale on ``axis`` when the positive finite values span more than `LOG_SPAN` and none is <= 0."""
+    """Log scale on ``axis`` when the positive finite values span more than `LOG_SPAN` and none is negative;
+    with zeros among them (e.g. no shake) a symmetric log scale, linear below the smallest positive value."""
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
-    if v.size and np.all(v > 0) and v.max() / v.min() > LOG_SPAN:
-        (ax.set_yscale if axis == "y" else ax.set_xscale)("log")
+    pos = v[v > 0]
+    if not pos.size or np.any(v < 0) or pos.max() / pos.min() <= LOG_SPAN:
+        return
+    set_scale = ax.set_yscale if axis == "y" else ax.set_xscale
+    if np.any(v == 0):
+        set_scale("symlog", linthresh=float(pos.min()), linscale=0.5)
+    else:
+        set_scale("log")
+    target = ax.yaxis if axis == "y" else ax.xaxis
+    target.set_major_formatter(FuncFormatter(_plain))  # 0.5, 2, 10 rather than 5x10^-1
+    target.set_minor_formatter(FuncFormatter(_plain_2_5))
 
 
 def spread(rows: Sequence[dict[str, Any]], group: Sequence[str], x: str, metric: str
@@ -118,7 +143,7 @@ def make_shake_figure(rows: Sequence[dict[str, Any]]) -> Figure:
             values += [lo, hi]
             seeds = max(seeds, n)
         maybe_log(ax, np.concatenate(values) if values else np.array([]))
-        ax.set_xlabel("rotation shake (deg rms per axis; translation paired)")
+        ax.set_xlabel("rotation shake level (deg; translation paired)")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle(f"shake study: median over {seeds} seed(s), band = lowest to highest seed")
@@ -144,7 +169,7 @@ def make_calibration_figure(rows: Sequence[dict[str, Any]]) -> Figure:
         for ax, (metric, label) in zip(axes[i], CALIBRATION_METRICS.items(), strict=True):
             values = []
             for k, ((method,), (xs, med, lo, hi, n)) in enumerate(spread(sel, ("method",), "frames", metric).items()):
-                _series(ax, k, method, xs, med, lo, hi)
+                _series(ax, k, METHOD_LABELS.get(method, method), xs, med, lo, hi)
                 values += [lo, hi]
                 seeds = max(seeds, n)
             maybe_log(ax, np.concatenate(values))
@@ -170,8 +195,9 @@ def make_depth_error_figure(depth_m: np.ndarray, error_m: np.ndarray, focal_px: 
     z = np.asarray(depth_m, dtype=float)
     e_mm = 1e3 * np.asarray(error_m, dtype=float)
     first_mm = 1e3 * z**2 * error_px / (focal_px * baseline_m)
-    ax.plot(z, e_mm, label=f"depth error, E = {error_px:g} px", **style(0))
-    ax.plot(z, first_mm, label="first order: Z² E / (f b)", **style(3))
+    every = max(1, len(z) // MARKERS_PER_CURVE)
+    ax.plot(z, e_mm, label=f"depth error, E = {error_px:g} px", markevery=every, **style(0))
+    ax.plot(z, first_mm, label="first order: Z² E / (f b)", markevery=(every // 2, every), **style(3))
     maybe_log(ax, np.concatenate([e_mm, first_mm]))
     ax.set_xlabel("depth Z (m)")
     ax.set_ylabel("depth error (mm)")

@@ -8,8 +8,8 @@ Entity tree (every command sends its own default blueprint, see `default_bluepri
 - ``world/input_rig/rRR_cCC`` and ``world/refined_rig/rRR_cCC`` (refine), ``world/calibrated_rig/rRR_cCC``
   (calibrate), ``world/rig/rRR_cCC`` (rectify): `Transform3D` (the view's pose in the reference frame) + `Pinhole`
   (K, image size), each rig in its own colour (`RIG_COLOURS`); ``world/<rig>/centres`` labels the view centres;
-- ``world/change``: per view an arrow from the input to the refined centre, `CHANGE_ARROW_SCALE` times longer than
-  the change, labelled with the rotation (deg) and translation (mm) change;
+- ``world/change``: per view an arrow from the input to the refined centre, drawn longer than
+  the change (a round factor, in the label), labelled with the rotation (deg) and translation (mm) change;
 - ``world/boards/frame_FFF``: each board pose (`Transform3D`) with its corners (`Points3D`, board frame);
 - ``world/landmarks``: refinement landmarks (`Points3D`, coloured by mean reprojection error), on the ``frame``
   timeline;
@@ -43,11 +43,12 @@ from lfgraph.observer import BaseObserver, StageEnd
 
 RESIDUAL_ARROW_SCALE = 50.0  # residual arrows are drawn this many times longer than they are (sub-pixel otherwise)
 RESIDUAL_COLOUR_MAX_PX = 1.0  # residual colour map saturates here
-CHANGE_ARROW_SCALE = 20.0  # 3-D arrows from input to refined view centre: this many times the change
+CHANGE_ARROW_BASELINE_SHARE = 0.5  # the longest input -> refined arrow is drawn this share of the smallest baseline
 GUIDE_SPACING_PX = 40
 JPEG_QUALITY = 80  # per-frame images are stored as JPEG (a recording of every frame stays small)
 POINT_RADIUS_UI = 2.0  # observed points, in screen points (negative radii in rerun), whatever the zoom
-IMAGE_PLANE_DISTANCE_M = 0.02  # how far in front of each camera rerun draws its frustum's image plane
+FRUSTUM_BASELINE_SHARE = 0.4  # each camera's frustum is drawn this share of the smallest baseline deep
+FRUSTUM_DEPTH_M = 0.02  # frustum depth of a single view (no baseline)
 OUTLIER_COLOUR = (255, 40, 40)
 OBSERVED_COLOUR = (80, 160, 255)
 REPROJECTED_COLOUR = (255, 255, 255)
@@ -125,6 +126,23 @@ def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate") -> rrb.Blu
         rrb.TimePanel(timeline="frame", state="collapsed"),
         collapse_panels=True,
     )
+
+
+def smallest_baseline_m(calib: Calibration) -> float:
+    """The smallest distance between two view centres (m); `FRUSTUM_DEPTH_M` for a single view."""
+    centres = calib.ref_T_view[:, :3, 3]
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    d = d[~np.eye(len(centres), dtype=bool)]
+    d = d[d > 0]
+    return float(d.min()) if d.size else FRUSTUM_DEPTH_M
+
+
+def nice_factor(value: float) -> float:
+    """The largest of 1, 2, 5 x 10^k that is at most ``value`` (arrow exaggerations read as round numbers)."""
+    if not np.isfinite(value) or value <= 0:
+        return 1.0
+    k = np.floor(np.log10(value))
+    return float(max(m * 10**k for m in (1.0, 2.0, 5.0) if m * 10**k <= value))
 
 
 def _jpeg(image: np.ndarray) -> rr.EncodedImage | rr.Image:
@@ -341,13 +359,15 @@ class RerunLogger(BaseObserver):
         w, h = calib.image_size_px
         colour = RIG_COLOURS.get(name.removesuffix("_rig"), RIG_COLOURS["rig"])
         base = f"world/{name}"
+        depth_m = FRUSTUM_BASELINE_SHARE * smallest_baseline_m(calib)
         for v in range(calib.num_views):
             pose = calib.ref_T_view[v]
             path = f"{base}/{calib.grid.name(v)}"
             self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
             self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
-                                          image_plane_distance=IMAGE_PLANE_DISTANCE_M, color=colour), static=True)
-        self.rec.log(f"{base}/centres", rr.Points3D(calib.ref_T_view[:, :3, 3], colors=colour, radii=0.0015,
+                                          image_plane_distance=depth_m, color=colour), static=True)
+        self.rec.log(f"{base}/centres", rr.Points3D(calib.ref_T_view[:, :3, 3], colors=colour,
+                                                    radii=0.05 * smallest_baseline_m(calib),
                                                     labels=[f"{name}: {calib.grid.name(v)}"
                                                             for v in range(calib.num_views)],
                                                     show_labels=False), static=True)
@@ -356,8 +376,9 @@ class RerunLogger(BaseObserver):
             self._log_images(images)
 
     def rig_change(self, before: Calibration, after: Calibration) -> None:
-        """Arrows from each view's input centre to its refined centre (`CHANGE_ARROW_SCALE` x), labelled with the
-        change of rotation (deg) and position (mm)."""
+        """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
+        longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, labelled with the change of
+        rotation (deg), position (mm) and focal length (px) and the factor."""
         from lfgraph.geometry import rotation_angle_deg
 
         rot_deg = np.array([rotation_angle_deg(a[:3, :3] @ b[:3, :3].T)
@@ -367,10 +388,14 @@ class RerunLogger(BaseObserver):
                              for a, b in zip(after.intrinsics, before.intrinsics, strict=True)])
         start = before.ref_T_view[:, :3, 3]
         move = after.ref_T_view[:, :3, 3] - start
-        labels = [f"{after.grid.name(v)}: {rot_deg[v]:.3f} deg, {pos_mm[v]:.2f} mm, f {focal_px[v]:.2f} px"
-                  for v in range(after.num_views)]
-        self.rec.log("world/change", rr.Arrows3D(origins=start, vectors=move * CHANGE_ARROW_SCALE,
-                                                 colors=CHANGE_COLOUR, labels=labels, radii=0.0006), static=True)
+        longest_m = float(np.max(np.linalg.norm(move, axis=1)))
+        scale = nice_factor(CHANGE_ARROW_BASELINE_SHARE * smallest_baseline_m(before) / longest_m) \
+            if longest_m > 0 else 1.0
+        labels = [f"{after.grid.name(v)}: {rot_deg[v]:.3f} deg, {pos_mm[v]:.2f} mm, f {focal_px[v]:.2f} px "
+                  f"(arrow x{scale:g})" for v in range(after.num_views)]
+        self.rec.log("world/change", rr.Arrows3D(origins=start, vectors=move * scale, colors=CHANGE_COLOUR,
+                                                 labels=labels, radii=0.02 * smallest_baseline_m(before)),
+                     static=True)
 
     def boards(self, ref_T_board: np.ndarray, object_points_m: np.ndarray) -> None:  # noqa: N803
         for f, pose in enumerate(ref_T_board):
