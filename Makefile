@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.lfgraph-installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench lint screenshots clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -21,6 +21,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
+
+# opt-in (not part of `test`): the README's pictures in docs/images/; needs the Debian package chromium
+screenshots: $(STAMP)
+	$(BIN)/python scripts/screenshots.py --out docs/images
 
 lint: $(STAMP)
 	$(BIN)/ruff check lfgraph tests benchmarks

@@ -211,21 +211,13 @@ def summarise(rows: Sequence[dict[str, Any]], group: Sequence[str], x: str, metr
     return result
 
 
-def shake_plots(rows: Sequence[dict[str, Any]], out_dir: str | os.PathLike) -> list[Path]:
-    """One PNG per metric, x = rotation shake (deg), one curve per configuration (means over seeds)."""
-    from lfgraph.plot import line_plot
+def shake_plots(rows: Sequence[dict[str, Any]], out_csv: str | os.PathLike) -> list[Path]:
+    """The shake study's figure beside the CSV (``<stem>.png`` and ``.pdf``): transfer error, rotation error and
+    RMS against the shake, one series per configuration, median and spread over seeds (`lfgraph.viz.figures`)."""
+    from lfgraph.viz.figures import shake_figure
 
-    out = Path(out_dir)
-    metrics = {"transfer_px": "transfer error at infinity (px)", "rot_err_deg": "rotation error (deg)",
-               "rms_after_px": "reprojection RMS after (px)"}
-    summary = summarise(rows, ("stages", "robust"), "rot_deg", list(metrics))
-    written = []
-    for m, label in metrics.items():
-        series = [(f"{s} / {r}", d["rot_deg"], d[m]) for (s, r), d in sorted(summary.items())]
-        path = out.with_name(f"{out.stem}_{m}.png")
-        line_plot(path, series, f"shake study: {label}", "rotation shake (deg; translation paired)", label)
-        written.append(path)
-    return written
+    out = Path(out_csv)
+    return shake_figure(rows, out.with_name(out.stem))
 
 
 # --------------------------------------------------------------------------------------------- calibration study
@@ -304,24 +296,10 @@ def run_calibration_trial(trial: CalibrationTrial) -> list[dict[str, Any]]:
     return rows
 
 
-def calibration_plots(rows: Sequence[dict[str, Any]], out_dir: str | os.PathLike) -> list[Path]:
-    """Per corner noise and metric: RMS error (over seeds) against frames, one curve per method."""
-    from lfgraph.plot import line_plot
+def calibration_plots(rows: Sequence[dict[str, Any]], out_csv: str | os.PathLike) -> list[Path]:
+    """The calibration study's figure beside the CSV (``<stem>.png`` and ``.pdf``): per corner noise and metric,
+    error against frames, one series per method, median and spread over seeds (`lfgraph.viz.figures`)."""
+    from lfgraph.viz.figures import calibration_figure
 
-    out = Path(out_dir)
-    written = []
-    metrics = {"fx_err_px": "fx error (px)", "pos_err_mm": "view position error (mm)",
-               "rot_err_deg": "view rotation error (deg)"}
-    for sigma in sorted({float(r["sigma_px"]) for r in rows}):
-        sel = [r for r in rows if float(r["sigma_px"]) == sigma]
-        # RMS over seeds: average the squares
-        sq = [{**r, **{m: float(r[m]) ** 2 for m in metrics}} for r in sel]
-        summary = summarise(sq, ("method",), "frames", list(metrics))
-        for m, label in metrics.items():
-            series = [(method, d["frames"], np.sqrt(d[m])) for (method,), d in sorted(summary.items())]
-            path = out.with_name(f"{out.stem}_sigma{sigma:g}_{m}.png")
-            line_plot(path, series, f"calibration study, corner noise {sigma:g} px: {label}", "frames", label)
-            written.append(path)
-    return written
-
-
+    out = Path(out_csv)
+    return calibration_figure(rows, out.with_name(out.stem))

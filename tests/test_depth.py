@@ -46,6 +46,7 @@ def test_cli_json_and_plot(tmp_path, capsys):
     assert round(data["depth_error_m"][0], 3) == 0.004
     img = cv2.imread(str(png))
     assert img is not None and img.shape[0] > 100
+    assert png.with_suffix(".pdf").read_bytes().startswith(b"%PDF")
     with pytest.raises(SystemExit):
         main(["depth-error", "--focal-px", "850", "--baseline-m", "0.018", "--error-px", "0.246",
               "--range-m", "2.0", "0.5"])

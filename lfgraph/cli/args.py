@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_USAGE, EXIT_DRIFT = 0, 1, 2, 3
@@ -179,26 +180,32 @@ def ints(text: str) -> list[int]:
 
 
 @contextmanager
-def rerun_session(args: argparse.Namespace, grid, logging: bool) -> Iterator:
+def rerun_session(args: argparse.Namespace, grid, logging: bool, kind: str = "calibrate") -> Iterator:
     """A `lfgraph.viz.RerunLogger` for a ``with`` block when ``logging``, else None (no recording is created);
-    closed at the end, a failure discards a ``--save`` file."""
+    closed at the end, a failure discards a ``--save`` file. ``kind`` (the command) picks the default blueprint."""
     if not logging:
         yield None
         return
     from lfgraph.viz.rerun_log import RerunLogger
 
     if args.stdout:
-        logger = RerunLogger.stdout(grid)
+        logger = RerunLogger.stdout(grid, kind)
     elif args.serve:
-        logger = RerunLogger.serve(grid)
+        logger = RerunLogger.serve(grid, kind)
     elif args.connect or args.url:
-        logger = RerunLogger.connect(args.url, grid)
+        logger = RerunLogger.connect(args.url, grid, kind)
     else:
-        logger = RerunLogger.to_file(args.save, grid)
+        logger = RerunLogger.to_file(args.save, grid, kind)
     with logger:
         yield logger
     if logger.path is not None:
         print(f"rerun recording: {logger.path} (open it with: rerun {logger.path})")
+
+
+def reports_to_stderr(args: argparse.Namespace) -> AbstractContextManager:
+    """With ``--stdout`` standard output carries the binary recording: print the human-readable report to stderr
+    (rerun writes to the file descriptor, not through `sys.stdout`)."""
+    return redirect_stdout(sys.stderr) if getattr(args, "stdout", False) else nullcontext()
 
 
 def cli_observer(logger):

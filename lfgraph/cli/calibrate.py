@@ -21,6 +21,7 @@ from lfgraph.cli.args import (
     jobs_default,
     positive_float,
     positive_int,
+    reports_to_stderr,
     rerun_session,
 )
 
@@ -85,6 +86,11 @@ MAX_MISSED_LISTED = 10  # images without a detected board named in the output
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    with reports_to_stderr(args):
+        return _calibrate(args)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lfgraph.pattern import calibrate
@@ -92,6 +98,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     board, grid, config = _board_and_config(args)
     check_output_file(args.output)
+    if args.plots is not None and args.plots.exists() and not args.plots.is_dir():
+        raise UsageError(f"--plots {args.plots} is a file; give a folder for the report figures")
     logging = check_rerun(args)
     start = time.perf_counter()
     capture = None
@@ -125,14 +133,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             shown = ", ".join(str(p) for p in missed[:MAX_MISSED_LISTED])
             print(f"board not found in: {shown}" + (f" and {len(missed) - MAX_MISSED_LISTED} more"
                                                     if len(missed) > MAX_MISSED_LISTED else ""))
-    with rerun_session(args, grid, logging) as logger:
+    with rerun_session(args, grid, logging, "calibrate") as logger:
         if logger is not None:
             logger.set_measurements(obs.num_observations)
         calib, report = calibrate(obs, config, cli_observer(logger))
         calib.save(args.output)
         if logger is not None:
-            logger.calibration_result(calib, obs, report, capture.load_frame(0) if capture is not None else None)
+            logger.calibration_result(calib, obs, report, capture.load_frame if capture is not None else None)
     print(calibration_report_text(calib, report))
+    if args.plots is not None:
+        from lfgraph.viz.figures import calibration_report_figures
+
+        for path in calibration_report_figures(calib, obs, report, args.plots):
+            print(f"figure: {path}")
     print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
     return EXIT_OK
 
@@ -205,6 +218,9 @@ def add_parsers(sub: Any) -> None:
     cal.add_argument("--no-cache", action="store_true", help="re-detect even if INPUT/.lfgraph-detections.npz is valid")
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
+    cal.add_argument("--plots", type=Path, metavar="DIR",
+                     help="write the calibration report figures (coverage, residuals, per-frame RMS, grid deviation) "
+                          "as PNG and PDF to this folder")
     add_rerun_args(cal)
     cal.set_defaults(func=cmd_calibrate)
 

@@ -18,6 +18,7 @@ from lfgraph.cli.args import (
     jobs_default,
     positive_float,
     positive_int,
+    reports_to_stderr,
     rerun_session,
 )
 
@@ -58,6 +59,11 @@ def _alive(pid: int) -> bool:
 
 
 def cmd_rectify(args: argparse.Namespace) -> int:
+    with reports_to_stderr(args):
+        return _rectify(args)
+
+
+def _rectify(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
 
@@ -79,12 +85,12 @@ def cmd_rectify(args: argparse.Namespace) -> int:
     rect = compute_rectification(calib, args.crop)
     rectified = attach(calib, rect)
     print(rectification_text(calib, rect))
-    with rerun_session(args, calib.grid, logging) as logger:
+    with rerun_session(args, calib.grid, logging, "rectify") as logger:
         if logger is not None:
             from lfgraph.rectification import build_maps, remap_views
 
-            logger.rig(calib, capture.load_frame(0))
-            logger.rectified(calib, remap_views(capture.load_frame(0), build_maps(calib, rect)))
+            logger.rig(calib)
+            logger.rectified(calib, remap_views(capture.load_frame(0, grayscale=False), build_maps(calib, rect)))
     out_layout = "folders" if capture.layout in ("pairs", "video") else capture.layout
     out.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_partials(out)

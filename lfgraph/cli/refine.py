@@ -16,11 +16,17 @@ from lfgraph.cli.args import (
     cli_observer,
     positive_float,
     positive_int,
+    reports_to_stderr,
     rerun_session,
 )
 
 
 def cmd_refine(args: argparse.Namespace) -> int:
+    with reports_to_stderr(args):
+        return _refine(args)
+
+
+def _refine(args: argparse.Namespace) -> int:
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -54,11 +60,13 @@ def cmd_refine(args: argparse.Namespace) -> int:
           f"triangulation filter {config.triangulation_filter}, robust {describe_noise(config.noise)}")
     frames = (capture.load_frame(f) for f in range(n))
     bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
-    with rerun_session(args, calib.grid, logging) as logger, logging_redirect_tqdm():
+    with rerun_session(args, calib.grid, logging, "refine") as logger, logging_redirect_tqdm():
         if logger is not None:
-            logger.rig(calib, capture.load_frame(0))
+            logger.rig(calib, name="input_rig")
         refined, report = refine(calib, bar, config, cli_observer(logger))
         refined.save(args.output)
+        if logger is not None:
+            logger.refinement_result(calib, refined, report)
     print(refinement_text(calib, refined, report))
     print(f"wrote {args.output}")
     return EXIT_OK

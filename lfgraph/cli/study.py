@@ -17,8 +17,11 @@ from lfgraph.cli.args import (
     non_negative,
     positive_float,
     positive_int,
+    reports_to_stderr,
     rerun_session,
 )
+
+PLOT_DEPTHS = 100  # depths sampled for the --plot curve (the table has --steps)
 
 
 def cmd_depth_error(args: argparse.Namespace) -> int:
@@ -45,13 +48,14 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
                            [[f"{z:.3f}", f"{args.focal_px * args.baseline_m / z:.3f}", f"{e:.4f}",
                              f"{100 * e / z:.2f}"] for z, e in zip(depths, errors, strict=True)]))
     if args.plot is not None:
-        from lfgraph.plot import line_plot
+        from lfgraph.viz.figures import depth_error_figure
 
-        line_plot(args.plot, [(f"E = {args.error_px:g} px", depths, errors)],
-                  f"depth error, f = {args.focal_px:g} px, b = {args.baseline_m:g} m", "depth (m)",
-                  "depth error (m)")
+        plot_depths = np.linspace(near, far, PLOT_DEPTHS)
+        written = depth_error_figure(plot_depths, depth_error_m(args.focal_px, args.baseline_m, args.error_px,
+                                                                plot_depths),
+                                     args.focal_px, args.baseline_m, args.error_px, args.plot.with_suffix(""))
         if not args.json:
-            print(f"plot: {args.plot}")
+            print(f"plot: {', '.join(str(p) for p in written)}")
     return EXIT_OK
 
 
@@ -69,6 +73,11 @@ def _study_common(args: argparse.Namespace) -> None:
 
 
 def cmd_study_shake(args: argparse.Namespace) -> int:
+    with reports_to_stderr(args):
+        return _study_shake(args)
+
+
+def _study_shake(args: argparse.Namespace) -> int:
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.factors.noise import RobustKernel
     from lfgraph.refinement import parse_stages
@@ -98,7 +107,7 @@ def cmd_study_shake(args: argparse.Namespace) -> int:
     logging = check_rerun(args)
     print(f"shake study on {args.scene}: {len(trials)} trials ({len(trials) // args.trials} levels x {args.trials} "
           f"seeds), {len(stages) * len(robust)} configurations each, executor {args.executor}")
-    with rerun_session(args, None, logging) as logger:
+    with rerun_session(args, None, logging, "study") as logger:
         rows = run_study(trials, run_shake_trial, args.output, SHAKE_COLUMNS, shake_trial_rows, shake_row_key,
                          args.executor, args.jobs, progress=not args.quiet,
                          on_rows=None if logger is None else logger.study_rows)
@@ -175,7 +184,7 @@ def add_parsers(sub: Any) -> None:
                     help="depth range in metres (default 0.5 2.0)")
     de.add_argument("--steps", type=positive_int, default=7, help="depths in the table (default 7)")
     de.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    de.add_argument("--plot", type=Path, help="write a PNG plot of depth error against depth")
+    de.add_argument("--plot", type=Path, help="write the depth-error figure here (PNG, and a PDF beside it)")
     de.set_defaults(func=cmd_depth_error)
 
     st = sub.add_parser("study", help="studies: the paper's shake experiment, calibration accuracy vs frames")

@@ -1,23 +1,35 @@
 """Rerun logging for visual debugging. The only module that imports rerun; the core offers hooks, this subscribes.
 
-Entity tree (a newcomer opening the ``.rrd`` gets the default blueprint: the rig in 3-D, the views in a grid, the
-optimiser's curves):
+Coordinates: ``world`` is declared `rr.ViewCoordinates.RDF` (the OpenCV camera convention: x right, y down,
+z forward = depth), so the rig stands upright in the 3-D view with depth pointing into the scene.
 
-- ``world/rig/view_rRR_cCC``: `Transform3D` (the view's pose in the reference frame) + `Pinhole` (K, image size),
-  with the view's image under ``.../image``;
+Entity tree (every command sends its own default blueprint, see `default_blueprint`):
+
+- ``world/input_rig/rRR_cCC`` and ``world/refined_rig/rRR_cCC`` (refine), ``world/calibrated_rig/rRR_cCC``
+  (calibrate), ``world/rig/rRR_cCC`` (rectify): `Transform3D` (the view's pose in the reference frame) + `Pinhole`
+  (K, image size), each rig in its own colour (`RIG_COLOURS`); ``world/<rig>/centres`` labels the view centres;
+- ``world/change``: per view an arrow from the input to the refined centre, drawn longer than
+  the change (a round factor, in the label), labelled with the rotation (deg) and translation (mm) change;
 - ``world/boards/frame_FFF``: each board pose (`Transform3D`) with its corners (`Points3D`, board frame);
-- ``world/landmarks``: refinement landmarks (`Points3D`, coloured by mean reprojection error);
-- ``views/rRR_cCC``: 2-D space of a view: ``image``, ``observed`` and ``reprojected`` (`Points2D`), ``residuals``
-  (`Arrows2D` scaled by `RESIDUAL_ARROW_SCALE`, coloured by magnitude), ``outliers`` (`Points2D`, red);
-- ``optimizer/error`` and ``optimizer/rms_px`` (`Scalars` on the ``iteration`` timeline), ``optimizer/stages``
-  (`TextLog` at each stage's first iteration), ``rms/view_rRR_cCC`` (`Scalars`, per frame on the ``frame``
-  timeline during refinement);
-- ``rectified/rRR_cCC``: rectified views with horizontal guide lines (`LineStrips2D`) every `GUIDE_SPACING_PX`.
+- ``world/landmarks``: refinement landmarks (`Points3D`, coloured by mean reprojection error), on the ``frame``
+  timeline;
+- ``views/rRR_cCC``: 2-D space of a view, on the ``frame`` timeline: ``image`` (that frame's image, JPEG),
+  ``observed`` and ``reprojected`` (`Points2D`), ``residuals`` (`Arrows2D` scaled by `RESIDUAL_ARROW_SCALE`,
+  coloured by magnitude) and ``outliers`` (`Points2D`, red) of that frame only (entities are re-logged, empty where
+  there is nothing, on every frame so that nothing of an earlier frame lingers);
+- ``rms/rRR_cCC``: `Scalars`, the view's RMS reprojection error (px) per frame on the ``frame`` timeline;
+- ``optimizer/error`` and ``optimizer/rms_px``: `Scalars` on the ``iteration`` timeline while the optimiser runs
+  (live), and at the end ``optimizer_summary/error_log10`` and ``optimizer_summary/rms_px`` as `BarChart` per
+  iteration (time-independent, so they show whichever timeline is selected); ``optimizer/stages`` (`TextLog`);
+- ``rectified/rRR_cCC``: rectified views (``image``) with horizontal guide lines (``guides``) every
+  `GUIDE_SPACING_PX`;
+- ``study/<stages>_<robust>/<metric>``: study results on the ``level`` timeline.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -31,9 +43,24 @@ from lfgraph.observer import BaseObserver, StageEnd
 
 RESIDUAL_ARROW_SCALE = 50.0  # residual arrows are drawn this many times longer than they are (sub-pixel otherwise)
 RESIDUAL_COLOUR_MAX_PX = 1.0  # residual colour map saturates here
+CHANGE_ARROW_BASELINE_SHARE = 0.5  # the longest input -> refined arrow is drawn this share of the smallest baseline
 GUIDE_SPACING_PX = 40
+JPEG_QUALITY = 80  # per-frame images are stored as JPEG (a recording of every frame stays small)
+POINT_RADIUS_UI = 2.0  # observed points, in screen points (negative radii in rerun), whatever the zoom
+FRUSTUM_BASELINE_SHARE = 0.4  # each camera's frustum is drawn this share of the smallest baseline deep
+FRUSTUM_DEPTH_M = 0.02  # frustum depth of a single view (no baseline)
 OUTLIER_COLOUR = (255, 40, 40)
+OBSERVED_COLOUR = (80, 160, 255)
+REPROJECTED_COLOUR = (255, 255, 255)
+GUIDE_COLOUR = (0, 255, 255)
+CHANGE_COLOUR = (255, 0, 255)
+ERROR_COLOUR = (31, 119, 180)
+RMS_COLOUR = (255, 127, 14)
+RIG_COLOURS = {"input": (160, 160, 160), "refined": (0, 200, 80), "calibrated": (0, 200, 80), "rig": (0, 200, 80)}
 APP_ID = "lfgraph"
+KINDS = ("calibrate", "refine", "rectify", "study")  # one default blueprint per command
+
+
 def check_save_path(path: str | os.PathLike) -> None:
     """Fail before any work when a recording cannot be written there (missing folder, not writable, a folder)."""
     p = Path(path)
@@ -54,18 +81,80 @@ def _colour_by(values: np.ndarray, vmax: float) -> np.ndarray:
     return (np.stack([r, g, np.zeros_like(t)], axis=1) * 255).astype(np.uint8)
 
 
-def default_blueprint(grid: ViewGrid) -> rrb.Blueprint:
-    """3-D view of the rig and landmarks, the 2-D views in the grid's layout, the optimiser's curves."""
-    views = [rrb.Spatial2DView(origin=f"views/{grid.name(v)}", name=grid.name(v)) for v in range(grid.num_views)]
+def _rms(values_px: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(values_px**2))) if values_px.size else float("nan")
+
+
+def _view_grid(grid: ViewGrid, space: str) -> rrb.Grid:
+    views = [rrb.Spatial2DView(origin=f"{space}/{grid.name(v)}", name=grid.name(v)) for v in range(grid.num_views)]
+    return rrb.Grid(*views, grid_columns=grid.cols, name=space)
+
+
+def _optimiser_views() -> list:
+    return [rrb.BarChartView(origin="optimizer_summary/error_log10", name="log10 graph error per LM iteration"),
+            rrb.BarChartView(origin="optimizer_summary/rms_px", name="RMS (px) per LM iteration")]
+
+
+def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate") -> rrb.Blueprint:
+    """The layout a recording opens with: one per command, each showing everything that command logs.
+
+    Args:
+        grid: the array (lays out the 2-D views); None for a study.
+        kind: ``calibrate`` (3-D calibrated rig and boards, per-frame views, per-frame RMS, optimiser),
+            ``refine`` (input and refined rig, landmarks, per-frame views, per-frame RMS, optimiser, stages),
+            ``rectify`` (3-D rig, rectified views with guide lines) or ``study`` (the study's curves per level).
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown blueprint kind {kind!r}; one of {', '.join(KINDS)}")
+    if kind == "study" or grid is None:
+        return rrb.Blueprint(rrb.TimeSeriesView(origin="study", name="study results per shake level"),
+                             rrb.TimePanel(timeline="level", state="collapsed"), collapse_panels=True)
+    if kind == "rectify":
+        return rrb.Blueprint(
+            rrb.Horizontal(rrb.Spatial3DView(origin="world", name="rig (calibration)"), _view_grid(grid, "rectified"),
+                           column_shares=[1, 2]),
+            collapse_panels=True)
+    three_d = rrb.Spatial3DView(origin="world", name="input (grey) and refined (green) rig, landmarks"
+                                if kind == "refine" else "calibrated rig and board poses")
+    side = [three_d, rrb.TimeSeriesView(origin="rms", name="RMS reprojection error per frame (px)"),
+            *_optimiser_views()]
+    if kind == "refine":
+        side.append(rrb.TextLogView(origin="optimizer/stages", name="stages"))
     return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(rrb.Spatial3DView(origin="world", name="rig, boards and landmarks"),
-                         rrb.TimeSeriesView(origin="optimizer", name="optimiser")),
-            rrb.Grid(*views, grid_columns=grid.cols, name="views"),
-            column_shares=[1, 1],
-        ),
+        rrb.Horizontal(rrb.Vertical(*side, row_shares=[3] + [1] * (len(side) - 1)), _view_grid(grid, "views"),
+                       column_shares=[1, 2]),
+        rrb.TimePanel(timeline="frame", state="collapsed"),
         collapse_panels=True,
     )
+
+
+def smallest_baseline_m(calib: Calibration) -> float:
+    """The smallest distance between two view centres (m); `FRUSTUM_DEPTH_M` for a single view."""
+    centres = calib.ref_T_view[:, :3, 3]
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    d = d[~np.eye(len(centres), dtype=bool)]
+    d = d[d > 0]
+    return float(d.min()) if d.size else FRUSTUM_DEPTH_M
+
+
+def nice_factor(value: float) -> float:
+    """The largest of 1, 2, 5 x 10^k that is at most ``value`` (arrow exaggerations read as round numbers)."""
+    if not np.isfinite(value) or value <= 0:
+        return 1.0
+    k = np.floor(np.log10(value))
+    return float(max(m * 10**k for m in (1.0, 2.0, 5.0) if m * 10**k <= value))
+
+
+def _jpeg(image: np.ndarray) -> rr.EncodedImage | rr.Image:
+    """A grayscale (H, W) or OpenCV BGR (H, W, 3) image as JPEG at `JPEG_QUALITY`."""
+    colour = "BGR" if image.ndim == 3 and image.shape[2] == 3 else None
+    return rr.Image(image, color_model=colour).compress(jpeg_quality=JPEG_QUALITY)
+
+
+def _frames_of(frames: Callable[[int], np.ndarray] | Sequence[np.ndarray] | None, f: int) -> np.ndarray | None:
+    if frames is None:
+        return None
+    return frames(f) if callable(frames) else frames[f]
 
 
 class RerunLogger(BaseObserver):
@@ -73,7 +162,8 @@ class RerunLogger(BaseObserver):
 
     Make one with `to_file` (written atomically when closed), `from_stream` (your own stream), `serve`, `connect`
     or `stdout`; use it as a context manager (closed at the end; a failure discards a file recording) and pass it
-    as ``observer=`` to `lfgraph.calibrate` / `lfgraph.refine`.
+    as ``observer=`` to `lfgraph.calibrate` / `lfgraph.refine`. After `lfgraph.refine` call `refinement_result`
+    (the refined rig is its return value), after `lfgraph.calibrate` `calibration_result`.
     """
 
     def __init__(self, rec: rr.RecordingStream, grid: ViewGrid | None = None, final_path: Path | None = None,
@@ -82,15 +172,21 @@ class RerunLogger(BaseObserver):
         self.grid = grid
         self._final, self._tmp = final_path, tmp_path
         self.iteration_count = 0
-        self._calib: Calibration | None = None  # the latest refined calibration (for naming views of outliers)
-        self.rec.log("optimizer/error", rr.SeriesLines(names="graph error"), static=True)
-        self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px, from the error)"), static=True)
+        self._errors: list[float] = []  # graph error after every optimiser iteration
+        self._rms_px: list[float] = []
         self._n_measurements = 0
+        self._frame = 0  # the frame refinement is on
+        self._track_frame: dict[bytes, int] = {}  # refinement track (its pixel bytes) -> the frame it came from
+        self._outliers: dict[int, list[np.ndarray]] = {}  # frame -> (V, K, 2) outlying observations, NaN elsewhere
+        self._last: StageEnd | None = None
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        self.rec.log("optimizer/error", rr.SeriesLines(names="graph error", colors=ERROR_COLOUR), static=True)
+        self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px)", colors=RMS_COLOUR), static=True)
 
     @classmethod
-    def to_file(cls, path: str | os.PathLike, grid: ViewGrid | None = None) -> RerunLogger:
+    def to_file(cls, path: str | os.PathLike, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
         """Record to ``path`` (.rrd): written next to it and renamed on a successful `close`, so a failed run leaves
-        no half-written file.
+        no half-written file. ``kind`` chooses the default blueprint (`default_blueprint`).
 
         Raises:
             ValueError: the path is a folder, its folder does not exist or is not writable.
@@ -99,35 +195,36 @@ class RerunLogger(BaseObserver):
         check_save_path(final)
         tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
         rec = rr.RecordingStream(APP_ID)
-        rec.save(str(tmp), default_blueprint=None if grid is None else default_blueprint(grid))
+        rec.save(str(tmp), default_blueprint=default_blueprint(grid, kind))
         return cls(rec, grid, final, tmp)
 
     @classmethod
-    def from_stream(cls, rec: rr.RecordingStream, grid: ViewGrid | None = None) -> RerunLogger:
+    def from_stream(cls, rec: rr.RecordingStream, grid: ViewGrid | None = None, kind: str = "calibrate"
+                    ) -> RerunLogger:
         """Log to a stream you opened (and whose sink you chose); ``grid`` sends the default blueprint."""
         if grid is not None:
-            rec.send_blueprint(default_blueprint(grid))
+            rec.send_blueprint(default_blueprint(grid, kind))
         return cls(rec, grid)
 
     @classmethod
-    def serve(cls, grid: ViewGrid | None = None) -> RerunLogger:
+    def serve(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
         """Host a gRPC server and web viewer for the recording."""
         rec = rr.RecordingStream(APP_ID)
-        rec.serve_grpc(default_blueprint=None if grid is None else default_blueprint(grid))
+        rec.serve_grpc(default_blueprint=default_blueprint(grid, kind))
         return cls(rec, grid)
 
     @classmethod
-    def connect(cls, url: str | None = None, grid: ViewGrid | None = None) -> RerunLogger:
+    def connect(cls, url: str | None = None, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
         """Stream to a running viewer (rerun's default address unless ``url``)."""
         rec = rr.RecordingStream(APP_ID)
-        rec.connect_grpc(url, default_blueprint=None if grid is None else default_blueprint(grid))
+        rec.connect_grpc(url, default_blueprint=default_blueprint(grid, kind))
         return cls(rec, grid)
 
     @classmethod
-    def stdout(cls, grid: ViewGrid | None = None) -> RerunLogger:
-        """Write the recording to standard output (pipe it into ``rerun -``)."""
+    def stdout(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
+        """Write the recording to standard output (pipe it into ``rerun -``); print nothing else there."""
         rec = rr.RecordingStream(APP_ID)
-        rec.stdout(default_blueprint=None if grid is None else default_blueprint(grid))
+        rec.stdout(default_blueprint=default_blueprint(grid, kind))
         return cls(rec, grid)
 
     @property
@@ -151,14 +248,18 @@ class RerunLogger(BaseObserver):
         self.on_iteration(iteration, error_before, error_after)
 
     def frame(self, index: int, images: np.ndarray) -> None:
-        self.rec.set_time("frame", sequence=index)
+        """Refinement starts on frame ``index``: its images go on the ``frame`` timeline."""
+        self._frame = int(index)
+        self.rec.set_time("frame", sequence=self._frame)
+        self._log_images(images)
 
     def stage_start(self, name: str, measurements: int) -> None:
         self.rec.set_time("iteration", sequence=self.iteration_count + 1)
-        self.rec.log("optimizer/stages", rr.TextLog(f"stage {name} starts", level="INFO"))
+        self.rec.log("optimizer/stages", rr.TextLog(f"frame {self._frame}: stage {name} starts", level="INFO"))
         self.set_measurements(measurements)
 
     def stage_end(self, event: StageEnd) -> None:
+        """Landmarks, and on every frame so far that frame's tracks with the calibration after this stage."""
         from lfgraph.camera import project_world
 
         calib, points, valid = event.calib, event.points_ref_m, event.valid
@@ -167,15 +268,57 @@ class RerunLogger(BaseObserver):
         self.landmarks(points, mean_err)
         projected = np.stack([project_world(calib.intrinsics[v], calib.view_T_ref(v), points)
                               for v in range(calib.num_views)])
-        self.observations(calib, event.pixels_px, projected, valid)
-        self._calib = calib
+        frames = self._frames_of_tracks(event.pixels_px)
+        for g in range(self._frame + 1):
+            sel = frames == g
+            self.rec.set_time("frame", sequence=g)
+            self.observations(calib, event.pixels_px[:, sel], projected[:, sel], valid[:, sel],
+                              self._outlier_pixels(g, calib.num_views))
+        self.rec.set_time("frame", sequence=self._frame)
+        self._last = event
 
     def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
-        if self._calib is None:
+        """Dropped tracks, in red on the frame they came from (kept for every later stage)."""
+        if pixels_px.shape[1] == 0:
             return
-        for v in range(self._calib.num_views):
-            self.rec.log(f"views/{self._calib.grid.name(v)}/outliers",
-                         rr.Points2D(pixels_px[v][valid[v]], radii=2.0, colors=OUTLIER_COLOUR))
+        frames = self._frames_of_tracks(pixels_px)
+        px = np.where(valid[..., None], pixels_px, np.nan)
+        for g in np.unique(frames):
+            self._outliers.setdefault(int(g), []).append(px[:, frames == g])
+            self.rec.set_time("frame", sequence=int(g))
+            for v in range(px.shape[0]):
+                self.rec.log(f"views/{self._name(v)}/outliers",
+                             rr.Points2D(self._outlier_pixels(int(g), px.shape[0])[v], radii=-1.5 * POINT_RADIUS_UI,
+                                         colors=OUTLIER_COLOUR))
+        self.rec.set_time("frame", sequence=self._frame)
+
+    # ------------------------------------------------------------------------------------------- helpers
+    def _name(self, v: int) -> str:
+        if self.grid is None:
+            raise ValueError("this logger was made without a grid; pass grid= to name the views")
+        return self.grid.name(v)
+
+    def _track_keys(self, pixels_px: np.ndarray) -> list[bytes]:
+        cols = np.ascontiguousarray(np.transpose(pixels_px, (1, 0, 2)))
+        return [c.tobytes() for c in cols]
+
+    def _frames_of_tracks(self, pixels_px: np.ndarray) -> np.ndarray:
+        """(N,) the frame each pooled track came from: a track never seen before belongs to the current frame (the
+        pool only grows by the current frame's tracks; a dropped track never returns)."""
+        return np.array([self._track_frame.setdefault(k, self._frame) for k in self._track_keys(pixels_px)],
+                        dtype=int)
+
+    def _outlier_pixels(self, frame: int, n_views: int) -> list[np.ndarray]:
+        """Per view the finite outlying observations of ``frame``."""
+        parts = self._outliers.get(frame)
+        if not parts:
+            return [np.zeros((0, 2)) for _ in range(n_views)]
+        px = np.concatenate(parts, axis=1)
+        return [px[v][np.all(np.isfinite(px[v]), axis=1)] for v in range(n_views)]
+
+    def _log_images(self, images: np.ndarray) -> None:
+        for v in range(images.shape[0]):
+            self.rec.log(f"views/{self._name(v)}/image", _jpeg(images[v]))
 
     # ------------------------------------------------------------------------------------------- optimiser
     def set_measurements(self, n: int) -> None:
@@ -187,22 +330,72 @@ class RerunLogger(BaseObserver):
         self.iteration_count += 1
         self.rec.set_time("iteration", sequence=self.iteration_count)
         self.rec.log("optimizer/error", rr.Scalars(after))
+        self._errors.append(float(after))
         if self._n_measurements:
             # graph error = 0.5 sum |r|^2 at 1 px sigma (priors are negligible): RMS per point = sqrt(2 e / N)
-            self.rec.log("optimizer/rms_px", rr.Scalars(float(np.sqrt(2.0 * after / self._n_measurements))))
+            rms = float(np.sqrt(2.0 * after / self._n_measurements))
+            self.rec.log("optimizer/rms_px", rr.Scalars(rms))
+            self._rms_px.append(rms)
+        else:
+            self._rms_px.append(float("nan"))
 
-    def rig(self, calib: Calibration, images: np.ndarray | None = None) -> None:
-        """Every view's pose, intrinsics and (optionally) an image, static."""
+    def optimiser_summary(self) -> None:
+        """The whole optimiser history as bar charts (one bar per LM iteration), readable on any timeline."""
+        if not self._errors:
+            return
+        iterations = np.arange(1, len(self._errors) + 1, dtype=np.float64)
+        err = np.log10(np.maximum(np.asarray(self._errors), np.finfo(float).tiny))
+        self.rec.log("optimizer_summary/error_log10", rr.BarChart(err, abscissa=iterations, color=ERROR_COLOUR),
+                     static=True)
+        rms = np.asarray(self._rms_px)
+        if np.isfinite(rms).any():
+            self.rec.log("optimizer_summary/rms_px", rr.BarChart(np.nan_to_num(rms), abscissa=iterations,
+                                                                 color=RMS_COLOUR), static=True)
+
+    # ------------------------------------------------------------------------------------------- 3-D
+    def rig(self, calib: Calibration, images: np.ndarray | None = None, name: str = "rig") -> None:
+        """Every view's pose and intrinsics under ``world/<name>`` (static), in that rig's colour; ``images`` (frame
+        0, optional) go to the 2-D views on the ``frame`` timeline."""
         w, h = calib.image_size_px
+        colour = RIG_COLOURS.get(name.removesuffix("_rig"), RIG_COLOURS["rig"])
+        base = f"world/{name}"
+        depth_m = FRUSTUM_BASELINE_SHARE * smallest_baseline_m(calib)
         for v in range(calib.num_views):
-            path = f"world/rig/view_{calib.grid.name(v)}"
             pose = calib.ref_T_view[v]
+            path = f"{base}/{calib.grid.name(v)}"
             self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
             self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
-                                          image_plane_distance=0.02), static=True)
-            if images is not None:
-                self.rec.log(f"{path}/image", rr.Image(images[v]), static=True)
-                self.rec.log(f"views/{calib.grid.name(v)}/image", rr.Image(images[v]), static=True)
+                                          image_plane_distance=depth_m, color=colour), static=True)
+        self.rec.log(f"{base}/centres", rr.Points3D(calib.ref_T_view[:, :3, 3], colors=colour,
+                                                    radii=0.05 * smallest_baseline_m(calib),
+                                                    labels=[f"{name}: {calib.grid.name(v)}"
+                                                            for v in range(calib.num_views)],
+                                                    show_labels=False), static=True)
+        if images is not None:
+            self.rec.set_time("frame", sequence=0)
+            self._log_images(images)
+
+    def rig_change(self, before: Calibration, after: Calibration) -> None:
+        """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
+        longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, labelled with the change of
+        rotation (deg), position (mm) and focal length (px) and the factor."""
+        from lfgraph.geometry import rotation_angle_deg
+
+        rot_deg = np.array([rotation_angle_deg(a[:3, :3] @ b[:3, :3].T)
+                            for a, b in zip(after.ref_T_view, before.ref_T_view, strict=True)])
+        pos_mm = 1e3 * np.linalg.norm(after.ref_T_view[:, :3, 3] - before.ref_T_view[:, :3, 3], axis=1)
+        focal_px = np.array([np.hypot(a.fx - b.fx, a.fy - b.fy)
+                             for a, b in zip(after.intrinsics, before.intrinsics, strict=True)])
+        start = before.ref_T_view[:, :3, 3]
+        move = after.ref_T_view[:, :3, 3] - start
+        longest_m = float(np.max(np.linalg.norm(move, axis=1)))
+        scale = nice_factor(CHANGE_ARROW_BASELINE_SHARE * smallest_baseline_m(before) / longest_m) \
+            if longest_m > 0 else 1.0
+        labels = [f"{after.grid.name(v)}: {rot_deg[v]:.3f} deg, {pos_mm[v]:.2f} mm, f {focal_px[v]:.2f} px "
+                  f"(arrow x{scale:g})" for v in range(after.num_views)]
+        self.rec.log("world/change", rr.Arrows3D(origins=start, vectors=move * scale, colors=CHANGE_COLOUR,
+                                                 labels=labels, radii=0.02 * smallest_baseline_m(before)),
+                     static=True)
 
     def boards(self, ref_T_board: np.ndarray, object_points_m: np.ndarray) -> None:  # noqa: N803
         for f, pose in enumerate(ref_T_board):
@@ -218,41 +411,71 @@ class RerunLogger(BaseObserver):
                                                                                        RESIDUAL_COLOUR_MAX_PX),
                                                     radii=0.01))
 
+    # ------------------------------------------------------------------------------------------- 2-D
     def observations(self, calib: Calibration, observed: np.ndarray, projected: np.ndarray, valid: np.ndarray,
-                     outliers: np.ndarray | None = None) -> None:
-        """Per view: observed and reprojected points and residual arrows. Arrays (V, N, 2) / (V, N)."""
+                     outliers: np.ndarray | list[np.ndarray] | None = None) -> None:
+        """Per view, at the current ``frame`` time: observed and reprojected points, residual arrows, outliers
+        and the view's RMS. Arrays (V, N, 2) / (V, N); ``outliers`` per view (K, 2) pixels. Empty entities are
+        logged too, so that nothing of an earlier frame lingers."""
         for v in range(calib.num_views):
-            base = f"views/{calib.grid.name(v)}"
+            name = calib.grid.name(v)
+            base = f"views/{name}"
             m = valid[v] & np.all(np.isfinite(observed[v]), axis=-1) & np.all(np.isfinite(projected[v]), axis=-1)
             obs, proj = observed[v][m], projected[v][m]
             res = obs - proj
             mag = np.linalg.norm(res, axis=1)
-            self.rec.log(f"{base}/observed", rr.Points2D(obs, radii=1.0, colors=(80, 160, 255)))
-            self.rec.log(f"{base}/reprojected", rr.Points2D(proj, radii=0.8, colors=(255, 255, 255)))
+            self.rec.log(f"{base}/observed", rr.Points2D(obs, radii=-POINT_RADIUS_UI, colors=OBSERVED_COLOUR))
+            self.rec.log(f"{base}/reprojected", rr.Points2D(proj, radii=-0.6 * POINT_RADIUS_UI,
+                                                            colors=REPROJECTED_COLOUR))
             self.rec.log(f"{base}/residuals", rr.Arrows2D(origins=proj, vectors=res * RESIDUAL_ARROW_SCALE,
                                                           colors=_colour_by(mag, RESIDUAL_COLOUR_MAX_PX)))
-            if outliers is not None:
-                o = outliers[v] & np.all(np.isfinite(observed[v]), axis=-1)
-                self.rec.log(f"{base}/outliers", rr.Points2D(observed[v][o], radii=2.0, colors=OUTLIER_COLOUR))
-            rms = float(np.sqrt(np.mean(mag**2))) if mag.size else float("nan")
-            self.rec.log(f"rms/view_{calib.grid.name(v)}", rr.Scalars(rms))
+            out = np.zeros((0, 2)) if outliers is None else outliers[v]
+            self.rec.log(f"{base}/outliers", rr.Points2D(out, radii=-1.5 * POINT_RADIUS_UI, colors=OUTLIER_COLOUR))
+            if mag.size:
+                self.rec.log(f"rms/{name}", rr.Scalars(_rms(mag)))
 
-    def calibration_result(self, calib: Calibration, obs, report, images: np.ndarray | None = None) -> None:
-        """After `lfgraph.calibrate`: rig, board poses, per-view corners, reprojections and residuals."""
+    def calibration_result(self, calib: Calibration, obs, report,
+                           frames: Callable[[int], np.ndarray] | Sequence[np.ndarray] | None = None) -> None:
+        """After `lfgraph.calibrate`: the calibrated rig and board poses, and on the ``frame`` timeline each frame's
+        images (``frames``: a loader ``f -> (V, H, W)`` such as ``capture.load_frame``, or a sequence), corners,
+        reprojections, residuals and (outlier frames) the corners in red; the optimiser summary.
+
+        Args:
+            calib: the calibration; obs: its `lfgraph.detections.Observations`; report: its `CalibrationReport`.
+            frames: per-frame images (optional: without them the 2-D views show the points only).
+        """
         from lfgraph.geometry import invert_T
 
-        self.rig(calib, images)
+        self.rig(calib, name="calibrated_rig")
         if report.board_T_ref is not None:
             ref_T_board = np.stack([invert_T(T) if np.all(np.isfinite(T)) else np.full((4, 4), np.nan)  # noqa: N806
                                     for T in report.board_T_ref])
             self.boards(ref_T_board, obs.board.object_points())
-        if report.residuals_px is not None:
-            n = calib.num_views
-            observed = obs.corners_px.reshape(n, -1, 2)
-            projected = (obs.corners_px - report.residuals_px).reshape(n, -1, 2)
-            outliers = np.zeros(obs.valid.shape, dtype=bool)
-            outliers[:, list(report.outlier_frames)] = obs.valid[:, list(report.outlier_frames)]
-            self.observations(calib, observed, projected, obs.valid.reshape(n, -1), outliers.reshape(n, -1))
+        outlier_frames = set(report.outlier_frames)
+        for f in range(obs.corners_px.shape[1]):
+            self.rec.set_time("frame", sequence=f)
+            images = _frames_of(frames, f)
+            if images is not None:
+                self._log_images(images)
+            if report.residuals_px is None:
+                continue
+            observed = obs.corners_px[:, f]
+            projected = observed - report.residuals_px[:, f]
+            valid = obs.valid[:, f]
+            outliers = [observed[v][valid[v]] if f in outlier_frames else np.zeros((0, 2))
+                        for v in range(calib.num_views)]
+            self.observations(calib, observed, projected, valid, outliers)
+        self.optimiser_summary()
+
+    def refinement_result(self, before: Calibration, after: Calibration, report=None) -> None:
+        """After `lfgraph.refine`: the input and the refined rig side by side, the change per view, the optimiser
+        summary. ``after`` is `refine`'s return value (the input itself when the refinement was not accepted)."""
+        self.rig(before, name="input_rig")
+        self.rig(after, name="refined_rig")
+        self.rig_change(before, after)
+        self.optimiser_summary()
+        if report is not None and not getattr(report, "accepted", True):
+            self.rec.log("log", rr.TextLog("refinement not accepted: the refined rig is the input", level="WARN"))
 
     def study_rows(self, rows: list[dict]) -> None:
         """Study results as scalars: ``study/<stages>_<robust>/<metric>`` on the ``level`` timeline."""
@@ -266,13 +489,14 @@ class RerunLogger(BaseObserver):
                     self.rec.log(f"study/{name}/{metric}", rr.Scalars(value))
 
     def rectified(self, calib: Calibration, images: np.ndarray) -> None:
+        """Rectified views (static) with horizontal guide lines every `GUIDE_SPACING_PX`."""
         h, w = images.shape[1:3]
         ys = np.arange(GUIDE_SPACING_PX, h, GUIDE_SPACING_PX, dtype=np.float32)
         lines = [np.array([[0, y], [w - 1, y]], dtype=np.float32) for y in ys]
         for v in range(calib.num_views):
             base = f"rectified/{calib.grid.name(v)}"
-            self.rec.log(f"{base}/image", rr.Image(images[v]), static=True)
-            self.rec.log(f"{base}/guides", rr.LineStrips2D(lines, colors=(0, 255, 255), radii=0.5), static=True)
+            self.rec.log(f"{base}/image", _jpeg(images[v]), static=True)
+            self.rec.log(f"{base}/guides", rr.LineStrips2D(lines, colors=GUIDE_COLOUR, radii=0.5), static=True)
 
     def close(self, success: bool = True) -> None:
         """Flush and finish; a file recording appears only now, and only when ``success``."""
