@@ -16,7 +16,7 @@ from lfgraph.factors.noise import pixel_noise
 from lfgraph.factors.values import insert_board_corners, insert_board_poses, read_board_poses
 from lfgraph.geometry import invert_T
 from lfgraph.optimize import OptimizationResult, OptimizerSettings, optimize
-from lfgraph.pattern.initial import pnp_all
+from lfgraph.pattern.initial import initial_board_T_ref, pnp_all
 
 COVERAGE_CELLS = 8  # coverage is measured on an 8x8 grid of image cells
 COVERAGE_WARN_FRACTION = 0.75  # warn below this share of cells holding corners
@@ -110,22 +110,22 @@ def rig_residuals(intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray, bo
 
 
 def fit_board_poses(intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray, obs: BoardObservations,  # noqa: N803
-                    initial_board_T_ref: np.ndarray | None = None) -> np.ndarray:  # noqa: N803
+                    start_board_T_ref: np.ndarray | None = None) -> np.ndarray:  # noqa: N803
     """(F, 4, 4) ``board_T_ref`` that best explain the corners with the rig held fixed (a GTSAM graph).
 
     This is what makes the rig-consistent RMS comparable across routes: every route's rig is scored with board
     poses fitted to all of its views at once.
     """
-    if initial_board_T_ref is None:
-        initial_board_T_ref = initial_board_T_ref(pnp_all(obs, intrinsics), ref_T_view, obs.valid.sum(axis=2))
+    if start_board_T_ref is None:  # PnP in every view through the fixed rig
+        start_board_T_ref = initial_board_T_ref(pnp_all(obs, intrinsics), ref_T_view, obs.valid.sum(axis=2))
     graph = gtsam.NonlinearFactorGraph()
-    frames = [f for f in range(obs.num_frames) if np.all(np.isfinite(initial_board_T_ref[f]))]
+    frames = [f for f in range(obs.num_frames) if np.all(np.isfinite(start_board_T_ref[f]))]
     valid = obs.valid.copy()
     valid[:, [f for f in range(obs.num_frames) if f not in frames]] = False
     board_graph.add_fixed_rig_observations(graph, obs.corners_px, valid, intrinsics, ref_T_view, pixel_noise(1.0))
     board_graph.add_corner_priors(graph, obs.board.object_points(), board_graph.RIGID_BOARD_SIGMA_M)
     values = gtsam.Values()
-    insert_board_poses(values, initial_board_T_ref, frames)
+    insert_board_poses(values, start_board_T_ref, frames)
     insert_board_corners(values, obs.board.object_points())
     result = optimize(graph, values, OptimizerSettings(max_iterations=50))
     return read_board_poses(result.values, obs.num_frames, frames)
