@@ -6,6 +6,9 @@ Layouts (views row-major):
 - ``mosaic``: ``DIR/<frame>.<ext>``, one image per frame with the views tiled row-major.
 - ``hci``: ``input_Cam000.<ext>`` ... (row-major index) in one folder (one frame) or in per-frame folders.
 - ``pairs``: ``left<id>.<ext>`` / ``right<id>.<ext>`` stereo sets (OpenCV's sample), a 1x2 grid, frames by ``<id>``.
+- ``views``: ``DIR/<view>/<name><N>.<ext>``, one folder per view (folders in natural name order = row-major views,
+  e.g. ``left/ middle/ right/``), frames matched by the number ``N`` at the end of each file name (``left7.jpg`` and
+  ``right7.jpg`` are frame 7); BoofCV's and many rigs' own layout.
 - ``video``: ``DIR/<name>.<ext>``, one video per view, views in natural name order (``cam_0.mp4``, ``cam_1.mp4``,
   ... row-major); frame f is the f-th decoded frame of every video; the capture has as many frames as the shortest
   video (`CaptureSet.notes` says so when the lengths differ).
@@ -32,7 +35,7 @@ from lfgraph.io_utils import atomic_path
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
-LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs", "video")
+LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs", "views", "video")
 MISSING_VIEW = ("error", "unseen")  # what a frame without one of its view images is
 VIDEO_GRAB_AHEAD = 16  # a reader this few frames behind decodes forward; further (or backwards) it seeks
 VIDEO_READERS = 16  # open video readers kept per process
@@ -283,6 +286,42 @@ def _view_files(folder: Path, grid: ViewGrid, missing: str = "error") -> tuple[P
     return tuple(found.get(v) for v in range(grid.num_views))
 
 
+_TRAILING_NUMBER_RE = re.compile(r"^(.*?)(\d+)$")
+
+
+def _view_folder_frames(root: Path, grid: ViewGrid, missing: str) -> tuple[list[str], list[tuple[Path | None, ...]]]:
+    """The ``views`` layout: one folder per view, frames keyed by the number ending each file name."""
+    folders = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
+                     key=lambda p: _natural_key(p.name))
+    if len(folders) != grid.num_views:
+        raise CaptureError(f"{root}: the views layout needs one folder per view, {grid.num_views} for the {grid} grid; "
+                           f"found {len(folders)} ({', '.join(p.name for p in folders[:MAX_LISTED])})")
+    per_view: list[dict[str, Path]] = []
+    for folder in folders:
+        keyed: dict[str, Path] = {}
+        for p in _images(folder):
+            m = _TRAILING_NUMBER_RE.match(p.stem)
+            if m is None:
+                raise CaptureError(f"{p}: the views layout matches frames by the number ending each file name; "
+                                   f"this name has none")
+            key = str(int(m.group(2)))
+            if key in keyed:
+                raise CaptureError(f"{p}: frame number {key} appears twice in {folder} (also {keyed[key].name})")
+            keyed[key] = p
+        if not keyed:
+            raise CaptureError(f"{folder}: no images in this view's folder")
+        per_view.append(keyed)
+    keys = sorted(set().union(*per_view), key=int)
+    files = [tuple(view.get(k) for view in per_view) for k in keys]
+    if missing == "error":
+        for k, views in zip(keys, files, strict=True):
+            lacking = [folders[v].name for v, p in enumerate(views) if p is None]
+            if lacking:
+                raise CaptureError(f"{root}: frame {k} has no image in {', '.join(lacking)} (--missing-view unseen "
+                                   f"counts a missing view image as 'board not seen')")
+    return keys, files
+
+
 def _detect(root: Path, grid: ViewGrid) -> str:
     images = _images(root)
     subdirs = [p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")]
@@ -301,6 +340,9 @@ def _detect(root: Path, grid: ViewGrid) -> str:
         candidates.append("mosaic")
     if videos:
         candidates.append("video")
+    if not images and not frame_dirs and not videos and len(subdirs) == grid.num_views > 1 \
+            and all(_images(d) for d in subdirs):
+        candidates.append("views")
     if not candidates:
         raise CaptureError(f"{root}: no images found (looked for {', '.join(IMAGE_EXTENSIONS)} files, frame "
                            f"folders holding rRR_cCC or input_CamNNN images, and {', '.join(VIDEO_EXTENSIONS)} "
@@ -382,6 +424,8 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
                 if views is not None:
                     names.append(d.name)
                     files.append(views)
+    elif layout == "views":
+        names, files = _view_folder_frames(root, grid, missing)
     elif layout == "mosaic":
         for p in _images(root):
             names.append(p.stem)

@@ -12,14 +12,15 @@ def parse_grid(text: str) -> tuple[int, int]:
     """Parse ``"ROWSxCOLS"`` (e.g. ``"4x4"``, ``"1x2"``) into ``(rows, cols)``.
 
     Raises:
-        ValueError: not of that form, or a dimension is 0.
+        ValueError: not of that form, or a dimension is 0. (A 1x1 "grid" is one camera: it can be calibrated, not
+            rectified.)
     """
     m = _GRID_RE.match(text)
     if not m:
         raise ValueError(f"grid must be ROWSxCOLS such as 4x4 or 1x2, got {text!r}")
     rows, cols = int(m.group(1)), int(m.group(2))
-    if rows < 1 or cols < 1 or rows * cols < 2:
-        raise ValueError(f"a grid needs at least 2 views, got {rows}x{cols}")
+    if rows < 1 or cols < 1:
+        raise ValueError(f"a grid needs at least 1x1 views, got {rows}x{cols}")
     return rows, cols
 
 

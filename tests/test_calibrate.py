@@ -234,3 +234,22 @@ def test_board_poses_fitted_through_a_fixed_rig_from_pnp_alone():
     boards = fit_board_poses(calib.intrinsics, calib.ref_T_view, obs)
     res = rig_residuals(calib.intrinsics, calib.ref_T_view, boards, obs)
     assert np.nanmax(np.abs(res)) < 1e-6
+
+
+def test_one_camera_matches_opencv_calibrate_camera():
+    """A 1x1 'array' (pycalib-style single camera): the joint route equals cv2.calibrateCamera on the same corners."""
+    import cv2
+
+    from lfgraph.grid import ViewGrid
+
+    calib, truth = small_rig()
+    obs = observations(calib, truth, SIGMA_PX)
+    one = observations_from_arrays(obs.board, ViewGrid(1, 1), obs.image_size_px, obs.corners_px[:1], obs.valid[:1])
+    est, report = calibrate(one)
+    frames = np.nonzero(one.seen[0])[0]
+    objs = [one.board.object_points()[one.valid[0, f]].astype(np.float32) for f in frames]
+    imgs = [one.corners_px[0, f][one.valid[0, f]].astype(np.float32) for f in frames]
+    rms, K, *_ = cv2.calibrateCamera(objs, imgs, one.image_size_px, None, None,  # noqa: N806
+                                     flags=cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST)
+    assert report.rig_rms_px <= rms + 1e-6  # the same model and data: the joint optimum is OpenCV's
+    assert abs(est.intrinsics[0].fx - K[0, 0]) < 1e-3 * K[0, 0]

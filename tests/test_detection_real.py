@@ -30,7 +30,7 @@ CASES = [
     ("pycalib/00000002.jpg", BoardSpec(10, 7, 1.0)),
     ("pycalib/00000012.jpg", BoardSpec(10, 7, 1.0)),
     ("boofcv_bumblebee2/left01.jpg", BoardSpec(4, 6, 0.03)),
-    ("trinocular/right/right10.jpg", BoardSpec(13, 9, 1.0)),
+    ("trinocular_extra/right10.jpg", BoardSpec(13, 9, 1.0)),
 ]
 
 
@@ -74,7 +74,7 @@ def test_finds_a_board_the_fast_check_misses():
 
 
 def test_finds_a_board_only_the_sb_detector_sees():
-    gray = _load("trinocular/right/right10.jpg")
+    gray = _load("trinocular_extra/right10.jpg")
     board = BoardSpec(13, 9, 1.0)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     assert not cv2.findChessboardCorners(gray, board.pattern_size, flags=flags)[0], "premise: needs the fallback"

@@ -36,7 +36,8 @@ def test_chain_reaches_every_view_once_from_adjacent_views(rows, cols, ref):
 def test_parse_grid():
     assert parse_grid("4x4") == (4, 4)
     assert parse_grid(" 1X2 ") == (1, 2)
-    for bad in ("4", "4x", "axb", "1x1", "0x3"):
+    assert parse_grid("1x1") == (1, 1)  # one camera: calibrated, not rectified
+    for bad in ("4", "4x", "axb", "0x3", "2x0"):
         with pytest.raises(ValueError, match="grid"):
             parse_grid(bad)
 

@@ -125,3 +125,17 @@ def test_pairs_errors(tmp_path):
         open_capture(tmp_path, (1, 2))
     with pytest.raises(CaptureError, match="1x2 grid, not 2x2"):
         open_capture(tmp_path, GRID, layout="pairs")
+
+
+def test_views_layout_matches_frames_by_number_in_real_trinocular_folders():
+    """BoofCV's trinocular set: left/ middle/ right/ with leftN.jpg ...; frames matched by N, views in folder order."""
+    from pathlib import Path
+
+    from lfgraph.capture import open_capture
+
+    root = Path(__file__).parent / "data" / "trinocular"
+    capture = open_capture(root, (1, 3))
+    assert capture.layout == "views"
+    assert capture.frame_names == ("1", "6", "11", "16", "21")
+    assert [p.name for p in capture.paths(2)] == ["left11.jpg", "middle11.jpg", "right11.jpg"]
+    assert capture.image_size_px == (1224, 1024)

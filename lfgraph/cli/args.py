@@ -72,7 +72,7 @@ def positive_float(text: str) -> float:
     return value
 
 
-LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs", "video")
+LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs", "views", "video")
 
 
 RERUN_SINK_FLAGS = ("save", "connect", "serve", "stdout", "url")

@@ -91,7 +91,7 @@ def _rectify(args: argparse.Namespace) -> int:
 
             logger.rig(calib)
             logger.rectified(calib, remap_views(capture.load_frame(0, grayscale=False), build_maps(calib, rect)))
-    out_layout = "folders" if capture.layout in ("pairs", "video") else capture.layout
+    out_layout = "folders" if capture.layout in ("pairs", "views", "video") else capture.layout
     out.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_partials(out)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", dir=out.parent))
