@@ -57,7 +57,7 @@ def read_rows(path: str | os.PathLike, columns: Sequence[str]) -> list[dict[str,
             raise ValueError(f"{p}: the CSV has columns {reader.fieldnames}, not this study's; choose another -o")
         rows, broken = [], []
         for row in reader:
-            if None in row or any(row[c] in (None, "") for c in columns):  # cut short or padded by hand
+            if None in row or any(row[c] is None for c in columns):  # cut short (fields missing) or extra fields
                 broken.append(reader.line_num)
             else:
                 rows.append(row)

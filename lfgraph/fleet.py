@@ -1,0 +1,212 @@
+"""Fleet scale: check and refine many recordings (one per camera array) on a process pool or a Dask cluster.
+
+A manifest CSV names each recording (columns ``camera``, ``calibration``, ``capture``; paths relative to the
+manifest; optional ``layout``, ``max_frames``, ``max_px``). For each camera the drift check runs first; when it
+finds drift, the refinement runs and, when that improves the calibration, the refined calibration is written next
+to the input as a new version (``NAME.v2.json``, ``NAME.v3.json``, ...; never over the input, atomically). One row
+per camera goes into the results CSV (sorted, rewritten atomically after every camera; a re-run skips cameras
+already in it), with a verdict:
+
+- ``OK``: the calibration fits the recording (reprojection RMS <= ``max_px``);
+- ``DRIFTED``: it did not, and the refinement produced a better one (the new version's path is in the row);
+- ``UNCERTAIN``: it did not fit, but the refinement could not improve it (too little texture, too few frames):
+  inspect the recording;
+- ``ERROR``: the recording or calibration could not be used (the message is in the row); other cameras go on.
+
+Results do not depend on the executor or on the order in which cameras finish (every step is deterministic), except
+the ``seconds`` column. Paths in the results are relative to the manifest's folder.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lfgraph.io_utils import atomic_path
+
+MANIFEST_COLUMNS = ("camera", "calibration", "capture")
+RESULT_COLUMNS = ("camera", "verdict", "rms_before_px", "rms_after_px", "max_rotation_change_deg",
+                  "max_position_change_mm", "view_changes", "refined_calibration", "frames", "seconds", "error")
+VERDICTS = ("OK", "DRIFTED", "UNCERTAIN", "ERROR")
+DEFAULT_MAX_PX = 0.5  # the drift check's threshold, as `lfgraph check --max-px`
+DEFAULT_MAX_FRAMES = 3
+MAX_VERSIONS = 10_000  # calibration versions tried before giving up (a folder that is filling up with them)
+
+
+class ManifestError(ValueError):
+    """A manifest that cannot be used; the message names the file, line and column."""
+
+
+@dataclass(frozen=True)
+class FleetItem:
+    """One manifest row, paths resolved against the manifest's folder."""
+
+    camera: str
+    calibration: Path
+    capture: Path
+    layout: str = "auto"
+    max_frames: int = DEFAULT_MAX_FRAMES
+    max_px: float = DEFAULT_MAX_PX
+    root: Path = Path(".")  # the manifest's folder: result paths are written relative to it
+
+
+def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
+    """Parse a manifest CSV.
+
+    Raises:
+        ManifestError: unreadable file, missing columns, an empty or repeated camera, a bad number (named by line).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"{path}: cannot read the manifest ({exc})") from None
+    reader = csv.DictReader(text.splitlines())
+    missing = [c for c in MANIFEST_COLUMNS if c not in (reader.fieldnames or [])]
+    if missing:
+        raise ManifestError(f"{path}: the manifest needs the columns {', '.join(MANIFEST_COLUMNS)}; missing "
+                            f"{', '.join(missing)} (found {', '.join(reader.fieldnames or []) or 'none'})")
+    items, seen = [], {}
+    for row in reader:
+        line = reader.line_num
+        camera = (row.get("camera") or "").strip()
+        if not camera:
+            raise ManifestError(f"{path}, line {line}: empty camera name")
+        if camera in seen:
+            raise ManifestError(f"{path}, line {line}: camera {camera!r} is listed twice (also line {seen[camera]})")
+        seen[camera] = line
+        for col in ("calibration", "capture"):
+            if not (row.get(col) or "").strip():
+                raise ManifestError(f"{path}, line {line}: empty {col} for camera {camera!r}")
+        try:
+            max_frames = int(row.get("max_frames") or DEFAULT_MAX_FRAMES)
+            max_px = float(row.get("max_px") or DEFAULT_MAX_PX)
+        except ValueError as exc:
+            raise ManifestError(f"{path}, line {line}: {exc}") from None
+        if max_frames < 1 or not (np.isfinite(max_px) and max_px > 0):
+            raise ManifestError(f"{path}, line {line}: max_frames must be >= 1 and max_px > 0")
+        base = path.parent
+        items.append(FleetItem(camera, base / row["calibration"].strip(), base / row["capture"].strip(),
+                               (row.get("layout") or "auto").strip(), max_frames, max_px, base))
+    if not items:
+        raise ManifestError(f"{path}: the manifest lists no camera")
+    return items
+
+
+def next_version(calibration: Path) -> Path:
+    """``NAME.vN.json`` beside ``calibration`` for the first N >= 2 that is free (the input is version 1)."""
+    stem = calibration.stem
+    base = stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
+    for n in range(2, MAX_VERSIONS):
+        candidate = calibration.with_name(f"{base}.v{n}{calibration.suffix}")
+        if not candidate.exists():
+            return candidate
+    raise OSError(f"{calibration.parent}: {MAX_VERSIONS} versions of {base} already; clean the folder")
+
+
+def _save_new_version(calib: Any, input_path: Path) -> Path:
+    """Write ``calib`` as the next free version, atomically and without ever replacing an existing file."""
+    for _ in range(MAX_VERSIONS):
+        target = next_version(input_path)
+        with atomic_path(target.with_name(f".{target.name}.partial")) as tmp:
+            tmp.write_text(calib.to_json(), encoding="utf-8")
+            try:
+                os.link(tmp, target)  # fails when another worker took this version meanwhile
+            except FileExistsError:
+                continue
+        return target
+    raise OSError(f"could not write a new version of {input_path}")
+
+
+def process_camera(item: FleetItem) -> list[dict[str, Any]]:
+    """Check one camera's recording, refine on drift, write the new version; one result row (never raises)."""
+    from lfgraph.calibration import Calibration
+    from lfgraph.capture import open_capture
+    from lfgraph.drift import check
+    from lfgraph.rectification import check_compatible
+    from lfgraph.refinement import RefineConfig, refine
+
+    start = time.perf_counter()
+    row: dict[str, Any] = {"camera": item.camera, "verdict": "ERROR", "rms_before_px": float("nan"),
+                           "rms_after_px": float("nan"), "max_rotation_change_deg": 0.0,
+                           "max_position_change_mm": 0.0, "view_changes": "{}", "refined_calibration": "",
+                           "frames": 0, "error": ""}
+    try:
+        calib = Calibration.load(item.calibration)
+        capture = open_capture(item.capture, calib.grid, item.layout)
+        check_compatible(calib, capture.grid, capture.image_size_px, str(item.capture))
+        report = check(calib, capture.frames(item.max_frames))
+        row.update(rms_before_px=report.rms_px, frames=report.frames)
+        if report.rms_px <= item.max_px:
+            row.update(verdict="OK", rms_after_px=report.rms_px)
+        else:
+            refined, ref_report = refine(calib, capture.frames(item.max_frames),
+                                         RefineConfig(max_frames=item.max_frames))
+            rot, pos = _changes(calib, refined)
+            row.update(rms_after_px=ref_report.rms_after_px if ref_report.accepted else report.rms_px,
+                       max_rotation_change_deg=float(rot.max()), max_position_change_mm=float(pos.max()),
+                       view_changes=json.dumps({calib.grid.name(v): {"rotation_deg": round(float(rot[v]), 6),
+                                                                    "position_mm": round(float(pos[v]), 6)}
+                                                for v in range(calib.num_views)}, sort_keys=True))
+            if ref_report.accepted:
+                written = _save_new_version(refined, item.calibration)
+                row.update(verdict="DRIFTED", refined_calibration=os.path.relpath(written, item.root))
+            else:
+                row.update(verdict="UNCERTAIN", error="; ".join(ref_report.warnings))
+    except Exception as exc:  # one bad recording must never stop the fleet: it becomes an ERROR row
+        row.update(verdict="ERROR", error=f"{type(exc).__name__}: {exc}")
+    row["seconds"] = time.perf_counter() - start
+    return [row]
+
+
+def _changes(before: Any, after: Any) -> tuple[np.ndarray, np.ndarray]:
+    from lfgraph.geometry import rotation_angle_deg
+
+    rot = np.asarray(rotation_angle_deg(np.swapaxes(before.ref_T_view[:, :3, :3], 1, 2)
+                                        @ after.ref_T_view[:, :3, :3]))
+    pos = 1e3 * np.linalg.norm(after.ref_T_view[:, :3, 3] - before.ref_T_view[:, :3, 3], axis=1)
+    return rot, pos
+
+
+def run_fleet(manifest: str | os.PathLike, results_csv: str | os.PathLike, executor: str = "local",
+              jobs: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
+    """Process every camera of ``manifest`` not yet in ``results_csv``; returns all result rows.
+
+    Args:
+        manifest: the manifest CSV (see the module docstring).
+        results_csv: the results CSV, created or resumed.
+        executor: ``local`` (a process pool), ``dask-local`` or ``dask://HOST:PORT``.
+        jobs: processes / Dask workers (default: all cores).
+
+    Raises:
+        ManifestError: a bad manifest; ValueError: a results CSV of another kind.
+    """
+    from lfgraph.study import run_study
+
+    items = read_manifest(manifest)
+    return run_study(items, process_camera, results_csv, RESULT_COLUMNS, _item_rows, _row_key, executor, jobs,
+                     progress)
+
+
+def _item_rows(item: FleetItem) -> set[tuple]:
+    return {(item.camera,)}
+
+
+def _row_key(row: dict) -> tuple:
+    return (str(row["camera"]),)
+
+
+def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Cameras per verdict."""
+    counts = {v: 0 for v in VERDICTS}
+    for r in rows:
+        counts[str(r["verdict"])] = counts.get(str(r["verdict"]), 0) + 1
+    return counts
