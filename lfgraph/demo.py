@@ -45,6 +45,7 @@ class _Indented(BaseObserver):
 
 def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_SCENE,
              with_refinement: bool = True) -> int:
+    demo_start = time.perf_counter()
     scene = get_scene(scene_name)
     rng = np.random.default_rng(DEMO_SEED)
     truth_calib = make_rig(scene.rig, rng)
@@ -98,6 +99,10 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     print(f"      rectified frame {capture.frame_names[0]} -> {out / 'rectified'}")
     if with_refinement:
         run_refinement_demo(out, jobs, quiet)
+    print(f"demo done in {time.perf_counter() - demo_start:.0f} s; everything is in {out}: the rendered boards and "
+          f"truth ({data_dir}), the calibration ({out / 'calibration.json'}), the rectified frame "
+          f"({out / 'rectified'})" + (f", the refined calibration ({out / 'refined.json'}) and its rerun recording "
+                                      f"(rerun {out / 'refine.rrd'})" if with_refinement else ""))
     return 0
 
 
@@ -121,7 +126,12 @@ def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
                         frames=REFINE_FRAMES, seed=DEMO_SEED, jobs=jobs, progress=not quiet, original=original)
     print(f"      rendered in {time.perf_counter() - start:.1f} s -> {data_dir}")
     capture = open_capture(data_dir, original.grid)
-    refined, report = refine(original, (capture.load_frame(f) for f in range(len(capture))))
+    from lfgraph.viz.rerun_log import RerunLogger
+
+    recording = out / "refine.rrd"
+    with RerunLogger.to_file(recording, original.grid, "refine") as logger:
+        refined, report = refine(original, capture.frames(), observer=logger)
+        logger.refinement_result(original, refined, report)
     refined.save(out / "refined.json")
     print(refinement_text(original, refined, report).split("changes per view")[0].rstrip())
     rows = []
@@ -134,3 +144,5 @@ def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
     print(format_table(["calibration", "rot_err_deg", "max_rot_err_deg", "transfer_at_infinity_px", "pos_err_mm"],
                        rows))
     print(f"      refined calibration -> {out / 'refined.json'}")
+    print(f"      rerun recording of the refinement (input and refined rig, per-frame tracks) -> {recording}; open it "
+          f"with: .venv/bin/rerun {recording}")
