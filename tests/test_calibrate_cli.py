@@ -161,10 +161,10 @@ def test_bad_option_values_are_usage_errors(rendered, tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------------ real data
-def test_opencv_stereo_pair(shared_data, tmp_path, capsys):
+def test_opencv_stereo_pair(test_data, tmp_path, capsys):
     """OpenCV's stereo sample as a 1x2 array: E_mono as calibrateCamera's, joint RMS no worse than stereoCalibrate."""
     src = tmp_path / "stereo"
-    shutil.copytree(shared_data / "opencv_stereo_left_right", src)
+    shutil.copytree(test_data / "opencv_stereo", src)
     out_json = tmp_path / "stereo.json"
     code = main(["calibrate", str(src), "--grid", "1x2", "--board", "9x6", "--square-mm", str(STEREO_SQUARES),
                  "--quiet", "-o", str(out_json)])

@@ -35,7 +35,7 @@ CHAIN_TOLERANCE = 1e-12  # m, unitless rotation entries: composing 4x4 transform
 FIXED_POINT_MAP_STEP_PX = 1.0 / cv2.INTER_TAB_SIZE
 REFUSAL_TIME_LIMIT_S = 0.5  # an absurd grid is refused from the header, without reading per-view data
 IMPORT_20X20_TIME_LIMIT_S = 1.0  # 400 views; minutes were spent on a 300x300 grid before the one-pass reader
-MIDDLEBURY_SCENES = 6  # scenes in shared/data/middlebury2014_quarter
+MIDDLEBURY_SCENES = 6  # scenes in tests/data/middlebury2014
 # real file suffixes, so the OpenCV writer must force YAML where the name does not say it
 FILE_NAMES = {"opencv-yaml": "calib.yml", "kalibr": "camchain.yaml", "colmap": "sparse", "json": "calibration.json"}
 
@@ -228,8 +228,8 @@ def _middlebury_numbers(path) -> dict[str, list[float]]:
     return out
 
 
-def test_middlebury_real_files(shared_data):
-    files = sorted((shared_data / "middlebury2014_quarter").glob("*/calib.txt"))
+def test_middlebury_real_files(test_data):
+    files = sorted((test_data / "middlebury2014").glob("*/calib.txt"))
     assert len(files) == MIDDLEBURY_SCENES
     for path in files:
         numbers = _middlebury_numbers(path)
@@ -622,8 +622,8 @@ def test_cli_export_then_import(tmp_path, calib, fmt, capsys):
     assert Calibration.load(back_path).grid == ViewGrid(2, 3, 5)
 
 
-def test_cli_import_middlebury(shared_data, tmp_path):
-    scene = shared_data / "middlebury2014_quarter" / "Teddy"
+def test_cli_import_middlebury(test_data, tmp_path):
+    scene = test_data / "middlebury2014" / "Teddy"
     args = _parser().parse_args(["import", str(scene / "calib.txt"), "--from", "middlebury", "-o",
                                  str(tmp_path / "teddy.json")])
     assert args.func(args) == 0

@@ -43,8 +43,8 @@ def test_mosaic_helpers_invert_each_other():
     assert np.array_equal(split_mosaic(tile_mosaic(imgs, GRID), GRID), imgs)
 
 
-def test_real_opencv_stereo_pairs(shared_data):
-    cap = open_capture(shared_data / "opencv_stereo_left_right", (1, 2))
+def test_real_opencv_stereo_pairs(test_data):
+    cap = open_capture(test_data / "opencv_stereo", (1, 2))
     assert cap.layout == "pairs" and len(cap) == 13 and "10" not in cap.frame_names
     assert cap.image_size_px == (640, 480)
     assert cap.load_frame(0).shape == (2, 480, 640)

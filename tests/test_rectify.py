@@ -235,9 +235,9 @@ def test_check_command_flags_a_shaken_rig(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------------ real data
-def test_opencv_stereo_rows_no_worse_than_stereo_rectify(shared_data, tmp_path):
+def test_opencv_stereo_rows_no_worse_than_stereo_rectify(test_data, tmp_path):
     src = tmp_path / "stereo"
-    shutil.copytree(shared_data / "opencv_stereo_left_right", src)
+    shutil.copytree(test_data / "opencv_stereo", src)
     assert main(["calibrate", str(src), "--grid", "1x2", "--board", "9x6", "--square-mm", "1", "--quiet",
                  "-o", str(tmp_path / "c.json")]) == 0
     calib = Calibration.load(tmp_path / "c.json")
