@@ -159,6 +159,7 @@ class BoardSpec:
 # findChessboardCornersSB with EXHAUSTIVE (not ACCURACY: the refinement below replaces it at a fraction of its cost).
 LOCATE_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
 FALLBACK_SB_FLAGS = cv2.CALIB_CB_EXHAUSTIVE
+LOCATE_MAX_OFF_GRID_SQUARES = 0.25  # measured: good detections <= 0.12, misplaced corners >= 0.38 squares off
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
 # cornerSubPix half windows tried, px (about x1.4 apart). No single size suits all real boards: ECoCheck marks inside
 # the white squares (BoofCV trinocular) need <= 6 px, blurred 55 px squares (pycalib) want 16 px.
@@ -215,13 +216,35 @@ def _min_spacing_px(corners: np.ndarray, board: BoardSpec) -> float:
                      np.min(np.linalg.norm(np.diff(grid, axis=1), axis=-1))))
 
 
+def _off_grid_squares(corners: np.ndarray, board: BoardSpec) -> float:
+    """Largest distance of a corner from the smooth map of the grid (`_grid_roughness_px`'s model), in squares."""
+    pts = corners.reshape(-1, 2).astype(np.float64)
+    uv, basis = _smoothness_basis(board.cols, board.rows)
+    H, _ = cv2.findHomography(uv, pts, 0)  # noqa: N806
+    if H is None:
+        return float("inf")
+    rest = pts - cv2.perspectiveTransform(uv.reshape(-1, 1, 2), H).reshape(-1, 2)
+    coef, *_ = np.linalg.lstsq(basis, rest, rcond=None)
+    grid = pts.reshape(board.rows, board.cols, 2)
+    spacing = float(np.median(np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
+                                              np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()])))
+    return float(np.max(np.linalg.norm(rest - basis @ coef, axis=1))) / max(spacing, 1e-9)
+
+
 def _locate_board(gray: np.ndarray, board: BoardSpec) -> np.ndarray | None:
-    """(C, 2) float32 pixel-accurate corners in OpenCV's order, or None."""
+    """(C, 2) float32 pixel-accurate corners in OpenCV's order, or None.
+
+    On small squares (< ~10 px) ``findChessboardCorners`` can report a board with one corner several pixels off the
+    grid (rendered 320x240 test boards: 3.6 and 12.6 px); such a detection (a corner further than
+    `LOCATE_MAX_OFF_GRID_SQUARES` from the smooth grid through the others) goes to the SB detector instead, and a
+    board neither gives cleanly is not reported.
+    """
     found, corners = cv2.findChessboardCorners(gray, board.pattern_size, flags=LOCATE_FLAGS)
-    if not found:
-        found, corners = cv2.findChessboardCornersSB(gray, board.pattern_size, flags=FALLBACK_SB_FLAGS)
-        if not found:
-            return None
+    if found and _off_grid_squares(corners, board) <= LOCATE_MAX_OFF_GRID_SQUARES:
+        return corners.reshape(-1, 2).astype(np.float32)
+    found, corners = cv2.findChessboardCornersSB(gray, board.pattern_size, flags=FALLBACK_SB_FLAGS)
+    if not found or _off_grid_squares(corners, board) > LOCATE_MAX_OFF_GRID_SQUARES:
+        return None
     return corners.reshape(-1, 2).astype(np.float32)
 
 

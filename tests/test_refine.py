@@ -188,12 +188,12 @@ def test_tracks_follow_the_grid(shaken_scene):
     assert np.median(err) < 0.1  # tracks agree with the true cameras
 
 
-def test_unordered_matching_on_the_middlebury_ring(shared_data):
+def test_unordered_matching_on_the_middlebury_ring(test_data):
     """Tracks for views that are not a grid (16 views on a ring, 22.5° apart) agree with the published cameras."""
     from lfgraph.datasets.middlebury import load_mview
     from lfgraph.refinement.unordered import match_unordered, ring_pairs
 
-    truth, images = load_mview(shared_data / "middlebury_mview_sparsering" / "templeSparseRing")
+    truth, images = load_mview(test_data / "middlebury_temple")  # templeSparseRing, images stored as grayscale
     tracks = match_unordered(images, ring_pairs(truth.num_views, 2), min_views=3)
     assert tracks.num_tracks > 100 and np.all(tracks.valid.sum(axis=0) >= 3)
     err = reprojection_errors(truth, triangulate_dlt(truth, tracks.points_px, tracks.valid), tracks.points_px,
