@@ -21,7 +21,7 @@ from lfgraph.parallel import run_tasks
 
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
-CACHE_VERSION = 6  # bump whenever detection changes its output (3: ChArUco; 4: window + saddle fit; 5: video; 6: off-grid check)
+CACHE_VERSION = 6  # bump when detection changes (3: ChArUco; 4: window + saddle fit; 5: video; 6: off-grid check)
 PLANAR_TOLERANCE_M = 1e-6  # object points with |z| above this are not a planar target in its own z = 0 plane
 
 
