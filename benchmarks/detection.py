@@ -26,7 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.board import BoardSpec, _canonical_order, detect_board
+from lfgraph.board import BoardSpec
+from lfgraph.chessboard import _canonical_order, detect_board
 from lfgraph.report import format_table
 
 TARGET_TIME_RATIO = 1 / 3  # A's time per image over B's

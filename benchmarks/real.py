@@ -47,11 +47,12 @@ import cv2
 import numpy as np
 
 import lfgraph as lf
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
 from lfgraph.board_order import order_symmetric_boards
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
 from lfgraph.charuco import detect_charuco
+from lfgraph.chessboard import detect_board
 from lfgraph.detections import MIN_CORNERS_PER_BOARD, BoardObservations
 from lfgraph.geometry import invert_T, make_T, rotation_angle_deg
 from lfgraph.grid import ViewGrid

@@ -45,7 +45,8 @@ from render_reference import (
     render_scene_view_reference,
 )
 
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
+from lfgraph.chessboard import detect_board
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
     ViewRays,

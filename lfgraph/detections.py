@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
 from lfgraph.capture import CaptureSet
 from lfgraph.charuco import detect_charuco
+from lfgraph.chessboard import detect_board
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
 from lfgraph.board_order import (
     ALONE,
     AMBIGUOUS,
@@ -18,6 +18,7 @@ from lfgraph.board_order import (
     flip_transform,
     order_symmetric_boards,
 )
+from lfgraph.chessboard import detect_board
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene

@@ -7,8 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
+from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, main
 
 SMALL_ARGS = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--jobs", "2", "--quiet"]

@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
+from lfgraph.chessboard import detect_board
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
     CheckerboardTruth,
@@ -138,7 +139,7 @@ def test_dataset_writer_layouts_and_job_independence(tmp_path):
 
 
 def test_symmetric_board_order_does_not_depend_on_what_opencv_reports(setup):
-    from lfgraph.board import _canonical_order
+    from lfgraph.chessboard import _canonical_order
 
     calib, cfg, truth = setup
     assert cfg.board.is_symmetric  # 7x5 inner corners = 8x6 squares: the same after a 180° turn

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from lfgraph.alignment import align_points, infinity_alignment
-from lfgraph.board import BoardSpec, detect_board
+from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
+from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, EXIT_DRIFT, main
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
