@@ -30,22 +30,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from lfgraph.errors import CaptureError
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
+from lfgraph.video import read_video_frame, video_info
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
 LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs", "views", "video")
 MISSING_VIEW = ("error", "unseen")  # what a frame without one of its view images is
-VIDEO_GRAB_AHEAD = 16  # a reader this few frames behind decodes forward; further (or backwards) it seeks
-VIDEO_READERS = 16  # open video readers kept per process
 _VIEW_RE = re.compile(r"^r(\d+)_c(\d+)$")
 _HCI_RE = re.compile(r"^input_Cam(\d+)$")
 _PAIR_RE = re.compile(r"^(left|right)(.*)$")
-
-
-class CaptureError(ValueError):
-    """An input capture that cannot be used; the message names the file or folder and what was wrong."""
 
 
 def _natural_key(name: str) -> list:
@@ -60,81 +56,6 @@ def _images(folder: Path) -> list[Path]:
 def _videos(folder: Path) -> list[Path]:
     return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS),
                   key=lambda p: _natural_key(p.name))
-
-
-# per process: path -> [reader, index of the frame its next read() returns]; a capture pickled to a worker
-# process opens its own readers there, and frames asked for in order are decoded sequentially
-_READERS: dict[str, list] = {}
-_READERS_PID = [os.getpid()]
-_INHERITED: list = []  # readers a forked process inherited: never used nor released there (FFmpeg's threads did
-# not survive the fork; touching them can hang), only kept from being garbage-collected
-
-
-def _video_reader(path: Path) -> list:
-    if _READERS_PID[0] != os.getpid():
-        _INHERITED.extend(_READERS.values())
-        _READERS.clear()
-        _READERS_PID[0] = os.getpid()
-    key = str(path)
-    entry = _READERS.pop(key, None)
-    if entry is None:
-        reader = cv2.VideoCapture(key)
-        if not reader.isOpened():
-            raise CaptureError(f"{path}: cannot open this video (missing, unreadable or an unsupported codec)")
-        entry = [reader, 0]
-        while len(_READERS) >= VIDEO_READERS:
-            _READERS.pop(next(iter(_READERS)))[0].release()
-    _READERS[key] = entry  # most recently used last
-    return entry
-
-
-def close_videos() -> None:
-    """Release the video readers this process keeps open."""
-    if _READERS_PID[0] != os.getpid():
-        return
-    while _READERS:
-        _READERS.popitem()[1][0].release()
-
-
-def _read_video_frame(path: Path, index: int, grayscale: bool) -> np.ndarray:
-    """Frame ``index`` (0-based) of a video, decoding forward when the reader is close behind, else seeking."""
-    entry = _video_reader(path)
-    reader, next_index = entry
-    if not 0 <= index - next_index <= VIDEO_GRAB_AHEAD:
-        reader.set(cv2.CAP_PROP_POS_FRAMES, index)
-    else:
-        for _ in range(index - next_index):
-            if not reader.grab():
-                break
-    ok, img = reader.read()
-    if not ok or img is None:
-        entry[1] = -VIDEO_GRAB_AHEAD - 1  # unknown position: seek next time
-        raise CaptureError(f"{path}: cannot decode frame {index} of this video")
-    entry[1] = index + 1
-    if grayscale and img.ndim == 3:
-        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    if not grayscale and img.ndim == 2:
-        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-    return img
-
-
-def _video_info(path: Path) -> tuple[int, tuple[int, int]]:
-    """(frame count, (width, height)) of a video; frames are counted by decoding when the container does not say."""
-    reader = cv2.VideoCapture(str(path))
-    try:
-        if not reader.isOpened():
-            raise CaptureError(f"{path}: cannot open this video (unreadable or an unsupported codec)")
-        ok, img = reader.read()
-        if not ok or img is None:
-            raise CaptureError(f"{path}: cannot decode the first frame of this video")
-        count = int(reader.get(cv2.CAP_PROP_FRAME_COUNT))
-        if count <= 0:
-            count = 1
-            while reader.grab():
-                count += 1
-        return count, (img.shape[1], img.shape[0])
-    finally:
-        reader.release()
 
 
 def _read(path: Path, grayscale: bool) -> np.ndarray:
@@ -230,7 +151,7 @@ class CaptureSet:
         if self.layout == "video":
             if not 0 <= frame < len(self):
                 raise IndexError(f"frame {frame} out of range 0..{len(self) - 1}")
-            img = _read_video_frame(path, frame, grayscale)
+            img = read_video_frame(path, frame, grayscale)
         else:
             img = _read(path, grayscale)
         h, w = img.shape[:2]
@@ -361,7 +282,7 @@ def _open_videos(root: Path, grid: ViewGrid) -> CaptureSet:
     if len(videos) != grid.num_views:
         raise CaptureError(f"{root}: {len(videos)} videos ({', '.join(p.name for p in videos)}) but the {grid} grid "
                            f"has {grid.num_views} views (one video per view, in name order, row-major)")
-    infos = [_video_info(p) for p in videos]
+    infos = [video_info(p) for p in videos]
     for p, (_, size) in zip(videos, infos, strict=True):
         if size != infos[0][1]:
             raise CaptureError(f"{p}: frames are {size[0]}x{size[1]} px but {videos[0]} has {infos[0][1][0]}x"

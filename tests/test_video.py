@@ -12,10 +12,11 @@ import pytest
 
 from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
-from lfgraph.capture import CaptureError, close_videos, open_capture
+from lfgraph.capture import CaptureError, open_capture
 from lfgraph.cli import main
 from lfgraph.datasets.checkerboard import CheckerboardTruth
 from lfgraph.detections import detect_capture
+from lfgraph.video import close_videos
 
 FRAMES = 10
 BOARD = BoardSpec.parse("7x5", 15)
