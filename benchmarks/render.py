@@ -47,13 +47,8 @@ from render_reference import (
 
 from lfgraph.board import BoardSpec
 from lfgraph.chessboard import detect_board
-from lfgraph.datasets.checkerboard import (
-    CheckerboardConfig,
-    ViewRays,
-    make_checkerboard_truth,
-    render_checkerboard_view,
-    write_checkerboard_dataset,
-)
+from lfgraph.datasets.board_render import ViewRays, render_checkerboard_view
+from lfgraph.datasets.checkerboard import CheckerboardConfig, make_checkerboard_truth, write_checkerboard_dataset
 from lfgraph.datasets.render import sample_rays
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_depth, render_scene_views, write_scene_dataset

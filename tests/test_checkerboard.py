@@ -156,7 +156,7 @@ def test_edge_pixels_take_the_exact_covered_area():
     """A fronto-parallel board, no lens distortion, no blur: a pixel cut by a vertical square edge at 80 % of its
     width must hold the area-weighted mean of the two squares (8x8 point samples would give 75 % or 87.5 %)."""
     from lfgraph.camera import Intrinsics
-    from lfgraph.datasets.checkerboard import BLACK_LEVEL, WHITE_LEVEL, render_checkerboard_view
+    from lfgraph.datasets.board_render import BLACK_LEVEL, WHITE_LEVEL, render_checkerboard_view
     from lfgraph.geometry import make_T
 
     f_px, square_m, z_m = 500.0, 0.02, 1.0  # 10 px per square

@@ -12,11 +12,11 @@ from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
 from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, EXIT_DRIFT, main
+from lfgraph.datasets.board_render import render_checkerboard_view
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
     make_checkerboard_truth,
     make_corner_observations,
-    render_checkerboard_view,
 )
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
