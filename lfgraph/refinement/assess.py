@@ -29,6 +29,7 @@ TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer err
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
 NEGLIGIBLE_SIGMA = 1e-5  # rad, m, px: posterior directions held by a gauge or a hold are left out of the test
 FOLD_SEED = 14
+MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
 COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
 FEW_OBSERVATIONS = 100  # a view with fewer observations than this wants more texture or frames
@@ -47,8 +48,7 @@ class Posterior:
     """Marginal covariances of the refinement graph at its solution, per view.
 
     ``pose_cov``: (V, 6, 6) body-frame Pose3 covariance (rotation x, y, z in rad, then position in m);
-    ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else the input's own
-    sigmas (or zeros); ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
+    ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else zeros (held); ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
     ``intrinsics_free``: whether the graph freed fx, fy, cx, cy."""
 
     pose_cov: np.ndarray
@@ -64,9 +64,6 @@ def posterior(calib: Calibration, fit, config: RefineConfig) -> Posterior | None
     pose_cov = np.zeros((n, 6, 6))
     intr_cov = np.zeros((n, 4, 4))
     cross = np.zeros((n, 6, 4))
-    own = input_sigmas(calib)
-    if own is not None:
-        intr_cov[:] = np.stack([np.diag(s**2) for s in own[1]])
     if fit.last_stage is None or fit.valid.shape[1] == 0:
         return None
     priors = view_priors(calib, config.drift) if config.priors else None
@@ -152,8 +149,10 @@ class ViewVerdict:
         position_change_mm: (3,) body-frame change of position the fit proposed.
         intrinsics_change_px: (4,) fx, fy, cx, cy change the fit proposed.
         transfer_change_px: the proposed change's effect on the transfer at infinity (px, RMS over the image).
-        sigma_rotation_deg, sigma_position_mm, sigma_intrinsics_px: posterior 1-sigma (3, 3, 4).
-        predicted_transfer_px: posterior 1-sigma transfer error at infinity (px).
+        sigma_rotation_deg, sigma_position_mm, sigma_intrinsics_px: posterior 1-sigma (3, 3, 4), widened to the
+            fold refits' scatter when that is larger; intrinsics a stage held report the input's own sigmas.
+        predicted_transfer_px: 1-sigma transfer error at infinity (px) that the posterior of the refined parameters
+            predicts (rotation, and intrinsics when freed).
         applied: whether the output carries the change.
         reason: one line of why; needs: what data would decide an UNCERTAIN view.
     """
@@ -322,9 +321,59 @@ def _rms(e: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
 
 
+def _change_vector(before: Calibration, after: Calibration, v: int) -> np.ndarray:
+    a, b = after.intrinsics[v], before.intrinsics[v]
+    return np.concatenate([pose_change(before.ref_T_view[v], after.ref_T_view[v]),
+                           [a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy]])
+
+
+def inflate(post: Posterior, calib: Calibration, fold_calibs: list[Calibration]) -> tuple[Posterior, np.ndarray]:
+    """The posterior widened, per view and parameter group, to the scatter of the fold refits (jackknife).
+
+    Track errors are not independent (a frame's mismatches on a repeated pattern agree with each other), so the
+    graph's marginals can be several times too small; the jackknife over folds (frames when there are several)
+    sees that. Returns the widened posterior and the (V, 4) factors (pan/tilt, roll, position, intrinsics).
+    """
+    n = calib.num_views
+    factors = np.ones((n, 4))
+    k = len(fold_calibs)
+    if k < 2:
+        return post, factors
+    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
+    for v in range(n):
+        d = np.stack([_change_vector(calib, fc, v) for fc in fold_calibs])
+        jk = (k - 1) / k * np.sum((d - d.mean(axis=0)) ** 2, axis=0)  # jackknife variances (10,)
+        full_var = np.concatenate([np.diag(post.pose_cov[v]), np.diag(post.intr_cov[v])])
+        scale = np.ones(10)
+        for gi, (_, idx) in enumerate(GROUPS.items()):
+            if gi == 3 and not post.intrinsics_free:
+                continue
+            idx_a = np.array(idx)
+            var = float(np.sum(full_var[idx_a]))
+            if var > NEGLIGIBLE_SIGMA**2:
+                factors[v, gi] = max(1.0, float(np.sum(jk[idx_a])) / var)
+                scale[idx_a] = np.sqrt(factors[v, gi])
+        pose_cov[v] = post.pose_cov[v] * np.outer(scale[:6], scale[:6])
+        intr_cov[v] = post.intr_cov[v] * np.outer(scale[6:], scale[6:])
+        cross[v] = post.cross[v] * np.outer(scale[:6], scale[6:])
+    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px), factors
+
+
+def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
+    """The covariance of (refined - input): the posterior plus the input's own (calibrate's marginals, when
+    stored). A change within what the input calibration itself could not pin down is no drift."""
+    own = input_sigmas(calib)
+    if own is None:
+        return post
+    pose_cov = post.pose_cov + np.stack([np.diag(s**2) for s in own[0]])
+    intr_cov = post.intr_cov if not post.intrinsics_free else post.intr_cov + np.stack([np.diag(s**2) for s in own[1]])
+    return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px)
+
+
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
-           coverage: float, frames: int) -> Assessment:
-    """MAP fit, posterior, significance, held-out folds, verdicts (see the module docstring)."""
+           coverage: float, frames: int, frame_of: np.ndarray | None = None) -> Assessment:
+    """MAP fit, posterior, fold refits (held-out tracks and the jackknife), significance, verdicts (see the
+    module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames."""
     from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.refinement.schedule import fit_auto
 
@@ -334,8 +383,42 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     n, ref = calib.num_views, calib.grid.reference
     rays = _infinity_rays(calib)
     proposed_px = transfer_error_at_infinity(fit.calib, calib)
+    # folds: whole frames when there are several (errors within a frame are correlated), else random tracks
+    px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
+    fold = None
+    if config.folds:
+        if frame_of is not None and len(np.unique(frame_of)) >= 2:
+            frames_kept = frame_of[fit.keep]
+            uniq = np.unique(frames_kept)
+            k = min(len(uniq), max(config.folds, MAX_FRAME_FOLDS))
+            order = {f: i % k for i, f in enumerate(uniq)}
+            fold = np.array([order[f] for f in frames_kept], dtype=int)
+        else:
+            fold = fold_split(px.shape[1], config.folds)
+    fold_calibs: list[Calibration] = []
+    e_before, e_after = [], []
+    if fold is not None:
+        for k in range(int(fold.max()) + 1 if fold.size else 0):
+            train, test = fold != k, fold == k
+            if not test.any() or not train.any():
+                continue
+            try:
+                fk = fit_auto(calib, px[:, train], ok[:, train], config, _Silent(), fit.held, fit.sigma_px)
+            except (RuntimeError, ValueError):
+                continue
+            fold_calibs.append(fk.calib)
+            e_before.append(heldout_rms(calib, px[:, test], ok[:, test]))
+            e_after.append(heldout_rms(fk.calib, px[:, test], ok[:, test]))
+    factors = np.ones((n, 4))
+    if post is not None:
+        post, factors = inflate(post, calib, fold_calibs)
+        if np.any(factors > 1.0):
+            worst = np.unravel_index(np.argmax(factors), factors.shape)
+            obs.log(f"fold refits scatter up to {np.sqrt(factors.max()):.1f}x more than the graph's marginals "
+                    f"({calib.grid.name(int(worst[0]))}, {list(GROUPS)[int(worst[1])]}): sigmas widened")
+    test_post = with_input_uncertainty(post, calib) if post is not None else None
     free = [v for v in range(n) if v != ref and v not in fit.held]
-    zg = {v: group_significance(calib, fit.calib, post, v) if post is not None else {} for v in free}
+    zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
     z = {v: max(zg[v].values(), default=0.0) for v in free}
     changed = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
     sig_views = {v for v in free if changed[v]}
@@ -356,27 +439,15 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         partial = ViewPriors(calib, pose_s, intr_s)
     if sig_views:
         needs_refit = bool(hold - fit.held) or any(set(GROUPS) - set(changed[v]) for v in sig_views)
-        cand_fit = fit if not needs_refit or partial is None and not (hold - fit.held) else fit_auto(
-            calib, pixels, valid, config, _Silent(), hold, fit.sigma_px, partial)
+        cand_fit = fit if not needs_refit else fit_auto(calib, pixels, valid, config, _Silent(), hold, fit.sigma_px,
+                                                        partial)
         candidate = combine(calib, cand_fit.calib, sig_views)
         accepted = True
-        if config.folds:
-            px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
-            fold = fold_split(px.shape[1], config.folds)
-            e_before, e_after = [], []
-            for k in range(config.folds):
-                train, test = fold != k, fold == k
-                if not test.any() or not train.any():
-                    continue
-                fk = fit_auto(calib, px[:, train], ok[:, train], config, _Silent(), hold, fit.sigma_px, partial)
-                fold_calib = combine(calib, fk.calib, sig_views)
-                e_before.append(heldout_rms(calib, px[:, test], ok[:, test]))
-                e_after.append(heldout_rms(fold_calib, px[:, test], ok[:, test]))
-            if e_before:
-                heldout_before = _rms(np.concatenate(e_before, axis=1))
-                heldout_after = _rms(np.concatenate(e_after, axis=1))
-                accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
-            obs.log(f"held-out tracks ({config.folds} folds): RMS {heldout_before:.4f} px with the input, "
+        if e_before:
+            heldout_before = _rms(np.concatenate(e_before, axis=1))
+            heldout_after = _rms(np.concatenate(e_after, axis=1))
+            accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
+            obs.log(f"held-out tracks ({len(e_before)} folds): RMS {heldout_before:.4f} px with the input, "
                     f"{heldout_after:.4f} px with refits that did not see them: "
                     + ("accepted" if accepted else "rejected"))
     out = candidate if accepted else calib
@@ -389,6 +460,9 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             s_rot = np.degrees(np.sqrt(np.maximum(np.diag(post.pose_cov[v])[:3], 0.0)))
             s_pos = 1e3 * np.sqrt(np.maximum(np.diag(post.pose_cov[v])[3:], 0.0))
             s_int = np.sqrt(np.maximum(np.diag(post.intr_cov[v]), 0.0))
+            own = input_sigmas(calib)
+            if not post.intrinsics_free and own is not None:  # held: what the input itself knew
+                s_int = own[1][v]
             pred = predicted_transfer_px(calib, post, v, rays) if v != ref else 0.0
         else:
             s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")

@@ -296,17 +296,17 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     if dropped:
         obs.log(f"frames {', '.join(map(str, dropped))}: most tracks stand out against the other frames' "
                 f"(mismatches on a repetitive pattern?): dropped")
-    pixels, valid = pixels[:, good], valid[:, good]
+    pixels, valid, frame_of = pixels[:, good], valid[:, good], frame_of[good]
     if pixels.shape[1] == 0:
         raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
                          "(see the per-frame track counts)")
     if config.max_landmarks is not None and pixels.shape[1] > config.max_landmarks:
         pick = np.sort(np.random.default_rng(used).choice(pixels.shape[1], config.max_landmarks, replace=False))
-        pixels, valid = pixels[:, pick], valid[:, pick]
+        pixels, valid, frame_of = pixels[:, pick], valid[:, pick], frame_of[pick]
     warnings = []
     coverage = track_coverage(calib, pixels, valid)
     t0 = time.perf_counter()
-    result = assess(calib, pixels, valid, config, obs, coverage, used)
+    result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of)
     t_adjust += time.perf_counter() - t0
     fit = result.fit
     kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
