@@ -48,7 +48,8 @@ class Posterior:
     """Marginal covariances of the refinement graph at its solution, per view.
 
     ``pose_cov``: (V, 6, 6) body-frame Pose3 covariance (rotation x, y, z in rad, then position in m);
-    ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else zeros (held); ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
+    ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else zeros (held);
+    ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
     ``intrinsics_free``: whether the graph freed fx, fy, cx, cy."""
 
     pose_cov: np.ndarray
