@@ -29,6 +29,8 @@ TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer err
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
 NEGLIGIBLE_SIGMA = 1e-5  # rad, m, px: posterior directions held by a gauge or a hold are left out of the test
 FOLD_SEED = 14
+MAX_HOLD_ROUNDS = 3  # refits that hold views whose applied change would stay too uncertain
+NO_PULL_SIGMA = 1e3  # rad, m, px: a "prior" that does not pull (the free fit with some groups held)
 MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
 COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
@@ -59,15 +61,17 @@ class Posterior:
     sigma_px: float
 
 
-def posterior(calib: Calibration, fit, config: RefineConfig) -> Posterior | None:
-    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran)."""
+def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors | None = None) -> Posterior | None:
+    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran);
+    ``priors`` replaces the config's (as the fit had them)."""
     n = calib.num_views
     pose_cov = np.zeros((n, 6, 6))
     intr_cov = np.zeros((n, 4, 4))
     cross = np.zeros((n, 6, 4))
     if fit.last_stage is None or fit.valid.shape[1] == 0:
         return None
-    priors = view_priors(calib, config.drift) if config.priors else None
+    if priors is None and config.priors:
+        priors = view_priors(calib, config.drift)
     model = measurement_noise(config.noise, fit.sigma_px)
     graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
                                 config.scale_sigma_mm, fit.held, priors)
@@ -340,24 +344,51 @@ def inflate(post: Posterior, calib: Calibration, fold_calibs: list[Calibration])
     k = len(fold_calibs)
     if k < 2:
         return post, factors
-    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
     for v in range(n):
         d = np.stack([_change_vector(calib, fc, v) for fc in fold_calibs])
         jk = (k - 1) / k * np.sum((d - d.mean(axis=0)) ** 2, axis=0)  # jackknife variances (10,)
         full_var = np.concatenate([np.diag(post.pose_cov[v]), np.diag(post.intr_cov[v])])
-        scale = np.ones(10)
-        for gi, (_, idx) in enumerate(GROUPS.items()):
+        for gi, idx in enumerate(GROUPS.values()):
             if gi == 3 and not post.intrinsics_free:
                 continue
             idx_a = np.array(idx)
             var = float(np.sum(full_var[idx_a]))
             if var > NEGLIGIBLE_SIGMA**2:
                 factors[v, gi] = max(1.0, float(np.sum(jk[idx_a])) / var)
-                scale[idx_a] = np.sqrt(factors[v, gi])
+    return apply_factors(post, factors), factors
+
+
+def apply_factors(post: Posterior, factors: np.ndarray) -> Posterior:
+    """The posterior with each view's groups widened by `inflate`'s (V, 4) variance factors."""
+    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
+    for v in range(len(factors)):
+        scale = np.ones(10)
+        for gi, idx in enumerate(GROUPS.values()):
+            scale[np.array(idx)] = np.sqrt(factors[v, gi])
         pose_cov[v] = post.pose_cov[v] * np.outer(scale[:6], scale[:6])
         intr_cov[v] = post.intr_cov[v] * np.outer(scale[6:], scale[6:])
         cross[v] = post.cross[v] * np.outer(scale[:6], scale[6:])
-    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px), factors
+    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px)
+
+
+def held_group_priors(calib: Calibration, config: RefineConfig, views: set[int],
+                      changed: dict[int, tuple[str, ...]]) -> ViewPriors:
+    """Priors for the candidate refit: in ``views`` the groups whose change was not significant are held at the
+    input; the others keep the drift priors (or, without priors, no pull)."""
+    if config.priors:
+        base = view_priors(calib, config.drift)
+        pose_s, intr_s = base.pose_sigmas.copy(), base.intrinsics_sigmas.copy()
+    else:
+        pose_s = np.full((calib.num_views, 6), NO_PULL_SIGMA)
+        intr_s = np.full((calib.num_views, 4), NO_PULL_SIGMA)
+    for v in views:
+        for g in set(GROUPS) - set(changed[v]):
+            for i in GROUPS[g]:
+                if i < 6:
+                    pose_s[v, i] = HELD_SIGMA
+                else:
+                    intr_s[v, i - 6] = HELD_SIGMA
+    return ViewPriors(calib, pose_s, intr_s)
 
 
 def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
@@ -423,25 +454,30 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     z = {v: max(zg[v].values(), default=0.0) for v in free}
     changed = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
     sig_views = {v for v in free if changed[v]}
-    hold = frozenset(set(range(n)) - sig_views - {ref})
     candidate = calib
     heldout_before = heldout_after = float("nan")
     accepted = False
-    partial = view_priors(calib, config.drift) if config.priors else None
-    if partial is not None:  # the groups that did not change significantly are held at the input
-        pose_s, intr_s = partial.pose_sigmas.copy(), partial.intrinsics_sigmas.copy()
-        for v in sig_views:
-            for g in set(GROUPS) - set(changed[v]):
-                for i in GROUPS[g]:
-                    if i < 6:
-                        pose_s[v, i] = HELD_SIGMA
-                    else:
-                        intr_s[v, i - 6] = HELD_SIGMA
-        partial = ViewPriors(calib, pose_s, intr_s)
+    cand_post: Posterior | None = None
+    unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
+    cand_fit = fit
+    for _ in range(MAX_HOLD_ROUNDS):
+        if not sig_views:
+            break
+        hold = frozenset(set(range(n)) - sig_views - {ref})
+        partial = held_group_priors(calib, config, sig_views, changed)
+        cand_fit = fit_auto(calib, pixels, valid, config, _Silent(), hold, fit.sigma_px, partial)
+        cp = posterior(calib, cand_fit, config, partial)
+        cand_post = apply_factors(cp, factors) if cp is not None else None
+        worse = {v: predicted_transfer_px(calib, cand_post, v, rays) if cand_post is not None else float("inf")
+                 for v in sig_views}
+        drop = {v for v, x in worse.items() if not x <= config.uncertain_transfer_px}
+        if not drop:
+            break
+        unsure.update({v: worse[v] for v in drop})
+        sig_views -= drop
+    else:
+        sig_views = set()
     if sig_views:
-        needs_refit = bool(hold - fit.held) or any(set(GROUPS) - set(changed[v]) for v in sig_views)
-        cand_fit = fit if not needs_refit else fit_auto(calib, pixels, valid, config, _Silent(), hold, fit.sigma_px,
-                                                        partial)
         candidate = combine(calib, cand_fit.calib, sig_views)
         accepted = True
         if e_before:
@@ -457,14 +493,16 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         d = pose_change(calib.ref_T_view[v], fit.calib.ref_T_view[v])
         a, b = fit.calib.intrinsics[v], calib.intrinsics[v]
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
-        if post is not None:
-            s_rot = np.degrees(np.sqrt(np.maximum(np.diag(post.pose_cov[v])[:3], 0.0)))
-            s_pos = 1e3 * np.sqrt(np.maximum(np.diag(post.pose_cov[v])[3:], 0.0))
-            s_int = np.sqrt(np.maximum(np.diag(post.intr_cov[v]), 0.0))
+        # a refined view reports the posterior of what was applied (held groups included); the others the full fit's
+        pv = cand_post if (v in sig_views and accepted and cand_post is not None) else post
+        if pv is not None:
+            s_rot = np.degrees(np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[:3], 0.0)))
+            s_pos = 1e3 * np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[3:], 0.0))
+            s_int = np.sqrt(np.maximum(np.diag(pv.intr_cov[v]), 0.0))
             own = input_sigmas(calib)
-            if not post.intrinsics_free and own is not None:  # held: what the input itself knew
+            if not pv.intrinsics_free and own is not None:  # held: what the input itself knew
                 s_int = own[1][v]
-            pred = predicted_transfer_px(calib, post, v, rays) if v != ref else 0.0
+            pred = predicted_transfer_px(calib, pv, v, rays) if v != ref else 0.0
         else:
             s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
         obs_v = int(fit.valid[v].sum())
@@ -480,6 +518,11 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             kept_groups = [g for g in zg[v] if g not in changed[v]]
             reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v]) + " changed, confirmed by held-out "
                       "tracks" + (f"; {', '.join(kept_groups)} kept (not significant)" if kept_groups else ""))
+        elif v in unsure:
+            verdict = UNCERTAIN
+            reason = (f"a {z[v]:.1f}-sigma change, but applied alone it would leave {unsure[v]:.2f} px (1 sigma) at "
+                      f"infinity undetermined (> {config.uncertain_transfer_px:g} px): kept")
+            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
         elif v in sig_views:
             verdict = UNCERTAIN
             reason = (f"a {z[v]:.1f}-sigma change that refits did not confirm on held-out tracks "
