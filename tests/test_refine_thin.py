@@ -158,7 +158,9 @@ def test_priors_take_the_inputs_own_sigmas():
 
 def test_chi2_deviate():
     assert abs(chi2_sigma(0.455, 1)) < 0.05  # the median of chi2(1): 0 sigma
-    assert 2.8 < chi2_sigma(9.0, 1) < 3.2  # 3 sigma in one dimension
+    # chi2(1) = 9 is a two-sided 3 sigma: p = 0.0027, a one-sided deviate of 2.78
+    assert abs(chi2_sigma(9.0, 1) - 2.78) < 0.05
+    assert chi2_sigma(22.0, 6) > 2.9 > chi2_sigma(18.0, 6)  # chi2(6) at p = 0.00135 is ~21.3
 
 
 @pytest.fixture(scope="module")

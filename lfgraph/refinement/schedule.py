@@ -196,7 +196,9 @@ def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: 
     if sigma_px is not None:
         return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
                           sigma_px=sigma_px)
-    fit = fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
+    from lfgraph.refinement.assess import _Silent  # the observer hears the pass that counts, once
+
+    fit = fit_tracks(calib, pixels, valid, config, _Silent(), priors=priors, held_views=held_views,
                      sigma_px=FIRST_PASS_SIGMA_PX)
     sigma = fit_sigma(fit)
     if not np.isfinite(sigma):
