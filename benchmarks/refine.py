@@ -190,6 +190,8 @@ def corner_row_error_px(calib: Calibration, obs) -> float:
 
 def real_stereo(cache: Path, failures: list[str]) -> None:
     """OpenCV's stereo sample: calibrate from the boards, then refine and check on the same images."""
+    import contextlib
+    import io
     import json
 
     from lfgraph.board import BoardSpec
@@ -201,9 +203,10 @@ def real_stereo(cache: Path, failures: list[str]) -> None:
         return
     calib_json, refined_json = cache / "stereo-calib.json", cache / "stereo-refined.json"
     args = ["--quiet"]
-    cli(["calibrate", str(STEREO), "--grid", "1x2", "--board", STEREO_BOARD, "--square-mm", str(STEREO_SQUARE_MM),
-         "-o", str(calib_json), *args])
-    cli(["refine", str(calib_json), str(STEREO), "-o", str(refined_json), *args])
+    with contextlib.redirect_stdout(io.StringIO()):
+        cli(["calibrate", str(STEREO), "--grid", "1x2", "--board", STEREO_BOARD, "--square-mm",
+             str(STEREO_SQUARE_MM), "-o", str(calib_json), *args])
+        cli(["refine", str(calib_json), str(STEREO), "-o", str(refined_json), *args])
     before, after = Calibration.load(calib_json), Calibration.load(refined_json)
     obs, _ = detect_capture(open_capture(STEREO, before.grid), BoardSpec.parse(STEREO_BOARD, STEREO_SQUARE_MM),
                             jobs=1, progress=False, cache=False)
@@ -214,9 +217,6 @@ def real_stereo(cache: Path, failures: list[str]) -> None:
           f"error {rows[0]:.3f} -> {rows[1]:.3f} px; refine verdicts {verdicts}")
     if abs(b_mm[1] - b_mm[0]) > STEREO_BASELINE_TOL_MM or rows[1] > rows[0] + STEREO_ROW_TOL_PX:
         failures.append("real stereo: the refinement changed the baseline or worsened the rows")
-    import contextlib
-    import io
-
     for n in (3, 13):
         buf = io.StringIO()
         with contextlib.redirect_stdout(buf):

@@ -246,6 +246,9 @@ def data_needs(calib: Calibration, points: np.ndarray, valid: np.ndarray, v: int
                frames: int) -> tuple[str, ...]:
     """What kind of data would decide view v: depth range, coverage, texture, frames."""
     needs = []
+    if int(valid[v].sum()) < FEW_OBSERVATIONS // 4:  # too few tracks to say anything finer
+        return (f"texture (only {int(valid[v].sum())} tracks reach this view: more texture, or a scene farther "
+                f"away if tracks are lost between neighbouring views)", "more frames of different scenes")
     ref = calib.grid.reference
     m = valid[v] & valid[ref] & np.all(np.isfinite(points), axis=1)
     z = points[m, 2] if m.any() else np.zeros(0)

@@ -42,6 +42,7 @@ MIN_MEASUREMENT_SIGMA_PX = 0.05  # floor of the estimated sigma: KLT errors are 
 CLEAN_FACTOR = 3.0  # the clean stage: worst residual > 3x the median track's ...
 CLEAN_FLOOR_PX = 0.3  # ... and > 0.3 px (the prototype's threshold)
 COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells
+CHAIN_WARN = 0.05  # warn when fewer than 5 % of detected features can be followed through the whole grid
 MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive tracking and the filters
 
 
@@ -324,6 +325,11 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     if detected and survived / detected < MATCH_WARN:
         warnings.append(f"only {survived} of {detected} features ({100 * survived / max(detected, 1):.0f} %) survived "
                         f"tracking and the filters: matches are poor (repetitive or weak texture, occlusions)")
+    chained = sum(c.get("chain", 0) for c in counts)
+    if detected and chained / detected < CHAIN_WARN:
+        warnings.append(f"only {chained} of {detected} features ({100 * chained / detected:.0f} %) could be followed "
+                        f"through every view: the disparity between neighbouring views is too large for the tracker "
+                        f"(a near scene, a narrow field of view or a wide pitch); use a farther scene")
     if dropped:
         warnings.append(f"frames {', '.join(map(str, dropped))} dropped: most of their tracks disagree with the other "
                         f"frames' (mismatches)")
