@@ -178,7 +178,8 @@ def drift_text(calib: Calibration, report, depths_m=()) -> str:  # report: lfgra
     depths = list(depths_m)
     if depths:
         errors = report.depth_errors(calib, depths)
-        source = ("the calibration's stored marginals" if report.input_sigma_inf_px is not None
+        source = ("the calibration's stored marginals, taken as independent: an upper bound"
+                  if report.input_sigma_inf_px is not None
                   else "the check's posterior (the calibration stored no sigmas)")
         rows = [[calib.grid.name(v), f"{report.sigma_inf_px(v):.3f}",
                  *("inf" if e is None else f"{1e3 * e:.2f}" for e in errors[calib.grid.name(v)])]
@@ -233,17 +234,18 @@ def verdict_table(verdicts) -> str:  # a sequence of lfgraph.refinement.assess.V
         rows.append([v.name, v.verdict, "yes" if v.applied else "no", f"{v.change_sigma:.1f}",
                      f"{v.rotation_change_deg[2]:+.4f} ± {v.sigma_rotation_deg[2]:.4f}", f"{pt:.4f} ± {s_pt:.4f}",
                      f"{np.linalg.norm(v.position_change_mm):.2f} ± {np.linalg.norm(v.sigma_position_mm):.2f}",
-                     f"{v.transfer_change_px:.3f}", f"{v.predicted_transfer_px:.3f}", v.observations])
+                     f"{v.transfer_change_px:.3f}", f"{v.predicted_transfer_px:.3f}",
+                     "/".join(f"{x:.2f}" for x in v.sigma_intrinsics_px), v.observations])
     return format_table(["view", "verdict", "applied", "change_sigma", "roll_deg", "pan_tilt_deg", "position_mm",
-                         "change_inf_px", "sigma_inf_px", "observations"], rows)
+                         "change_inf_px", "sigma_inf_px", "sigma_fx/fy/cx/cy_px", "observations"], rows)
 
 
 def verdict_text(verdicts, sigma_px: float, heldout_before_px: float = float("nan"),
                  heldout_after_px: float = float("nan")) -> str:
     """The per-view verdict table, each view's reason, and what an UNCERTAIN view needs."""
     lines = [f"verdict per view (change proposed by the MAP fit ± posterior 1-sigma; change_sigma: its significance; "
-             f"change_inf_px / sigma_inf_px: the change and the 1-sigma at infinity; measurement sigma "
-             f"{sigma_px:.3f} px):", verdict_table(verdicts)]
+             f"change_inf_px / sigma_inf_px: the change and the 1-sigma at infinity; intrinsics a stage held show "
+             f"the input's own sigmas, or 0; measurement sigma {sigma_px:.3f} px):", verdict_table(verdicts)]
     if np.isfinite(heldout_before_px):
         lines.append(f"held-out tracks: RMS {heldout_before_px:.4f} px with the input, {heldout_after_px:.4f} px with "
                      f"refits that did not see them")
