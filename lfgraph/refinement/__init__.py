@@ -11,5 +11,5 @@ from lfgraph.refinement.config import SCHEDULES, DriftModel, RefineConfig, Stage
 from lfgraph.refinement.report import RefinementReport, StageReport
 from lfgraph.refinement.schedule import refine, refine_tracks, with_reference
 
-__all__ = ["SCHEDULES", "DriftModel", "RefineConfig", "ViewVerdict", "RefinementReport", "Stage", "StageReport", "TriangulationFilter",
-           "parse_stages", "refine", "refine_tracks", "with_reference"]
+__all__ = ["SCHEDULES", "DriftModel", "RefineConfig", "RefinementReport", "Stage", "StageReport", "TriangulationFilter",
+           "ViewVerdict", "parse_stages", "refine", "refine_tracks", "with_reference"]
