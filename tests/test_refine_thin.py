@@ -198,3 +198,24 @@ def test_real_stereo_check_does_not_cry_drift(stereo, capsys):
     assert main(["check", str(calib_path), str(src), "--max-frames", "13"]) == EXIT_OK
     text = capsys.readouterr().out
     assert "verdict per view" in text and "predicted depth error" in text
+
+
+def test_too_few_tracks_is_uncertain_and_says_what_would_help():
+    original = make_rig(RigConfig(rows=2, cols=2, pitch_m=0.05, image_size_px=(480, 480), focal_px=500.0),
+                        np.random.default_rng(0))
+    truth = shake_rig(original, ShakeConfig(rot_deg=1.0, trans_mm=0.0), np.random.default_rng(1))
+    pix, valid = exact_tracks(truth, n=20)  # fewer than min_view_observations per view
+    result = assess(original, pix, valid, RefineConfig(), _Quiet(), 1.0, 1)
+    assert not result.accepted
+    np.testing.assert_array_equal(result.calib.ref_T_view, original.ref_T_view)
+    for v in result.verdicts[1:]:
+        assert v.verdict == UNCERTAIN and any("texture" in n for n in v.needs)
+
+
+def test_refine_json_carries_the_verdicts(thin_scene, tmp_path, capsys):
+    scene, truth, _, _ = thin_scene
+    assert main(["refine", str(scene / "original.json"), str(scene), "-o", str(tmp_path / "r.json"), "--json",
+                 "--quiet"]) == EXIT_OK
+    data = json.loads(capsys.readouterr().out)["refinement"]
+    assert len(data["verdicts"]) == truth.num_views and data["heldout_after_px"] < data["heldout_before_px"]
+    assert all(len(v["sigma_rotation_deg"]) == 3 and v["reason"] for v in data["verdicts"])
