@@ -223,9 +223,11 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
            observer: Observer | None = None) -> tuple[Calibration, RefinementReport]:
     """Refine a calibration from ordinary (textured) captures, frame after frame.
 
-    Each frame's tracks (chain KLT + filters + the triangulation filter) join the pool; the schedule then runs over
-    the whole pool starting from the current calibration (the previous result). It stops after ``max_frames``, when
-    the frames run out, or when a new frame already fits at ``target_rms_px``.
+    Each frame's tracks (chain KLT + filters + the triangulation filter, judged with the MAP fit of the frames so
+    far) join the pool; every pass starts from, and has its priors centred on, the input calibration, and the
+    baselines keep their lengths. It stops after ``max_frames``, when the frames run out, or when a new frame already
+    fits at ``target_rms_px``. The pooled tracks then go through `lfgraph.refinement.assess.assess`: the MAP fit,
+    its posterior, held-out folds and a per-view verdict; only significant, confirmed changes are applied.
 
     Args:
         calib: the calibration to refine (e.g. from the pattern).
@@ -235,7 +237,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
             default: log lines go to `logging`.
 
     Returns:
-        the refined calibration (the input, unchanged, when the fit did not improve enough) and the report.
+        the refined calibration (the input where no change was significant and confirmed) and the report (with
+        ``verdicts``).
 
     Raises:
         ValueError: a frame whose shape does not match the calibration (named), no frame, or no track survives the
@@ -252,7 +255,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     frame_rms: list[float] = []
     current = calib
     stop = "frames exhausted"
-    used = 0
+    used = pool_fitted = heard_iterations = 0
     t_match = t_adjust = 0.0
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
@@ -261,11 +264,25 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         if images.shape[0] != calib.num_views or images.shape[1:3] != (h, w):
             raise ValueError(f"frame {f} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but the "
                              f"calibration is a {calib.grid} grid of {w}x{h} px views")
+        if used > 0 and pool_fitted < used:
+            # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
+            # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
+            t0 = time.perf_counter()
+            px_pool, ok_pool = np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1)
+            if config.max_landmarks is not None and px_pool.shape[1] > config.max_landmarks:
+                pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
+                                                                   replace=False))
+                px_pool, ok_pool = px_pool[:, pick], ok_pool[:, pick]
+            pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs)
+            current = pass_fit.calib
+            heard_iterations += sum(st.iterations for st in pass_fit.stages)
+            pool_fitted = used
+            t_adjust += time.perf_counter() - t0
         obs.frame(f, images)
         t0 = time.perf_counter()
         tracks = track_chain(images, calib.grid, config.match)
-        # tracks are judged with the input (or, with a target RMS, the current MAP fit, itself centred on the
-        # input): one frame's poor fit never carries into the next
+        # tracks are judged with the MAP fit of the frames so far, itself centred on the input and started from it:
+        # one frame's poor fit never carries into the next
         kept, c = collect_tracks(current, tracks, config.triangulation_filter)
         t_match += time.perf_counter() - t0
         counts.append(c)
@@ -284,11 +301,6 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         pool_valid.append(kept.valid)
         pool_frame.append(np.full(kept.num_tracks, f))
         used += 1
-        if config.target_rms_px is not None:
-            t0 = time.perf_counter()
-            current = fit_auto(calib, np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1), config,
-                               obs).calib
-            t_adjust += time.perf_counter() - t0
     if used == 0:
         raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
                          "(see the per-frame track counts)")
@@ -342,7 +354,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
                         + "; the input calibration is kept")
     for w in warnings:
         obs.log(f"warning: {w}")
-    total_iterations = sum(st.iterations for st in fit.stages)
+    total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
     report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
                               time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
                               tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
