@@ -1,10 +1,16 @@
-"""Honest acceptance of a refinement: the posterior of the MAP fit, a significance test of each view's change, a
-held-out test on tracks the fit did not use, and a per-view verdict (OK, DRIFTED, UNCERTAIN).
+"""Honest acceptance of a refinement: the posterior of the MAP fit, held-out folds, a significance test of each
+view's change per parameter group, and a per-view verdict (OK, DRIFTED, UNCERTAIN).
 
-The RMS of the tracks a fit used cannot judge it (any refit lowers it). Here a view's change is kept only when
-(1) it is significant against the posterior covariance of the refinement graph (a chi-square test of the pose and
-freed intrinsics change, at ``significance_sigma``), and (2) refits on k-1 folds of the tracks predict the held-out
-fold at least as well as the input calibration does. A view that fails either keeps its input parameters.
+The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`:
+1. the MAP fit over all tracks (`lfgraph.refinement.schedule.fit_auto`) and its marginals (`posterior`);
+2. refits on folds (whole frames when there are several, else random thirds of the tracks): their held-out RMS
+   against the input's, and their scatter, which widens the marginals where those are too small (`inflate`);
+3. per view and group (pan/tilt, roll, position, intrinsics when freed) a chi-square test of the change against the
+   widened posterior plus the input's own sigma (`group_significance`): groups below ``significance_sigma`` are held
+   at the input, views with none left are held whole;
+4. a refit with those holds; a view whose applied change would still leave more than ``uncertain_transfer_px`` at
+   infinity (1 sigma, from that refit's posterior) is held too, and the refit repeated;
+5. the changes are applied only if the held-out RMS did not get worse (``min_improvement``).
 """
 
 from __future__ import annotations
@@ -220,26 +226,6 @@ def group_significance(before: Calibration, after: Calibration, post: Posterior,
         d2 = float(dk @ np.linalg.lstsq(c[np.ix_(keep, keep)], dk, rcond=1e-12)[0])
         out[name] = chi2_sigma(d2, int(keep.sum()))
     return out
-
-
-def significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> tuple[float, np.ndarray]:
-    """(deviate, change vector) of view v's change (pose, and fx fy cx cy when free) under the posterior."""
-    d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
-    cov = post.pose_cov[v]
-    if post.intrinsics_free:
-        a, b = after.intrinsics[v], before.intrinsics[v]
-        d = np.concatenate([d, [a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy]])
-        full = np.zeros((10, 10))
-        full[:6, :6], full[6:, 6:], full[:6, 6:], full[6:, :6] = cov, post.intr_cov[v], post.cross[v], post.cross[v].T
-        cov = full
-    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    keep = sig > NEGLIGIBLE_SIGMA
-    if not keep.any():
-        return 0.0, d
-    c = cov[np.ix_(keep, keep)]
-    dk = d[keep]
-    d2 = float(dk @ np.linalg.lstsq(c, dk, rcond=1e-12)[0])
-    return chi2_sigma(d2, int(keep.sum())), d
 
 
 def data_needs(calib: Calibration, points: np.ndarray, valid: np.ndarray, v: int, coverage: float,
