@@ -1,5 +1,7 @@
 """Auto-refinement on shaken paper-5x5 scenes: accuracy against the shaken truth, the paper's schedule vs lfgraph's
-default, and the time breakdown (matching + filters, staged adjustment) with peak memory.
+default, and the time breakdown (matching + filters, staged adjustment) with peak memory; then the thin and hostile
+grid of issue 14 (1-2 frames, 2x2 and 3x3 rigs, wide and narrow fields of view, near and far scenes, repetitive
+texture, no shake) and the real OpenCV stereo set, where the rule is: after <= before against the truth.
 
 Scenes are rendered once into ``out/bench-refine`` (re-used on later runs). For every shake level (rotation about
 each view's optical axis up to R degrees, translation up to T mm per axis) the refinement starts from the original
@@ -14,6 +16,7 @@ import argparse
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -85,13 +88,160 @@ def noise_floor(truth: Calibration, refined: Calibration, frames: list[np.ndarra
     return float(np.sqrt(np.nanmean(num**2)) / np.sqrt(np.nanmean(den**2)))
 
 
+@dataclass(frozen=True)
+class ThinCase:
+    """One case of the thin-data grid: paper-5x5's rig shrunk and changed, rendered in memory."""
+
+    name: str
+    grid: tuple[int, int] = (3, 3)
+    frames: int = 1
+    rot_deg: float = 1.0
+    trans_mm: float = 5.0
+    image_px: int = 320
+    focal_px: float = 700.0
+    depth_m: tuple[float, float] = (2.0, 6.0)
+    kind: str = "dead-leaves"
+    seed: int = 0
+
+
+THIN_CASES = [
+    ThinCase("3x3, 1 frame, 1 deg / 5 mm (the issue)"),
+    ThinCase("3x3, 1 frame, 0.25 deg / 1 mm", rot_deg=0.25, trans_mm=1.0),
+    ThinCase("3x3, 1 frame, 1 deg / 5 mm, seed 3", seed=3),
+    ThinCase("3x3, 2 frames, 1 deg / 5 mm", frames=2),
+    ThinCase("2x2, 1 frame, 1 deg / 5 mm", grid=(2, 2)),
+    ThinCase("2x2, 2 frames, 0.25 deg / 1 mm", grid=(2, 2), frames=2, rot_deg=0.25, trans_mm=1.0),
+    ThinCase("3x3 wide (f 200 px, 77 deg)", focal_px=200.0),
+    ThinCase("3x3 narrow (f 1400 px, 13 deg)", focal_px=1400.0),
+    ThinCase("3x3 near scene (0.6-1.5 m)", depth_m=(0.6, 1.5)),
+    ThinCase("3x3 far scene (15-40 m)", depth_m=(15.0, 40.0)),
+    ThinCase("3x3 keyboard (repetitive)", kind="keyboard"),
+    ThinCase("3x3, 1 frame, no shake", rot_deg=0.0, trans_mm=0.0),
+    ThinCase("2x2, 1 frame, no shake", grid=(2, 2), rot_deg=0.0, trans_mm=0.0),
+]
+THIN_NOISE_PX = 0.05  # "after <= before" within this (transfer at infinity)
+THIN_NOISE_DEG = 0.005  # ... and this (rotation)
+STEREO = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_stereo_left_right"
+STEREO_BOARD, STEREO_SQUARE_MM = "9x6", 25.0
+STEREO_BASELINE_TOL_MM = 0.1
+STEREO_ROW_TOL_PX = 0.02
+
+
+def render_thin(case: ThinCase) -> tuple[Calibration, Calibration, list[np.ndarray]]:
+    """(original, truth, frames) of a thin case, rendered in memory (as `lfgraph.study.run_shake_trial`)."""
+    import dataclasses
+
+    from lfgraph.datasets.scene import make_scene, render_scene_view
+
+    named = get_scene("paper-5x5")
+    rig_cfg = dataclasses.replace(named.rig, rows=case.grid[0], cols=case.grid[1],
+                                  image_size_px=(case.image_px, case.image_px), focal_px=case.focal_px)
+    original = make_rig(rig_cfg, np.random.default_rng([case.seed, 0]))
+    truth = shake_rig(original, ShakeConfig(rot_deg=case.rot_deg, trans_mm=case.trans_mm),
+                      np.random.default_rng([case.seed, 1])) if case.rot_deg or case.trans_mm else original
+    near, far = case.depth_m
+    cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4, kind=case.kind)
+    frames = []
+    for f in range(case.frames):
+        scene = make_scene(cfg, np.random.default_rng([case.seed, 2, f]))
+        frames.append(np.stack([render_scene_view(scene, truth.intrinsics[v], truth.image_size_px,
+                                                  truth.view_T_ref(v), cfg, np.random.default_rng([case.seed, 3, f, v]))
+                                for v in range(truth.num_views)]))
+    return original, truth, frames
+
+
+def verdict_summary(report) -> str:
+    counts = report.verdict_counts()
+    return " ".join(f"{counts[k]} {k}" for k in ("DRIFTED", "OK", "UNCERTAIN") if k in counts)
+
+
+def thin_grid(failures: list[str]) -> None:
+    rows = []
+    for case in THIN_CASES:
+        t0 = time.perf_counter()
+        original, truth, frames = render_thin(case)
+        t_render = time.perf_counter() - t0
+        try:
+            refined, report = refine(original, frames)
+            verdicts, seconds = verdict_summary(report), report.seconds
+        except ValueError as exc:  # no usable tracks: the input is what the user keeps
+            refined, verdicts, seconds = original, f"error: {exc}"[:40], float("nan")
+        b, a = evaluate(original, truth, None), evaluate(refined, truth, None)
+        worse = a["transfer"] > b["transfer"] + THIN_NOISE_PX or a["rot"] > b["rot"] + THIN_NOISE_DEG
+        rows.append([case.name, f"{b['transfer']:.3f}", f"{a['transfer']:.3f}", f"{b['rot']:.4f}", f"{a['rot']:.4f}",
+                     "WORSE" if worse else "ok", verdicts, f"{seconds:.1f}", f"{t_render:.0f}"])
+        if worse:
+            failures.append(f"thin case {case.name}: transfer {b['transfer']:.3f} -> {a['transfer']:.3f} px, "
+                            f"rotation {b['rot']:.4f} -> {a['rot']:.4f} deg")
+        print(" | ".join(map(str, rows[-1])), flush=True)
+    print("thin and hostile data (errors against the shaken truth, RMS over views; after <= before is the rule):")
+    print(format_table(["case", "transfer_before_px", "transfer_after_px", "rot_before_deg", "rot_after_deg",
+                        "after<=before", "verdicts", "refine_s", "render_s"], rows))
+
+
+def corner_row_error_px(calib: Calibration, obs) -> float:
+    from lfgraph.rectification import compute_rectification, rectify_points
+
+    rect = compute_rectification(calib)
+    ok = obs.valid[0] & obs.valid[1]
+    q = [rectify_points(calib, rect, v, obs.corners_px[v][ok]) for v in range(2)]
+    return float(np.sqrt(np.mean((q[0][:, 1] - q[1][:, 1]) ** 2)))
+
+
+def real_stereo(cache: Path, failures: list[str]) -> None:
+    """OpenCV's stereo sample: calibrate from the boards, then refine and check on the same images."""
+    import contextlib
+    import io
+    import json
+
+    from lfgraph.board import BoardSpec
+    from lfgraph.cli import main as cli
+    from lfgraph.detections import detect_capture
+
+    if not STEREO.is_dir():
+        failures.append(f"real stereo set not found at {STEREO}")
+        return
+    calib_json, refined_json = cache / "stereo-calib.json", cache / "stereo-refined.json"
+    args = ["--quiet"]
+    with contextlib.redirect_stdout(io.StringIO()):
+        cli(["calibrate", str(STEREO), "--grid", "1x2", "--board", STEREO_BOARD, "--square-mm",
+             str(STEREO_SQUARE_MM), "-o", str(calib_json), *args])
+        cli(["refine", str(calib_json), str(STEREO), "-o", str(refined_json), *args])
+    before, after = Calibration.load(calib_json), Calibration.load(refined_json)
+    obs, _ = detect_capture(open_capture(STEREO, before.grid), BoardSpec.parse(STEREO_BOARD, STEREO_SQUARE_MM),
+                            jobs=1, progress=False, cache=False)
+    b_mm = [1e3 * float(np.linalg.norm(c.ref_T_view[1][:3, 3])) for c in (before, after)]
+    rows = [corner_row_error_px(c, obs) for c in (before, after)]
+    verdicts = [v["verdict"] for v in after.metrics["refinement"]["verdicts"]]
+    print(f"real stereo (OpenCV left/right, 13 frames): baseline {b_mm[0]:.2f} -> {b_mm[1]:.2f} mm, corner row "
+          f"error {rows[0]:.3f} -> {rows[1]:.3f} px; refine verdicts {verdicts}")
+    if abs(b_mm[1] - b_mm[0]) > STEREO_BASELINE_TOL_MM or rows[1] > rows[0] + STEREO_ROW_TOL_PX:
+        failures.append("real stereo: the refinement changed the baseline or worsened the rows")
+    for n in (3, 13):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            code = cli(["check", str(calib_json), str(STEREO), "--max-frames", str(n), "--json"])
+        data = json.loads(buf.getvalue())
+        views = [(v["view"], v["verdict"], round(v["change_sigma"], 1)) for v in data["views"]]
+        print(f"check on {n} frames: {data['verdict']} (exit {code}), reprojection RMS {data['rms_px']:.2f} px, "
+              f"frames dropped {data['frames_dropped']}, views {views}")
+        if data["verdict"] != "OK":
+            failures.append(f"real stereo: check on {n} frames cries drift")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cache", type=Path, default=Path("out/bench-refine"))
     parser.add_argument("--frames", type=int, default=FRAMES)
+    parser.add_argument("--thin-only", action="store_true", help="only the thin grid and the real stereo set")
     args = parser.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     rows, failures, timing = [], [], []
+    thin_grid(failures)
+    real_stereo(args.cache, failures)
+    if args.thin_only:
+        print("targets missed: " + ("; ".join(failures) if failures else "none"))
+        return 1 if failures else 0
     for rot, trans in SHAKES:
         root = dataset(args.cache, rot, trans, args.frames)
         truth = Calibration.load(root / "truth.json")

@@ -164,17 +164,35 @@ def alignment_table(named: Sequence[tuple[str, object]]) -> str:
     return format_table(["", "row_px", "col_px", "proportionality_px", "points"], rows)
 
 
-def drift_text(calib: Calibration, report) -> str:  # report: lfgraph.drift.DriftReport
+def drift_text(calib: Calibration, report, depths_m=()) -> str:  # report: lfgraph.drift.DriftReport
     counts = ", ".join(f"{k} {v}" for k, v in report.counts.items())
-    lines = [f"{report.frames} frame(s); tracks after each filter: {counts}",
-             f"reprojection RMS {report.rms_px:.4f} px; per view:",
-             format_table(["view", "rms_px"], [[calib.grid.name(v), float(report.view_rms_px[v])]
-                                               for v in range(calib.num_views)]),
-             "alignment of the tracks in rectified views (RMS px):",
-             alignment_table([("original views", report.alignment.before),
-                              ("rectified", report.alignment.after),
-                              ("off-grid parallax alone", report.alignment.parallax),
-                              ("rectified, parallax removed", report.alignment.compensated)])]
+    lines = [f"{report.frames} frame(s); tracks after each filter: {counts}"]
+    if report.frames_dropped:
+        lines.append(f"frames {', '.join(map(str, report.frames_dropped))} dropped: most of their tracks disagree "
+                     f"with the other frames' (mismatches on a repeated pattern?)")
+    lines += [f"reprojection RMS {report.rms_px:.4f} px (not a drift measure: mismatches raise it too); per view:",
+              format_table(["view", "rms_px"], [[calib.grid.name(v), float(report.view_rms_px[v])]
+                                                for v in range(calib.num_views)]),
+              "alignment of the tracks in rectified views (RMS px):",
+              alignment_table([("original views", report.alignment.before),
+                               ("rectified", report.alignment.after),
+                               ("off-grid parallax alone", report.alignment.parallax),
+                               ("rectified, parallax removed", report.alignment.compensated)])]
+    if report.verdicts:
+        lines.append(verdict_text(report.verdicts, report.sigma_px, *report.heldout_px))
+    lines += list(report.notes)
+    depths = list(depths_m)
+    if depths:
+        errors = report.depth_errors(calib, depths)
+        source = ("the calibration's stored marginals, taken as independent: an upper bound"
+                  if report.input_sigma_inf_px is not None
+                  else "the check's posterior (the calibration stored no sigmas)")
+        rows = [[calib.grid.name(v), f"{report.sigma_inf_px(v):.3f}",
+                 *("inf" if e is None else f"{1e3 * e:.2f}" for e in errors[calib.grid.name(v)])]
+                for v in range(calib.num_views) if calib.grid.name(v) in errors]
+        lines.append(f"predicted depth error against the reference view (mm, 1 sigma; disparity error = the 1-sigma "
+                     f"transfer at infinity from {source}):")
+        lines.append(format_table(["view", "sigma_inf_px", *(f"at {d:g} m" for d in depths)], rows))
     return "\n".join(lines)
 
 
@@ -206,5 +224,39 @@ def refinement_text(before: Calibration, after: Calibration, report) -> str:  # 
                  + ("" if report.accepted else " — none: the input calibration was kept") + ":")
     lines.append(format_table(["view", "rot_deg", "move_mm", "dx dy dz_mm", "d_fx_px", "d_fy_px", "d_cx_px",
                                "d_cy_px"], rows))
+    if report.verdicts:
+        lines.append(verdict_text(report.verdicts, report.sigma_px, report.heldout_before_px,
+                                  report.heldout_after_px))
     lines += [f"warning: {w}" for w in report.warnings]
+    return "\n".join(lines)
+
+
+def verdict_table(verdicts) -> str:  # a sequence of lfgraph.refinement.assess.ViewVerdict
+    """One row per view: the verdict, the proposed change (pan/tilt, roll, position, at infinity) with its sigma."""
+    rows = []
+    for v in verdicts:
+        pt = float(np.hypot(v.rotation_change_deg[0], v.rotation_change_deg[1]))
+        s_pt = float(np.hypot(v.sigma_rotation_deg[0], v.sigma_rotation_deg[1]))
+        rows.append([v.name, v.verdict, "yes" if v.applied else "no", f"{v.change_sigma:.1f}",
+                     f"{v.rotation_change_deg[2]:+.4f} ± {v.sigma_rotation_deg[2]:.4f}", f"{pt:.4f} ± {s_pt:.4f}",
+                     f"{np.linalg.norm(v.position_change_mm):.2f} ± {np.linalg.norm(v.sigma_position_mm):.2f}",
+                     f"{v.transfer_change_px:.3f}", f"{v.predicted_transfer_px:.3f}",
+                     "/".join(f"{x:.2f}" for x in v.sigma_intrinsics_px), v.observations])
+    return format_table(["view", "verdict", "applied", "change_sigma", "roll_deg", "pan_tilt_deg", "position_mm",
+                         "change_inf_px", "sigma_inf_px", "sigma_fx/fy/cx/cy_px", "observations"], rows)
+
+
+def verdict_text(verdicts, sigma_px: float, heldout_before_px: float = float("nan"),
+                 heldout_after_px: float = float("nan")) -> str:
+    """The per-view verdict table, each view's reason, and what an UNCERTAIN view needs."""
+    lines = [f"verdict per view (change proposed by the MAP fit ± posterior 1-sigma; change_sigma: its significance; "
+             f"change_inf_px / sigma_inf_px: the change and the 1-sigma at infinity; intrinsics a stage held show "
+             f"the input's own sigmas, or 0; measurement sigma {sigma_px:.3f} px):", verdict_table(verdicts)]
+    if np.isfinite(heldout_before_px):
+        lines.append(f"held-out tracks: RMS {heldout_before_px:.4f} px with the input, {heldout_after_px:.4f} px with "
+                     f"refits that did not see them")
+    for v in verdicts:
+        if v.verdict == "REFERENCE":
+            continue
+        lines.append(f"{v.name} {v.verdict}: {v.reason}" + (f"; needs {'; '.join(v.needs)}" if v.needs else ""))
     return "\n".join(lines)

@@ -12,6 +12,7 @@ from lfgraph.cli.args import (
     EXIT_DRIFT,
     EXIT_OK,
     LAYOUT_CHOICES,
+    UsageError,
     add_rerun_args,
     check_output_folder,
     check_rerun,
@@ -116,25 +117,39 @@ def cmd_check(args: argparse.Namespace) -> int:
     from lfgraph.capture import open_capture
     from lfgraph.drift import check
     from lfgraph.rectification import check_compatible
+    from lfgraph.refinement.config import DriftModel, RefineConfig
     from lfgraph.report import drift_text
 
+    try:
+        depths = [float(x) for x in args.depths.split(",") if x.strip()] if args.depths else []
+        if any(not d > 0 for d in depths):
+            raise ValueError("depths must be positive")
+        config = RefineConfig(drift=DriftModel.parse(args.drift))
+    except ValueError as exc:
+        raise UsageError(f"{exc}") from None
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
     for note in capture.notes:
         print(f"note: {note}")
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
-    report = check(calib, capture.frames(args.max_frames))
-    drifted = report.rms_px > args.max_px
+    report = check(calib, capture.frames(args.max_frames), config=config)
+    drifted = report.drifted(args.max_px)
+    verdict = "DRIFT" if drifted else "OK"
     if args.json:
         print(json.dumps({"calibration": str(args.calibration), "capture": str(args.input), "max_px": args.max_px,
-                          "verdict": "DRIFT" if drifted else "OK", **report.to_dict(calib)}, indent=1))
+                          "verdict": verdict, **report.to_dict(calib),
+                          "depth_error_m": {"depths_m": depths, "per_view": report.depth_errors(calib, depths)}},
+                         indent=1))
         return EXIT_DRIFT if drifted else EXIT_OK
-    print(drift_text(calib, report))
+    print(drift_text(calib, report, depths))
     if drifted:
-        print(f"DRIFT: reprojection RMS {report.rms_px:.3f} px is above --max-px {args.max_px:g}; "
-              f"re-calibrate or run lfgraph refine")
+        names = ", ".join(f"{v.name} ({v.transfer_change_px:.2f} px at infinity, {v.change_sigma:.1f} sigma)"
+                          for v in drifted)
+        print(f"DRIFT: {names} moved by more than --max-px {args.max_px:g} px; run lfgraph refine (or re-calibrate)")
         return EXIT_DRIFT
-    print(f"OK: reprojection RMS {report.rms_px:.3f} px <= --max-px {args.max_px:g}")
+    uncertain = [v.name for v in report.verdicts if v.verdict == "UNCERTAIN"]
+    print(f"OK: no view drifted by more than --max-px {args.max_px:g} px at infinity"
+          + (f" (UNCERTAIN, the frames cannot tell: {', '.join(uncertain)})" if uncertain else ""))
     return EXIT_OK
 
 
@@ -159,7 +174,12 @@ def add_parsers(sub: Any) -> None:
     ck.add_argument("calibration", type=Path, help="calibration.json")
     ck.add_argument("input", type=Path, help="capture folder of any textured scene")
     ck.add_argument("--max-px", type=positive_float, default=0.5,
-                    help="largest acceptable reprojection RMS (default 0.5 px)")
+                    help="a view fails the check when it DRIFTED (a significant change) by more than this at "
+                         "infinity (px; default 0.5)")
+    ck.add_argument("--depths", default="1,2,5",
+                    help="ranges (m, comma list) for the predicted depth error per view (default 1,2,5)")
+    ck.add_argument("--drift", default="",
+                    help="drift model sigmas, e.g. roll_deg=1,pan_tilt_deg=0.5,position_mm=5 (see RefineConfig)")
     ck.add_argument("--max-frames", type=positive_int, default=3, help="frames to use (default 3)")
     ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
     ck.add_argument("--json", action="store_true", help="print the figures and the verdict as JSON")

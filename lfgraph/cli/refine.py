@@ -35,12 +35,14 @@ def _refine(args: argparse.Namespace) -> int:
     from lfgraph.factors.noise import describe_noise
     from lfgraph.rectification import check_compatible
     from lfgraph.refinement import RefineConfig, refine, with_reference
-    from lfgraph.refinement.config import schedule_name
+    from lfgraph.refinement.config import DriftModel, schedule_name
     from lfgraph.report import refinement_text
 
     try:
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
-                              target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter)
+                              target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter,
+                              drift=DriftModel.parse(args.drift), priors=not args.free, folds=args.folds,
+                              significance_sigma=args.significance)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     check_output_file(args.output, overwritable=[args.calibration], overwrite=args.overwrite)
@@ -56,8 +58,9 @@ def _refine(args: argparse.Namespace) -> int:
     check_output_file(args.output, inputs=capture.all_paths())
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
-    print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "
-          f"triangulation filter {config.triangulation_filter}, robust {describe_noise(config.noise)}")
+    if not args.json:
+        print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "
+              f"triangulation filter {config.triangulation_filter}, robust {describe_noise(config.noise)}")
     frames = (capture.load_frame(f) for f in range(n))
     bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
     with rerun_session(args, calib.grid, logging, "refine") as logger, logging_redirect_tqdm():
@@ -67,11 +70,19 @@ def _refine(args: argparse.Namespace) -> int:
         refined.save(args.output)
         if logger is not None:
             logger.refinement_result(calib, refined, report)
+    if args.json:
+        import json
+
+        print(json.dumps({"calibration": str(args.calibration), "capture": str(args.input), "output": str(args.output),
+                          **report.metrics()}, indent=1, default=float))
+        return EXIT_OK
     print(refinement_text(calib, refined, report))
+    counts = report.verdict_counts()
+    summary = ", ".join(f"{counts[k]} {k}" for k in ("DRIFTED", "OK", "UNCERTAIN") if k in counts)
+    print(f"verdict: {summary}; " + ("the DRIFTED views were refined" if report.accepted else
+                                     "nothing was changed (see the reasons above)"))
     print(f"wrote {args.output}")
     return EXIT_OK
-
-
 
 
 def add_parsers(sub: Any) -> None:
@@ -90,6 +101,16 @@ def add_parsers(sub: Any) -> None:
     rf.add_argument("--max-frames", type=positive_int, help="use at most this many frames")
     rf.add_argument("--target-rms", type=positive_float,
                     help="stop adding frames once a new frame fits the calibration at this RMS (px)")
+    rf.add_argument("--drift", default="",
+                    help="drift model: prior sigmas centred on the input, e.g. roll_deg=1,pan_tilt_deg=0.5,"
+                         "position_mm=5,focal_px=3,principal_px=3 (those are the defaults)")
+    rf.add_argument("--free", action="store_true",
+                    help="no drift priors: the paper's free fit (still judged by significance and held-out tracks)")
+    rf.add_argument("--folds", type=int, default=3,
+                    help="held-out folds (whole frames when there are several; 0: no held-out test; default 3)")
+    rf.add_argument("--significance", type=positive_float, default=3.0,
+                    help="a view's change must exceed this many posterior sigmas to be applied (default 3)")
+    rf.add_argument("--json", action="store_true", help="print the report (verdicts, sigmas) as JSON")
     rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
     rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
     rf.add_argument("--overwrite", action="store_true", help="allow -o to be the input calibration (replaced in place)")

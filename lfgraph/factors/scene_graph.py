@@ -7,7 +7,12 @@ by one range (reference to the farthest view); (2) the hidden principal-point ga
 principal point in proportion to its baseline while shifting every landmark's inverse depth leaves all images
 unchanged, so cx of the reference row's neighbour (cy of its column neighbour in a single-column grid) is held
 whenever principal points are free; (3) with nearly parallel views a common zoom and shift of every view's fx, fy,
-cx, cy is unobservable too, so the reference view's intrinsics are held as its pose is.
+cx, cy is unobservable too, so the reference view's intrinsics are held as its pose is; (4) the same hidden gauge in
+rotations: turning each view by delta * (-c_y, c_x, 0) (body x, y; c its position) while shifting every landmark's
+inverse depth by delta leaves all images unchanged to first order — only perspective's second-order terms see it,
+and those are what model errors (distortion, a repetitive pattern) bend. So the pan (tilt in a single column) of
+the same neighbour view is held at its input whenever poses are free: in a stereo pair the scene cannot tell the
+pan of the second view from the depth of the scene.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from lfgraph.factors.noise import (
     HELD_SIGMA,
     MIN_SIGMA,
     cal3ds2_noise,
+    drift_calibration_noise,
+    drift_pose_noise,
     gauge_pose_noise,
     pose_noise,
     range_noise,
@@ -68,20 +75,40 @@ def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.B
     return graph
 
 
+def rotation_gauge(calib: Calibration) -> tuple[int, int] | None:
+    """(view, body rotation axis) held to remove the hidden rotation gauge (4): the pan (axis 1) of the view whose
+    cx `principal_point_gauge` holds, or the tilt (axis 0) of the column neighbour in a single-column grid."""
+    gauge = principal_point_gauge(calib)
+    if gauge is None:
+        return None
+    return gauge[0], 1 if gauge[1] == 3 else 0
+
+
 def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int],
-                scale_sigma_mm: float | None) -> gtsam.NonlinearFactorGraph:
-    """The reference pose (gauge); held views and, when poses are not free, every view; optional weak position
-    priors (``scale_sigma_mm``, which bias rotations) on the free views."""
+                scale_sigma_mm: float | None, map_centre: np.ndarray | None = None,
+                map_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
+    """The reference pose (gauge); held views and, when poses are not free, every view; on the free views either
+    the MAP drift priors (``map_centre`` (V, 4, 4) ``ref_T_view`` of the input with ``map_sigmas`` (V, 6), see
+    `drift_pose_noise`) or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
+    priors the hidden rotation gauge (`rotation_gauge`) is held at the input."""
     graph = gtsam.NonlinearFactorGraph()
+    rgauge = rotation_gauge(calib)
     for v in range(calib.num_views):
         pose = to_pose3(calib.ref_T_view[v])
         if v == calib.grid.reference:
             graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, gauge_pose_noise()))
         elif poses_free and v not in held_views:
-            if scale_sigma_mm is not None:
+            if map_centre is not None and map_sigmas is not None:
+                sigmas = np.array(map_sigmas[v], dtype=float)
+                if rgauge is not None and rgauge[0] == v:
+                    sigmas[rgauge[1]] = HELD_SIGMA
+                graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(map_centre[v]),
+                                                 drift_pose_noise(sigmas)))
+            elif scale_sigma_mm is not None:
                 graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, pose_noise(1.0, scale_sigma_mm * 1e-3)))
         else:
-            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, pose_noise(HELD_SIGMA, HELD_SIGMA)))
+            held = map_centre[v] if map_centre is not None and v in held_views else calib.ref_T_view[v]
+            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(held), pose_noise(HELD_SIGMA, HELD_SIGMA)))
     return graph
 
 
@@ -108,18 +135,28 @@ def principal_point_gauge(calib: Calibration) -> tuple[int, int] | None:
     return None
 
 
-def intrinsics_priors(calib: Calibration, held_views: frozenset[int]) -> gtsam.NonlinearFactorGraph:
+def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre: Calibration | None = None,
+                      map_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
     """fx, fy, cx, cy free for the non-reference, non-held views (minus the principal-point gauge); skew,
-    distortion and everything of the reference and held views held."""
+    distortion and everything of the reference and held views held. With ``map_centre`` and ``map_sigmas`` (V, 4)
+    the free ones get MAP drift priors centred on the input (`drift_calibration_noise`) instead of no pull."""
     graph = gtsam.NonlinearFactorGraph()
     gauge = principal_point_gauge(calib)
     for v in range(calib.num_views):
+        centre = calib.intrinsics[v] if map_centre is None else map_centre.intrinsics[v]
+        if map_centre is not None and map_sigmas is not None and v != calib.grid.reference \
+                and v not in held_views:
+            s4 = np.array(map_sigmas[v], dtype=float)
+            if gauge is not None and gauge[0] == v:
+                s4[gauge[1] - 1] = HELD_SIGMA  # Cal3DS2 index 3/4 -> cx/cy here
+            graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), centre.to_gtsam(), drift_calibration_noise(s4)))
+            continue
         sigmas = np.full(9, HELD_SIGMA)  # Cal3DS2 order: fx fy s cx cy k1 k2 p1 p2
         sigmas[2] = MIN_SIGMA
         if v != calib.grid.reference and v not in held_views:
             sigmas[[0, 1, 3, 4]] = FOCAL_FREE_SIGMA_PX
             if gauge is not None and gauge[0] == v:
                 sigmas[gauge[1]] = HELD_SIGMA
-        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), calib.intrinsics[v].to_gtsam(), cal3ds2_noise(sigmas)))
+        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), centre.to_gtsam(), cal3ds2_noise(sigmas)))
     return graph
 

@@ -2,12 +2,14 @@
 
 Modules: `config` (`RefineConfig`, `Stage`, schedules), `matching` (chain KLT tracks), `triangulate` (DLT and the
 triangulation filters), `tracks` (per-frame selection), `stages` (one stage's graph), `schedule` (`refine`,
-`refine_tracks`), `report`, `unordered` (tracks for views that are not a grid).
+`refine_tracks`), `priors` (MAP priors centred on the input), `assess` (posterior, significance, held-out folds,
+per-view verdicts), `report`, `unordered` (tracks for views that are not a grid).
 """
 
-from lfgraph.refinement.config import SCHEDULES, RefineConfig, Stage, TriangulationFilter, parse_stages
+from lfgraph.refinement.assess import ViewVerdict
+from lfgraph.refinement.config import SCHEDULES, DriftModel, RefineConfig, Stage, TriangulationFilter, parse_stages
 from lfgraph.refinement.report import RefinementReport, StageReport
 from lfgraph.refinement.schedule import refine, refine_tracks, with_reference
 
-__all__ = ["SCHEDULES", "RefineConfig", "RefinementReport", "Stage", "StageReport", "TriangulationFilter",
-           "parse_stages", "refine", "refine_tracks", "with_reference"]
+__all__ = ["SCHEDULES", "DriftModel", "RefineConfig", "RefinementReport", "Stage", "StageReport", "TriangulationFilter",
+           "ViewVerdict", "parse_stages", "refine", "refine_tracks", "with_reference"]

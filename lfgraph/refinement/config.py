@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import StrEnum
+
+import numpy as np
 
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.refinement.matching import MatchSettings
@@ -69,6 +71,56 @@ def schedule_name(stages: tuple[Stage, ...]) -> str:
 
 
 @dataclass(frozen=True)
+class DriftModel:
+    """How far a calibrated view may plausibly have moved since calibration: the 1-sigma of the drift prior, per
+    parameter group. Every refined parameter gets a prior centred on the input calibration whose sigma is this drift
+    combined (root sum of squares) with the input's own uncertainty (``metrics["sigmas"]`` stored by ``calibrate``,
+    when present). Directions the scene does not determine therefore stay where they were (MAP, not a free fit).
+
+    Attributes:
+        roll_deg: rotation about the view's optical axis (body z).
+        pan_tilt_deg: rotation about the view's x and y axes (these trade against position when tracks are few or
+            all at one depth).
+        position_mm: optical centre, per axis.
+        focal_px: fx, fy (only when a stage frees intrinsics).
+        principal_px: cx, cy (only when a stage frees intrinsics).
+    """
+
+    roll_deg: float = 1.0
+    pan_tilt_deg: float = 0.5
+    position_mm: float = 5.0
+    focal_px: float = 3.0
+    principal_px: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("roll_deg", "pan_tilt_deg", "position_mm", "focal_px", "principal_px"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
+                raise ValueError(f"drift sigma {name} must be a positive number, got {value!r}")
+
+    @classmethod
+    def parse(cls, spec: str | None) -> DriftModel:
+        """``"roll_deg=2,position_mm=3"`` (any subset of the fields; empty or None: the defaults).
+
+        Raises:
+            ValueError: an unknown field (named) or a value that is not a positive number.
+        """
+        if not spec:
+            return cls()
+        kwargs = {}
+        names = {f.name for f in fields(cls)}
+        for item in spec.split(","):
+            key, _, value = item.strip().partition("=")
+            if key not in names:
+                raise ValueError(f"unknown drift sigma {key!r}; choose from {', '.join(sorted(names))}")
+            try:
+                kwargs[key] = float(value)
+            except ValueError:
+                raise ValueError(f"drift sigma {key} must be a number, got {value!r}") from None
+        return cls(**kwargs)
+
+
+@dataclass(frozen=True)
 class RefineConfig:
     """Options of the refinement. Everything is validated and normalised on construction.
 
@@ -79,7 +131,18 @@ class RefineConfig:
             ``"none"``), a `RobustKernel`, any ``gtsam.noiseModel.mEstimator`` object (wrapped around the isotropic
             ``measurement_sigma_px``), or a full ``gtsam`` noise model (used as it is). Thresholds are in sigmas.
         clean_robust: the ``clean`` stage's own noise model; None (default) uses ``robust``.
-        measurement_sigma_px: the feature position noise per coordinate (px).
+        measurement_sigma_px: the feature position noise per coordinate (px); None (default): estimated from the
+            residuals of a first fit (floored at ``MIN_MEASUREMENT_SIGMA_PX``), so the priors weigh what they should.
+        drift: the drift model (`DriftModel`): sigmas of the priors centred on the input calibration.
+        priors: True (default): maximum a posteriori with the drift priors; False: the free fit of the paper (every
+            freed parameter moves without a pull; scale by one range), still judged by the acceptance below.
+        folds: held-out validation: tracks are split into this many folds; each fold is refitted without its tracks
+            and must predict them at least as well as the input calibration does (0: no held-out test).
+        significance_sigma: a view's change counts only if its Mahalanobis distance under the posterior covariance
+            exceeds the chi-square quantile equivalent to this many sigmas (one-sided normal); otherwise the view
+            keeps its input parameters.
+        uncertain_transfer_px: a view whose change is not significant is OK when its posterior predicts at most this
+            transfer error at infinity (1-sigma, px), else UNCERTAIN (the data could hide a drift that large).
         triangulation_filter: ``median`` (the paper: keep tracks whose reference-view error is <= the median; it
             halves the tracks and favours the image centre), ``worst`` (drop tracks whose worst error is > 4x the
             median track's and > 0.5 px) or ``none``; default: ``median`` with the paper's schedule, else ``worst``.
@@ -89,9 +152,9 @@ class RefineConfig:
             baselines (least squares); a number: weak priors of this sigma on every view's position instead (the
             simpler scheme, which pulls positions back and biases rotations by ~position error / depth).
         max_iterations: LM cap per stage.
-        min_improvement: keep the input calibration unless the refined one lowers the RMS of the kept tracks by at
-            least this factor — with no real drift, a refit only chases the tracks' own small biases (1 = always
-            accept).
+        min_improvement: keep the input calibration unless the refits predict the held-out tracks better by at least
+            this factor (held-out RMS input / refined; 1 = not worse). The RMS of the tracks a fit used is never the
+            test: any refit lowers it.
         max_landmarks: cap of the pooled tracks (a seeded random subset is kept when frames bring more): memory and
             time of the adjustment grow with them (~200 MB and ~0.5 s per 1000 landmarks of a 5x5 rig) while the
             accuracy has stopped improving well before (measured in `benchmarks/refine.py`). None: no cap.
@@ -105,17 +168,22 @@ class RefineConfig:
     stages: tuple[Stage, ...] | str = "default"
     robust: NoiseSpec = None
     clean_robust: NoiseSpec = None
-    measurement_sigma_px: float = 1.0
+    measurement_sigma_px: float | None = None
     triangulation_filter: TriangulationFilter | str | None = None
     max_frames: int | None = None
     target_rms_px: float | None = None
     scale_sigma_mm: float | None = None
     max_iterations: int = 100
-    min_improvement: float = 1.1
+    min_improvement: float = 1.0
     max_landmarks: int | None = 2000
     min_view_observations: int = 30
     graph_hooks: tuple[Callable, ...] = ()
     match: MatchSettings = field(default_factory=MatchSettings)
+    drift: DriftModel = field(default_factory=DriftModel)
+    priors: bool = True
+    folds: int = 3
+    significance_sigma: float = 3.0
+    uncertain_transfer_px: float = 0.2
 
     def __post_init__(self) -> None:
         stages = parse_stages(self.stages)
@@ -133,7 +201,13 @@ class RefineConfig:
         if self.clean_robust is not None:
             object.__setattr__(self, "clean_robust", as_noise(self.clean_robust))
         object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
-        if not (self.measurement_sigma_px > 0):
+        if isinstance(self.drift, str):
+            object.__setattr__(self, "drift", DriftModel.parse(self.drift))
+        if self.folds < 0 or self.folds == 1:
+            raise ValueError(f"folds must be 0 (no held-out test) or >= 2, got {self.folds}")
+        if not self.significance_sigma > 0:
+            raise ValueError(f"significance_sigma must be positive, got {self.significance_sigma}")
+        if self.measurement_sigma_px is not None and not (self.measurement_sigma_px > 0):
             raise ValueError(f"measurement_sigma_px must be positive, got {self.measurement_sigma_px}")
         if self.max_frames is not None and self.max_frames < 1:
             raise ValueError(f"max_frames must be >= 1, got {self.max_frames}")

@@ -43,6 +43,17 @@ class RefinementReport:
     coverage: float = 1.0
     warnings: tuple[str, ...] = ()
     total_iterations: int = 0  # LM iterations of every stage of every pass (the rerun ``iteration`` timeline)
+    verdicts: tuple = ()  # per view `lfgraph.refinement.assess.ViewVerdict`
+    heldout_before_px: float = float("nan")  # held-out tracks' RMS with the input calibration
+    heldout_after_px: float = float("nan")  # ... and with refits that did not see them
+    sigma_px: float = float("nan")  # the measurement sigma the posterior uses (px per coordinate)
+    frames_dropped: tuple[int, ...] = ()  # frames whose tracks were mostly mismatches
+
+    def verdict_counts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for v in self.verdicts:
+            out[v.verdict] = out.get(v.verdict, 0) + 1
+        return out
 
     def metrics(self) -> dict:
         return {
@@ -51,6 +62,9 @@ class RefinementReport:
                 "coverage": self.coverage, "warnings": list(self.warnings),
                 "total_iterations": self.total_iterations,
                 "rms_before_px": self.rms_before_px, "rms_after_px": self.rms_after_px,
+                "heldout_before_px": _num(self.heldout_before_px), "heldout_after_px": _num(self.heldout_after_px),
+                "sigma_px": _num(self.sigma_px), "frames_dropped": list(self.frames_dropped),
+                "verdicts": [v.as_dict() for v in self.verdicts],
                 "frame_counts": list(self.frame_counts),
                 "stages": [{"name": str(s.name), "landmarks": s.landmarks, "rms_before_px": s.rms_before_px,
                             "rms_after_px": s.rms_after_px, "iterations": s.iterations,
@@ -59,3 +73,7 @@ class RefinementReport:
                            for s in self.stages],
             }
         }
+
+
+def _num(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None

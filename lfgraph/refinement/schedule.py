@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,8 +20,10 @@ from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import describe_noise
 from lfgraph.geometry import rotation_angle_deg
 from lfgraph.observer import Observer, StageEnd, resolve
+from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.matching import track_chain
+from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.report import RefinementReport, StageReport
 from lfgraph.refinement.stages import run_stage
 from lfgraph.refinement.tracks import (
@@ -29,13 +32,17 @@ from lfgraph.refinement.tracks import (
     OUTLIER_FLOOR_PX,
     collect_tracks,
     in_front,
+    pooled_filter,
     track_coverage,
 )
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
 
+FIRST_PASS_SIGMA_PX = 1.0  # the measurement sigma of the pass that estimates it
+MIN_MEASUREMENT_SIGMA_PX = 0.05  # floor of the estimated sigma: KLT errors are not independent below this
 CLEAN_FACTOR = 3.0  # the clean stage: worst residual > 3x the median track's ...
 CLEAN_FLOOR_PX = 0.3  # ... and > 0.3 px (the prototype's threshold)
 COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells
+CHAIN_WARN = 0.05  # warn when fewer than 5 % of detected features can be followed through the whole grid
 MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive tracking and the filters
 
 
@@ -65,21 +72,43 @@ def _changes(before: Calibration, after: Calibration) -> tuple[np.ndarray, ...]:
     return rot, pos, foc, pp
 
 
-def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
-                  observer: Observer | None = None) -> tuple[Calibration, list[StageReport], np.ndarray]:
-    """Run the stage schedule over pooled tracks: (V, N, 2) pixels with a (V, N) mask, any views (grid or not).
+@dataclass(frozen=True)
+class FitResult:
+    """One run of the stage schedule (`fit_tracks`): the calibration, stage reports, kept-track mask, and what the
+    posterior needs — the last free stage, its tracks and landmarks, the measurement sigma and the held views."""
 
-    The observer hears ``stage_start`` before and ``stage_end`` and ``outliers`` (the tracks the stage's outlier
-    rejection dropped) after every stage, and every optimiser iteration.
+    calib: Calibration
+    stages: list[StageReport]
+    keep: np.ndarray
+    last_stage: Stage | None
+    pixels: np.ndarray
+    valid: np.ndarray
+    points: np.ndarray
+    sigma_px: float
+    held: frozenset[int]
 
-    Returns:
-        the calibration, stage reports and the (N,) kept-track mask.
-    """
+
+def estimate_sigma_px(errors: np.ndarray, n_points: int, n_params: int) -> float:
+    """Per-coordinate measurement sigma from Euclidean residuals: sqrt(sum r^2 / (2 n_obs - 3 n_points - params))."""
+    e = errors[np.isfinite(errors)]
+    dof = 2 * e.size - 3 * n_points - n_params
+    if dof <= 0:
+        return float("nan")
+    return float(np.sqrt(np.sum(e**2) / dof))
+
+
+def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
+               observer: Observer | None = None, *, priors: ViewPriors | None = None,
+               held_views: frozenset[int] = frozenset(), sigma_px: float | None = None) -> FitResult:
+    """Run the stage schedule once with a given measurement sigma (None: the config's, or 1 px)."""
     config = config or RefineConfig()
     obs = resolve(observer)
+    if sigma_px is None:
+        sigma_px = config.measurement_sigma_px or FIRST_PASS_SIGMA_PX
     keep = np.ones(valid.shape[1], dtype=bool)
     reports = []
     last_free = None
+    last: tuple = (None, pixels[:, :0], valid[:, :0], np.zeros((0, 3)), frozenset(held_views))
     for name in config.stages:
         t0 = time.perf_counter()
         # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
@@ -105,13 +134,16 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, con
         before = calib
         obs.stage_start(str(name), int(ok.sum()))
         per_view = ok.sum(axis=1)
-        held = frozenset(int(v) for v in np.nonzero(per_view < config.min_view_observations)[0])
-        if held and stage != Stage.POINTS:
-            obs.log(f"stage {name}: views {', '.join(calib.grid.name(v) for v in sorted(held))} have fewer than "
+        thin = frozenset(int(v) for v in np.nonzero(per_view < config.min_view_observations)[0])
+        held = thin | frozenset(held_views)
+        if thin and stage != Stage.POINTS:
+            obs.log(f"stage {name}: views {', '.join(calib.grid.name(v) for v in sorted(thin))} have fewer than "
                 f"{config.min_view_observations} observations and are held")
-        calib, points, iterations = run_stage(stage, calib, px, ok, points, noise, config.measurement_sigma_px,
+        calib, points, iterations = run_stage(stage, calib, px, ok, points, noise, sigma_px,
                                               config.scale_sigma_mm, config.max_iterations, obs.iteration, held,
-                                              config.graph_hooks)
+                                              config.graph_hooks, priors)
+        if stage != Stage.POINTS:
+            last = (stage, px, ok, points, held)
         errors = reprojection_errors(calib, points, px, ok)
         rms_after = _rms(errors)
         obs.stage_end(StageEnd(str(name), calib, points, px, ok, errors))
@@ -131,16 +163,71 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, con
         else:
             good = np.ones(px.shape[1], dtype=bool)
         obs.outliers(str(name), px[:, ~good], ok[:, ~good])
-    return calib, reports, keep
+    return FitResult(calib, reports, keep, last[0], last[1], last[2], last[3], float(sigma_px), last[4])
+
+
+def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
+                  observer: Observer | None = None) -> tuple[Calibration, list[StageReport], np.ndarray]:
+    """Run the stage schedule over pooled tracks: (V, N, 2) pixels with a (V, N) mask, any views (grid or not).
+
+    With ``config.priors`` every freed parameter has a prior centred on ``calib`` (`lfgraph.refinement.priors`);
+    with ``measurement_sigma_px=None`` the sigma is estimated from a first pass and the schedule re-run with it.
+    This is the fit alone: `refine` adds the acceptance (significance, held-out tracks) and the verdicts.
+
+    The observer hears ``stage_start`` before and ``stage_end`` and ``outliers`` (the tracks the stage's outlier
+    rejection dropped) after every stage, and every optimiser iteration.
+
+    Returns:
+        the calibration, stage reports and the (N,) kept-track mask.
+    """
+    fit = fit_auto(calib, pixels, valid, config, observer)
+    return fit.calib, fit.stages, fit.keep
+
+
+def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
+             observer: Observer | None = None, held_views: frozenset[int] = frozenset(),
+             sigma_px: float | None = None, priors: ViewPriors | None = None) -> FitResult:
+    """`fit_tracks` with the config's priors centred on ``calib`` and, when neither ``sigma_px`` nor the config
+    gives a measurement sigma, one estimated from the residuals of a first pass (floored). ``priors`` replaces
+    the config's (e.g. with some groups held)."""
+    config = config or RefineConfig()
+    if priors is None and config.priors:
+        priors = view_priors(calib, config.drift)
+    sigma_px = sigma_px or config.measurement_sigma_px
+    if sigma_px is not None:
+        return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
+                          sigma_px=sigma_px)
+    from lfgraph.refinement.assess import _Silent  # the observer hears the pass that counts, once
+
+    fit = fit_tracks(calib, pixels, valid, config, _Silent(), priors=priors, held_views=held_views,
+                     sigma_px=FIRST_PASS_SIGMA_PX)
+    sigma = fit_sigma(fit)
+    if not np.isfinite(sigma):
+        return fit
+    resolve(observer).log(f"measurement sigma estimated from the first pass: {sigma:.4f} px per coordinate")
+    return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views, sigma_px=sigma)
+
+
+def fit_sigma(fit: FitResult) -> float:
+    """The measurement sigma the fit's residuals support (px per coordinate, floored)."""
+    if fit.last_stage is None or fit.valid.shape[1] == 0:
+        return float("nan")
+    errors = reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid)
+    free = fit.calib.num_views - 1 - len(fit.held)
+    n_free = (10 if fit.last_stage == Stage.ALL else 4 if fit.last_stage == Stage.INTRINSICS else 6) * max(free, 0)
+    sigma = estimate_sigma_px(errors, fit.points.shape[0], n_free)
+    return max(sigma, MIN_MEASUREMENT_SIGMA_PX) if np.isfinite(sigma) else sigma
 
 
 def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
            observer: Observer | None = None) -> tuple[Calibration, RefinementReport]:
     """Refine a calibration from ordinary (textured) captures, frame after frame.
 
-    Each frame's tracks (chain KLT + filters + the triangulation filter) join the pool; the schedule then runs over
-    the whole pool starting from the current calibration (the previous result). It stops after ``max_frames``, when
-    the frames run out, or when a new frame already fits at ``target_rms_px``.
+    Each frame's tracks (chain KLT + filters + the triangulation filter, judged with the MAP fit of the frames so
+    far) join the pool; every pass starts from, and has its priors centred on, the input calibration, and the
+    baselines keep their lengths. It stops after ``max_frames``, when the frames run out, or when a new frame already
+    fits at ``target_rms_px``. The pooled tracks then go through `lfgraph.refinement.assess.assess`: the MAP fit,
+    its posterior, held-out folds and a per-view verdict; only significant, confirmed changes are applied.
 
     Args:
         calib: the calibration to refine (e.g. from the pattern).
@@ -150,7 +237,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
             default: log lines go to `logging`.
 
     Returns:
-        the refined calibration (the input, unchanged, when the fit did not improve enough) and the report.
+        the refined calibration (the input where no change was significant and confirmed) and the report (with
+        ``verdicts``).
 
     Raises:
         ValueError: a frame whose shape does not match the calibration (named), no frame, or no track survives the
@@ -162,14 +250,13 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     t_start = time.perf_counter()
     pool_px: list[np.ndarray] = []
     pool_valid: list[np.ndarray] = []
+    pool_frame: list[np.ndarray] = []
     counts: list[dict[str, int]] = []
     frame_rms: list[float] = []
-    stages: list[StageReport] = []
     current = calib
     stop = "frames exhausted"
-    used = 0
+    used = pool_fitted = heard_iterations = 0
     t_match = t_adjust = 0.0
-    total_iterations = 0
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
@@ -177,9 +264,25 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         if images.shape[0] != calib.num_views or images.shape[1:3] != (h, w):
             raise ValueError(f"frame {f} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but the "
                              f"calibration is a {calib.grid} grid of {w}x{h} px views")
+        if used > 0 and pool_fitted < used:
+            # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
+            # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
+            t0 = time.perf_counter()
+            px_pool, ok_pool = np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1)
+            if config.max_landmarks is not None and px_pool.shape[1] > config.max_landmarks:
+                pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
+                                                                   replace=False))
+                px_pool, ok_pool = px_pool[:, pick], ok_pool[:, pick]
+            pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs)
+            current = pass_fit.calib
+            heard_iterations += sum(st.iterations for st in pass_fit.stages)
+            pool_fitted = used
+            t_adjust += time.perf_counter() - t0
         obs.frame(f, images)
         t0 = time.perf_counter()
         tracks = track_chain(images, calib.grid, config.match)
+        # tracks are judged with the MAP fit of the frames so far, itself centred on the input and started from it:
+        # one frame's poor fit never carries into the next
         kept, c = collect_tracks(current, tracks, config.triangulation_filter)
         t_match += time.perf_counter() - t0
         counts.append(c)
@@ -196,27 +299,35 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
             continue
         pool_px.append(kept.points_px)
         pool_valid.append(kept.valid)
+        pool_frame.append(np.full(kept.num_tracks, f))
         used += 1
-        pixels = np.concatenate(pool_px, axis=1)
-        valid = np.concatenate(pool_valid, axis=1)
-        if config.max_landmarks is not None and pixels.shape[1] > config.max_landmarks:
-            pick = np.sort(np.random.default_rng(used).choice(pixels.shape[1], config.max_landmarks, replace=False))
-            pixels, valid = pixels[:, pick], valid[:, pick]
-            pool_px, pool_valid = [pixels], [valid]
-        t0 = time.perf_counter()
-        current, frame_stages, kept_mask = refine_tracks(current, pixels, valid, config, obs)
-        t_adjust += time.perf_counter() - t0
-        total_iterations += sum(st.iterations for st in frame_stages)
-        stages = frame_stages  # the last pass over the whole pool is the result
     if used == 0:
         raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
                          "(see the per-frame track counts)")
-    pixels = np.concatenate(pool_px, axis=1)[:, kept_mask]
-    valid = np.concatenate(pool_valid, axis=1)[:, kept_mask]
-    before = _rms(reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid))
-    after = _rms(reprojection_errors(current, triangulate_dlt(current, pixels, valid), pixels, valid))
+    pixels = np.concatenate(pool_px, axis=1)
+    valid = np.concatenate(pool_valid, axis=1)
+    frame_of = np.concatenate(pool_frame)
+    good, dropped = pooled_filter(calib, pixels, valid, frame_of)
+    if dropped:
+        obs.log(f"frames {', '.join(map(str, dropped))}: most tracks stand out against the other frames' "
+                f"(mismatches on a repetitive pattern?): dropped")
+    pixels, valid, frame_of = pixels[:, good], valid[:, good], frame_of[good]
+    if pixels.shape[1] == 0:
+        raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
+                         "(see the per-frame track counts)")
+    if config.max_landmarks is not None and pixels.shape[1] > config.max_landmarks:
+        pick = np.sort(np.random.default_rng(used).choice(pixels.shape[1], config.max_landmarks, replace=False))
+        pixels, valid, frame_of = pixels[:, pick], valid[:, pick], frame_of[pick]
     warnings = []
     coverage = track_coverage(calib, pixels, valid)
+    t0 = time.perf_counter()
+    result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of)
+    t_adjust += time.perf_counter() - t0
+    fit = result.fit
+    kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
+    before = _rms(reprojection_errors(calib, triangulate_dlt(calib, kept_px, kept_valid), kept_px, kept_valid))
+    after = _rms(reprojection_errors(fit.calib, triangulate_dlt(fit.calib, kept_px, kept_valid), kept_px,
+                                     kept_valid))
     if coverage < COVERAGE_WARN:
         warnings.append(f"tracks cover only {100 * coverage:.0f} % of the reference image ({COVERAGE_CELLS}x"
                         f"{COVERAGE_CELLS} cells): rotations about the optical axis are weakly constrained; use "
@@ -226,15 +337,28 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     if detected and survived / detected < MATCH_WARN:
         warnings.append(f"only {survived} of {detected} features ({100 * survived / max(detected, 1):.0f} %) survived "
                         f"tracking and the filters: matches are poor (repetitive or weak texture, occlusions)")
-    accepted = bool(after > 0 and before / after >= config.min_improvement)
-    if not accepted:
-        warnings.append(f"the input calibration already fits ({before:.4f} px vs {after:.4f} px refined, less than "
-                        f"{config.min_improvement:g}x better): kept unchanged")
-        current = calib
+    chained = sum(c.get("chain", 0) for c in counts)
+    if detected and chained / detected < CHAIN_WARN:
+        warnings.append(f"only {chained} of {detected} features ({100 * chained / detected:.0f} %) could be followed "
+                        f"through every view: the disparity between neighbouring views is too large for the tracker "
+                        f"(a near scene, a narrow field of view or a wide pitch); use a farther scene")
+    if dropped:
+        warnings.append(f"frames {', '.join(map(str, dropped))} dropped: most of their tracks disagree with the other "
+                        f"frames' (mismatches)")
+    if not result.accepted:
+        warnings.append("no view changed: " + ("no change was significant against its posterior sigma"
+                                               if np.isnan(result.heldout_before_px) else
+                                               f"refits did not predict held-out tracks better "
+                                               f"({result.heldout_before_px:.4f} px input vs "
+                                               f"{result.heldout_after_px:.4f} px refined)")
+                        + "; the input calibration is kept")
     for w in warnings:
         obs.log(f"warning: {w}")
-    report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(stages), used, stop, before, after,
-                              time.perf_counter() - t_start, t_match, t_adjust, accepted, coverage, tuple(warnings),
-                              total_iterations)
-    metrics = {**dict(current.metrics or {}), **report.metrics()}
-    return current.replace(metrics=metrics, rectification=None), report
+    total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
+    report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
+                              time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
+                              tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
+                              result.heldout_after_px, result.sigma_px, tuple(dropped))
+    out = result.calib
+    metrics = {**dict(out.metrics or {}), **report.metrics()}
+    return out.replace(metrics=metrics, rectification=None), report

@@ -26,21 +26,66 @@ from lfgraph.factors.values import (
 )
 from lfgraph.optimize import IterationCallback, OptimizerSettings, optimize
 from lfgraph.refinement.config import Stage
+from lfgraph.refinement.priors import ViewPriors
+
+
+def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
+    """The scale that keeps the calibrated baselines' lengths: least squares over views of s |c_new| = |c_old|.
+
+    Scale is a gauge of a scene refinement (images cannot tell it); matching the lengths, not the projections
+    (``sum c_old . c_new / sum |c_new|^2``), keeps a turned baseline as long as it was.
+    """
+    old_len = np.linalg.norm(centre[:, :3, 3], axis=1)
+    new_len = np.linalg.norm(new[:, :3, 3], axis=1)
+    denom = float(np.sum(new_len**2))
+    return float(np.sum(old_len * new_len)) / denom if denom > 0 else 1.0
+
+
+def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+                model: gtsam.noiseModel.Base, scale_sigma_mm: float | None = None,
+                held_views: frozenset[int] = frozenset(),
+                priors: ViewPriors | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """The graph and initial values of one free-variable stage (``intrinsics``, ``poses`` or ``all``) at ``calib``
+    and ``points``: what `run_stage` optimises, and what the posterior marginals are taken from."""
+    stage = Stage(stage)
+    n_views = calib.num_views
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    insert_landmarks(values, points)
+    poses_free = stage in (Stage.POSES, Stage.ALL)
+    intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
+    insert_view_poses(values, calib.ref_T_view)
+    centre = None if priors is None else priors.centre.ref_T_view
+    graph.push_back(scene_graph.pose_priors(calib, poses_free, held_views, scale_sigma_mm, centre,
+                                            None if priors is None else priors.pose_sigmas))
+    free_views = [v for v in range(n_views) if v != calib.grid.reference and v not in held_views]
+    # a held view fixes scale by itself; otherwise one range does, and the result is rescaled in run_stage
+    if poses_free and scale_sigma_mm is None and not held_views and free_views:
+        graph.push_back(scene_graph.range_gauge(calib if priors is None else priors.centre))
+    if intr_free:
+        insert_intrinsics(values, calib.intrinsics)
+        graph.push_back(scene_graph.intrinsics_priors(calib, held_views, None if priors is None else priors.centre,
+                                                      None if priors is None else priors.intrinsics_sigmas))
+        graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
+    else:
+        graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
+    return graph, values
 
 
 def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
               noise: Noise, sigma_px: float = 1.0, scale_sigma_mm: float | None = None, max_iterations: int = 100,
               callback: IterationCallback | None = None, held_views: frozenset[int] = frozenset(),
-              hooks: tuple[GraphHook, ...] = ()) -> tuple[Calibration, np.ndarray, int]:
+              hooks: tuple[GraphHook, ...] = (),
+              priors: ViewPriors | None = None) -> tuple[Calibration, np.ndarray, int]:
     """Run one free-variable stage (``points``, ``intrinsics``, ``poses`` or ``all``).
 
     Args:
         pixels: (V, N, 2) observations; valid: (V, N); points: (N, 3) initial landmarks (reference frame, m).
         noise: the measurement noise (a normalised `lfgraph.factors.noise.NoiseSpec`); sigma_px its sigma.
-        scale_sigma_mm: None: scale by one range and a rescale to the calibrated baselines; else weak position
-            priors of this sigma.
-        held_views: views whose pose and intrinsics stay where they are (too few observations to refine them).
+        scale_sigma_mm: None: scale by one range and a rescale to the calibrated baselines' lengths; else weak
+            position priors of this sigma.
+        held_views: views whose pose and intrinsics stay where they are (at the prior centre with ``priors``).
         hooks: user graph hooks (`lfgraph.factors.hooks`).
+        priors: MAP priors centred on the input calibration (`lfgraph.refinement.priors`); None: a free fit.
 
     Returns:
         the updated calibration, (N, 3) landmarks, LM iterations.
@@ -48,26 +93,14 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     stage = Stage(stage)
     model = measurement_noise(noise, sigma_px)
     n_views = calib.num_views
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    insert_landmarks(values, points)
     poses_free = stage in (Stage.POSES, Stage.ALL)
     intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
     if stage == Stage.POINTS:
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        insert_landmarks(values, points)
         graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
     else:
-        insert_view_poses(values, calib.ref_T_view)
-        graph.push_back(scene_graph.pose_priors(calib, poses_free, held_views, scale_sigma_mm))
-        free_views = [v for v in range(n_views) if v != calib.grid.reference and v not in held_views]
-        # a held view fixes scale by itself; otherwise one range does, and the result is rescaled below
-        rescale = poses_free and scale_sigma_mm is None and not held_views
-        if rescale and free_views:
-            graph.push_back(scene_graph.range_gauge(calib))
-        if intr_free:
-            insert_intrinsics(values, calib.intrinsics)
-            graph.push_back(scene_graph.intrinsics_priors(calib, held_views))
-            graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
-        else:
-            graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
+        graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views, priors)
     run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
     result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback)
     new_points = read_landmarks(result.values, len(points)) if len(points) else points
@@ -78,10 +111,7 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     poses = np.linalg.inv(poses[ref])[None] @ poses  # exactly relative to the reference again
     poses[ref] = np.eye(4)
     if poses_free and scale_sigma_mm is None and not held_views:
-        # the similarity that best keeps the calibrated baselines: s = argmin sum |s c_new - c_old|^2
-        c_old, c_new = calib.ref_T_view[:, :3, 3], poses[:, :3, 3]
-        denom = float(np.sum(c_new * c_new))
-        scale = float(np.sum(c_old * c_new)) / denom if denom > 0 else 1.0
+        scale = baseline_scale((calib if priors is None else priors.centre).ref_T_view, poses)
         poses[:, :3, 3] *= scale
         new_points = new_points * scale
     intr = read_intrinsics(result.values, n_views, keep=calib.intrinsics) if intr_free else calib.intrinsics

@@ -59,3 +59,31 @@ def track_coverage(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, ce
     grid = np.zeros((cells, cells), dtype=bool)
     grid[cy, cx] = True
     return float(grid.mean())
+
+
+FRAME_OUTLIER_FACTOR = 3.0  # a frame whose median track error is > 3x the pooled median track's ...
+FRAME_OUTLIER_FLOOR_PX = 0.5  # ... and > 0.5 px is mostly mismatches (a repetitive pattern): dropped whole
+
+
+def pooled_filter(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
+                  frame_of: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """Mismatch filter over the tracks of all frames at once: (N,) kept mask and the frames dropped whole.
+
+    A frame's own median cannot reject its tracks when most of them are wrong (a board's repeated corners matched
+    one square off); against the pooled median of every frame such a frame stands out and is dropped, and single
+    tracks are dropped as `worst_error_filter` does, with the pooled median.
+    """
+    errors = reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid)
+    worst = np.where(np.isfinite(errors), errors, -np.inf).max(axis=0)
+    finite = np.isfinite(worst) & (worst >= 0)
+    if not finite.any():
+        return finite, []
+    pooled = float(np.median(worst[finite]))
+    keep = finite & (worst <= max(OUTLIER_FACTOR * pooled, OUTLIER_FLOOR_PX))
+    dropped = []
+    for f in np.unique(frame_of):
+        m = (frame_of == f) & finite
+        if m.any() and np.median(worst[m]) > max(FRAME_OUTLIER_FACTOR * pooled, FRAME_OUTLIER_FLOOR_PX):
+            keep &= frame_of != f
+            dropped.append(int(f))
+    return keep, dropped

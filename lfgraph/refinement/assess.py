@@ -1,0 +1,531 @@
+"""Honest acceptance of a refinement: the posterior of the MAP fit, held-out folds, a significance test of each
+view's change per parameter group, and a per-view verdict (OK, DRIFTED, UNCERTAIN).
+
+The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`:
+1. the MAP fit over all tracks (`lfgraph.refinement.schedule.fit_auto`) and its marginals (`posterior`);
+2. refits on folds (whole frames when there are several, else random thirds of the tracks): their held-out RMS
+   against the input's, and their scatter, which widens the marginals where those are too small (`inflate`);
+3. per view and group (pan/tilt, roll, position, intrinsics when freed) a chi-square test of the change against the
+   widened posterior plus the input's own sigma (`group_significance`): groups below ``significance_sigma`` are held
+   at the input, views with none left are held whole;
+4. a refit with those holds; a view whose applied change would still leave more than ``uncertain_transfer_px`` at
+   infinity (1 sigma, from that refit's posterior) is held too, and the refit repeated;
+5. the changes are applied only if the held-out RMS did not get worse (``min_improvement``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.noise import HELD_SIGMA, measurement_noise
+from lfgraph.geometry import rotation_from_rotvec, to_pose3
+from lfgraph.optimize import gtsam_quiet
+from lfgraph.refinement.config import RefineConfig, Stage
+from lfgraph.refinement.priors import ViewPriors, input_sigmas, view_priors
+from lfgraph.refinement.stages import stage_graph
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
+
+OK, DRIFTED, UNCERTAIN, REFERENCE = "OK", "DRIFTED", "UNCERTAIN", "REFERENCE"
+TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
+JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
+NEGLIGIBLE_SIGMA = 1e-5  # rad, m, px: posterior directions held by a gauge or a hold are left out of the test
+FOLD_SEED = 14
+MAX_HOLD_ROUNDS = 3  # refits that hold views whose applied change would stay too uncertain
+NO_PULL_SIGMA = 1e3  # rad, m, px: a "prior" that does not pull (the free fit with some groups held)
+MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
+NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
+COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
+FEW_OBSERVATIONS = 100  # a view with fewer observations than this wants more texture or frames
+
+
+def chi2_sigma(d2: float, dof: int) -> float:
+    """The one-sided normal deviate equivalent to a chi-square value (Wilson-Hilferty; no scipy needed)."""
+    if dof <= 0 or not np.isfinite(d2):
+        return 0.0
+    a = 2.0 / (9.0 * dof)
+    return float(((max(d2, 0.0) / dof) ** (1.0 / 3.0) - (1.0 - a)) / np.sqrt(a))
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """Marginal covariances of the refinement graph at its solution, per view.
+
+    ``pose_cov``: (V, 6, 6) body-frame Pose3 covariance (rotation x, y, z in rad, then position in m);
+    ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else zeros (held);
+    ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
+    ``intrinsics_free``: whether the graph freed fx, fy, cx, cy."""
+
+    pose_cov: np.ndarray
+    intr_cov: np.ndarray
+    cross: np.ndarray
+    intrinsics_free: bool
+    sigma_px: float
+
+
+def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors | None = None) -> Posterior | None:
+    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran);
+    ``priors`` replaces the config's (as the fit had them)."""
+    n = calib.num_views
+    pose_cov = np.zeros((n, 6, 6))
+    intr_cov = np.zeros((n, 4, 4))
+    cross = np.zeros((n, 6, 4))
+    if fit.last_stage is None or fit.valid.shape[1] == 0:
+        return None
+    if priors is None and config.priors:
+        priors = view_priors(calib, config.drift)
+    model = measurement_noise(config.noise, fit.sigma_px)
+    graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                                config.scale_sigma_mm, fit.held, priors)
+    intr_free = fit.last_stage in (Stage.INTRINSICS, Stage.ALL)
+    idx = [0, 1, 3, 4]
+    try:
+        with gtsam_quiet():
+            marginals = gtsam.Marginals(graph, values)
+            for v in range(n):
+                if intr_free:
+                    keys = gtsam.KeyVector([view_pose_key(v), calib_key(v)])
+                    joint = marginals.jointMarginalCovariance(keys)
+                    pose_cov[v] = joint.at(view_pose_key(v), view_pose_key(v))
+                    kk = np.asarray(joint.at(calib_key(v), calib_key(v)))
+                    intr_cov[v] = kk[np.ix_(idx, idx)]
+                    cross[v] = np.asarray(joint.at(view_pose_key(v), calib_key(v)))[:, idx]
+                else:
+                    pose_cov[v] = marginals.marginalCovariance(view_pose_key(v))
+    except RuntimeError:  # an indeterminate system: report no posterior rather than a wrong one
+        return None
+    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px)
+
+
+def _infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
+    w, h = calib.image_size_px
+    xs = np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples)
+    ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)
+    gx, gy = np.meshgrid(xs, ys)
+    xy = calib.intrinsics[calib.grid.reference].undistort(np.column_stack([gx.ravel(), gy.ravel()]))
+    return np.column_stack([xy, np.ones(len(xy))])
+
+
+def _transfer(calib: Calibration, v: int, rays: np.ndarray, omega: np.ndarray, dk: np.ndarray) -> np.ndarray:
+    """Reference rays at infinity projected into view v turned by body-frame ``omega`` with fx, fy, cx, cy + dk."""
+    import dataclasses
+
+    R = calib.ref_T_view[v][:3, :3] @ rotation_from_rotvec(omega)  # noqa: N806
+    i = calib.intrinsics[v]
+    i = dataclasses.replace(i, fx=i.fx + dk[0], fy=i.fy + dk[1], cx=i.cx + dk[2], cy=i.cy + dk[3])
+    return i.project(rays @ R).ravel()
+
+
+def transfer_jacobian(calib: Calibration, v: int, rays: np.ndarray) -> np.ndarray:
+    """(2S, 7) derivative of the transfer at infinity into view v by body rotation (3, rad) and fx, fy, cx, cy."""
+    base = _transfer(calib, v, rays, np.zeros(3), np.zeros(4))
+    cols = []
+    for k in range(7):
+        step = np.zeros(7)
+        step[k] = JACOBIAN_STEP
+        cols.append((_transfer(calib, v, rays, step[:3], step[3:]) - base) / JACOBIAN_STEP)
+    return np.column_stack(cols)
+
+
+def predicted_transfer_px(calib: Calibration, post: Posterior, v: int, rays: np.ndarray) -> float:
+    """RMS over reference pixels of the 1-sigma transfer error at infinity the posterior predicts for view v."""
+    cov = np.zeros((7, 7))
+    cov[:3, :3] = post.pose_cov[v][:3, :3]
+    cov[3:, 3:] = post.intr_cov[v]
+    cov[:3, 3:] = post.cross[v][:3]
+    cov[3:, :3] = post.cross[v][:3].T
+    J = transfer_jacobian(calib, v, rays)  # noqa: N806
+    per_coord = np.einsum("ij,jk,ik->i", J, cov, J)
+    return float(np.sqrt(max(np.sum(per_coord) / (len(per_coord) / 2), 0.0)))
+
+
+def pose_change(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """(6,) body-frame change, rotation (rad) then translation (m): Logmap(before^-1 after), as a Pose3 prior."""
+    return np.asarray(gtsam.Pose3.Logmap(to_pose3(before).between(to_pose3(after))))
+
+
+@dataclass(frozen=True)
+class ViewVerdict:
+    """What the refinement (or the check) concluded for one view.
+
+    Attributes:
+        verdict: OK (no significant drift), DRIFTED (changed: significant and confirmed by held-out tracks),
+            UNCERTAIN (the data cannot tell: ``needs`` says what would), REFERENCE (the gauge).
+        change_sigma: the change's significance (one-sided normal deviate of its chi-square under the posterior).
+        rotation_change_deg: (3,) body-frame change of pan/tilt (x, y) and roll (z) the fit proposed.
+        position_change_mm: (3,) body-frame change of position the fit proposed.
+        intrinsics_change_px: (4,) fx, fy, cx, cy change the fit proposed.
+        transfer_change_px: the proposed change's effect on the transfer at infinity (px, RMS over the image).
+        sigma_rotation_deg, sigma_position_mm, sigma_intrinsics_px: posterior 1-sigma (3, 3, 4), widened to the
+            fold refits' scatter when that is larger; intrinsics a stage held report the input's own sigmas.
+        predicted_transfer_px: 1-sigma transfer error at infinity (px) that the posterior of the refined parameters
+            predicts (rotation, and intrinsics when freed).
+        applied: whether the output carries the change.
+        reason: one line of why; needs: what data would decide an UNCERTAIN view.
+    """
+
+    view: int
+    name: str
+    verdict: str
+    change_sigma: float
+    rotation_change_deg: np.ndarray
+    position_change_mm: np.ndarray
+    intrinsics_change_px: np.ndarray
+    transfer_change_px: float
+    sigma_rotation_deg: np.ndarray
+    sigma_position_mm: np.ndarray
+    sigma_intrinsics_px: np.ndarray
+    predicted_transfer_px: float
+    observations: int
+    applied: bool
+    reason: str
+    needs: tuple[str, ...] = field(default=())
+
+    def as_dict(self) -> dict:
+        def f(x):
+            return [float(v) for v in np.ravel(x)] if np.ndim(x) else float(x)
+
+        return {"view": self.name, "verdict": self.verdict, "applied": self.applied, "reason": self.reason,
+                "needs": list(self.needs), "change_sigma": f(self.change_sigma),
+                "rotation_change_deg": f(self.rotation_change_deg), "position_change_mm": f(self.position_change_mm),
+                "intrinsics_change_px": f(self.intrinsics_change_px), "transfer_change_px": f(self.transfer_change_px),
+                "sigma_rotation_deg": f(self.sigma_rotation_deg), "sigma_position_mm": f(self.sigma_position_mm),
+                "sigma_intrinsics_px": f(self.sigma_intrinsics_px),
+                "predicted_transfer_px": f(self.predicted_transfer_px), "observations": self.observations}
+
+
+GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics": (6, 7, 8, 9)}
+
+
+def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
+    """Per parameter group (pan/tilt, roll, position, and intrinsics when free): the change's deviate under the
+    group's marginal posterior covariance. Groups are tested apart: a clear roll must not carry a pan/tilt that
+    trades against position and that the data do not support."""
+    d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
+    cov = post.pose_cov[v]
+    if post.intrinsics_free:
+        a, b = after.intrinsics[v], before.intrinsics[v]
+        d = np.concatenate([d, [a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy]])
+        full = np.zeros((10, 10))
+        full[:6, :6], full[6:, 6:], full[:6, 6:], full[6:, :6] = cov, post.intr_cov[v], post.cross[v], post.cross[v].T
+        cov = full
+    out = {}
+    for name, idx in GROUPS.items():
+        idx_a = np.array([i for i in idx if i < len(d)])
+        if idx_a.size == 0:
+            continue
+        c = cov[np.ix_(idx_a, idx_a)]
+        keep = np.sqrt(np.maximum(np.diag(c), 0.0)) > NEGLIGIBLE_SIGMA
+        if not keep.any():
+            continue
+        dk = d[idx_a][keep]
+        d2 = float(dk @ np.linalg.lstsq(c[np.ix_(keep, keep)], dk, rcond=1e-12)[0])
+        out[name] = chi2_sigma(d2, int(keep.sum()))
+    return out
+
+
+def data_needs(calib: Calibration, points: np.ndarray, valid: np.ndarray, v: int, coverage: float,
+               frames: int) -> tuple[str, ...]:
+    """What kind of data would decide view v: depth range, coverage, texture, frames."""
+    needs = []
+    if int(valid[v].sum()) < FEW_OBSERVATIONS // 4:  # too few tracks to say anything finer
+        return (f"texture (only {int(valid[v].sum())} tracks reach this view: more texture, or a scene farther "
+                f"away if tracks are lost between neighbouring views)", "more frames of different scenes")
+    ref = calib.grid.reference
+    m = valid[v] & valid[ref] & np.all(np.isfinite(points), axis=1)
+    z = points[m, 2] if m.any() else np.zeros(0)
+    z = z[z > 0]
+    if z.size >= 2 and np.percentile(z, 90) / np.percentile(z, 10) < NARROW_DEPTH_RATIO:
+        needs.append("depth range (texture both near and far in the same frame: pan/tilt trade against position)")
+    if coverage < COVERAGE_HINT:
+        needs.append("coverage (texture across the whole field of view: rotation about the optical axis)")
+    if int(valid[v].sum()) < FEW_OBSERVATIONS:
+        needs.append(f"texture (only {int(valid[v].sum())} tracks reach this view)")
+    if frames < 2 or not needs:
+        needs.append("more frames of different scenes")
+    return tuple(needs)
+
+
+def heldout_rms(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(V, N) reprojection errors of tracks triangulated with ``calib`` (not refitted: they test it)."""
+    return reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid)
+
+
+def fold_split(n: int, folds: int) -> np.ndarray:
+    """(n,) fold index of each track, seeded."""
+    return np.random.default_rng(FOLD_SEED).permutation(np.arange(n) % folds)
+
+
+def combine(calib: Calibration, refined: Calibration, views: set[int]) -> Calibration:
+    """``calib`` with ``views`` taken from ``refined`` (poses and intrinsics)."""
+    poses = np.array(calib.ref_T_view)
+    intr = list(calib.intrinsics)
+    for v in views:
+        poses[v] = refined.ref_T_view[v]
+        intr[v] = refined.intrinsics[v]
+    return calib.replace(ref_T_view=poses, intrinsics=tuple(intr))
+
+
+class _Silent:
+    """Observer for the held-out refits: their stages are not the result, so nobody hears them."""
+
+    def log(self, message: str) -> None:
+        pass
+
+    def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        pass
+
+    def frame(self, index: int, images: np.ndarray) -> None:
+        pass
+
+    def stage_start(self, name: str, measurements: int) -> None:
+        pass
+
+    def stage_end(self, event) -> None:
+        pass
+
+    def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        pass
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """The accepted calibration and how it was decided.
+
+    ``heldout_before_px`` / ``heldout_after_px``: RMS reprojection of the held-out folds' tracks with the input and
+    with the refits that did not see them (NaN when no change was tested); ``significant``: views whose change was
+    significant; ``fit``: the full MAP fit (`lfgraph.refinement.schedule.FitResult`)."""
+
+    calib: Calibration
+    verdicts: tuple[ViewVerdict, ...]
+    accepted: bool
+    heldout_before_px: float
+    heldout_after_px: float
+    sigma_px: float
+    fit: object
+    posterior: Posterior | None
+
+
+def _rms(e: np.ndarray) -> float:
+    e = e[np.isfinite(e)]
+    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+
+def _change_vector(before: Calibration, after: Calibration, v: int) -> np.ndarray:
+    a, b = after.intrinsics[v], before.intrinsics[v]
+    return np.concatenate([pose_change(before.ref_T_view[v], after.ref_T_view[v]),
+                           [a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy]])
+
+
+def inflate(post: Posterior, calib: Calibration, fold_calibs: list[Calibration]) -> tuple[Posterior, np.ndarray]:
+    """The posterior widened, per view and parameter group, to the scatter of the fold refits (jackknife).
+
+    Track errors are not independent (a frame's mismatches on a repeated pattern agree with each other), so the
+    graph's marginals can be several times too small; the jackknife over folds (frames when there are several)
+    sees that. Returns the widened posterior and the (V, 4) factors (pan/tilt, roll, position, intrinsics).
+    """
+    n = calib.num_views
+    factors = np.ones((n, 4))
+    k = len(fold_calibs)
+    if k < 2:
+        return post, factors
+    for v in range(n):
+        d = np.stack([_change_vector(calib, fc, v) for fc in fold_calibs])
+        jk = (k - 1) / k * np.sum((d - d.mean(axis=0)) ** 2, axis=0)  # jackknife variances (10,)
+        full_var = np.concatenate([np.diag(post.pose_cov[v]), np.diag(post.intr_cov[v])])
+        for gi, idx in enumerate(GROUPS.values()):
+            if gi == 3 and not post.intrinsics_free:
+                continue
+            idx_a = np.array(idx)
+            var = float(np.sum(full_var[idx_a]))
+            if var > NEGLIGIBLE_SIGMA**2:
+                factors[v, gi] = max(1.0, float(np.sum(jk[idx_a])) / var)
+    return apply_factors(post, factors), factors
+
+
+def apply_factors(post: Posterior, factors: np.ndarray) -> Posterior:
+    """The posterior with each view's groups widened by `inflate`'s (V, 4) variance factors."""
+    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
+    for v in range(len(factors)):
+        scale = np.ones(10)
+        for gi, idx in enumerate(GROUPS.values()):
+            scale[np.array(idx)] = np.sqrt(factors[v, gi])
+        pose_cov[v] = post.pose_cov[v] * np.outer(scale[:6], scale[:6])
+        intr_cov[v] = post.intr_cov[v] * np.outer(scale[6:], scale[6:])
+        cross[v] = post.cross[v] * np.outer(scale[:6], scale[6:])
+    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px)
+
+
+def held_group_priors(calib: Calibration, config: RefineConfig, views: set[int],
+                      changed: dict[int, tuple[str, ...]]) -> ViewPriors:
+    """Priors for the candidate refit: in ``views`` the groups whose change was not significant are held at the
+    input; the others keep the drift priors (or, without priors, no pull)."""
+    if config.priors:
+        base = view_priors(calib, config.drift)
+        pose_s, intr_s = base.pose_sigmas.copy(), base.intrinsics_sigmas.copy()
+    else:
+        pose_s = np.full((calib.num_views, 6), NO_PULL_SIGMA)
+        intr_s = np.full((calib.num_views, 4), NO_PULL_SIGMA)
+    for v in views:
+        for g in set(GROUPS) - set(changed[v]):
+            for i in GROUPS[g]:
+                if i < 6:
+                    pose_s[v, i] = HELD_SIGMA
+                else:
+                    intr_s[v, i - 6] = HELD_SIGMA
+    return ViewPriors(calib, pose_s, intr_s)
+
+
+def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
+    """The covariance of (refined - input): the posterior plus the input's own (calibrate's marginals, when
+    stored). A change within what the input calibration itself could not pin down is no drift."""
+    own = input_sigmas(calib)
+    if own is None:
+        return post
+    pose_cov = post.pose_cov + np.stack([np.diag(s**2) for s in own[0]])
+    intr_cov = post.intr_cov if not post.intrinsics_free else post.intr_cov + np.stack([np.diag(s**2) for s in own[1]])
+    return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px)
+
+
+def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
+           coverage: float, frames: int, frame_of: np.ndarray | None = None) -> Assessment:
+    """MAP fit, posterior, fold refits (held-out tracks and the jackknife), significance, verdicts (see the
+    module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames."""
+    from lfgraph.alignment import transfer_error_at_infinity
+    from lfgraph.refinement.schedule import fit_auto
+
+    obs = observer
+    fit = fit_auto(calib, pixels, valid, config, obs)
+    post = posterior(calib, fit, config)
+    n, ref = calib.num_views, calib.grid.reference
+    rays = _infinity_rays(calib)
+    proposed_px = transfer_error_at_infinity(fit.calib, calib)
+    # folds: whole frames when there are several (errors within a frame are correlated), else random tracks
+    px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
+    fold = None
+    if config.folds:
+        if frame_of is not None and len(np.unique(frame_of)) >= 2:
+            frames_kept = frame_of[fit.keep]
+            uniq = np.unique(frames_kept)
+            k = min(len(uniq), max(config.folds, MAX_FRAME_FOLDS))
+            order = {f: i % k for i, f in enumerate(uniq)}
+            fold = np.array([order[f] for f in frames_kept], dtype=int)
+        else:
+            fold = fold_split(px.shape[1], config.folds)
+    fold_calibs: list[Calibration] = []
+    e_before, e_after = [], []
+    if fold is not None:
+        for k in range(int(fold.max()) + 1 if fold.size else 0):
+            train, test = fold != k, fold == k
+            if not test.any() or not train.any():
+                continue
+            try:
+                fk = fit_auto(calib, px[:, train], ok[:, train], config, _Silent(), fit.held, fit.sigma_px)
+            except (RuntimeError, ValueError):
+                continue
+            fold_calibs.append(fk.calib)
+            e_before.append(heldout_rms(calib, px[:, test], ok[:, test]))
+            e_after.append(heldout_rms(fk.calib, px[:, test], ok[:, test]))
+    factors = np.ones((n, 4))
+    if post is not None:
+        post, factors = inflate(post, calib, fold_calibs)
+        if np.any(factors > 1.0):
+            worst = np.unravel_index(np.argmax(factors), factors.shape)
+            obs.log(f"fold refits scatter up to {np.sqrt(factors.max()):.1f}x more than the graph's marginals "
+                    f"({calib.grid.name(int(worst[0]))}, {list(GROUPS)[int(worst[1])]}): sigmas widened")
+    test_post = with_input_uncertainty(post, calib) if post is not None else None
+    free = [v for v in range(n) if v != ref and v not in fit.held]
+    zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
+    z = {v: max(zg[v].values(), default=0.0) for v in free}
+    changed = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
+    sig_views = {v for v in free if changed[v]}
+    candidate = calib
+    heldout_before = heldout_after = float("nan")
+    accepted = False
+    cand_post: Posterior | None = None
+    unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
+    cand_fit = fit
+    for _ in range(MAX_HOLD_ROUNDS):
+        if not sig_views:
+            break
+        hold = frozenset(set(range(n)) - sig_views - {ref})
+        partial = held_group_priors(calib, config, sig_views, changed)
+        cand_fit = fit_auto(calib, pixels, valid, config, _Silent(), hold, fit.sigma_px, partial)
+        cp = posterior(calib, cand_fit, config, partial)
+        cand_post = apply_factors(cp, factors) if cp is not None else None
+        worse = {v: predicted_transfer_px(calib, cand_post, v, rays) if cand_post is not None else float("inf")
+                 for v in sig_views}
+        drop = {v for v, x in worse.items() if not x <= config.uncertain_transfer_px}
+        if not drop:
+            break
+        unsure.update({v: worse[v] for v in drop})
+        sig_views -= drop
+    else:
+        sig_views = set()
+    if sig_views:
+        candidate = combine(calib, cand_fit.calib, sig_views)
+        accepted = True
+        if e_before:
+            heldout_before = _rms(np.concatenate(e_before, axis=1))
+            heldout_after = _rms(np.concatenate(e_after, axis=1))
+            accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
+            obs.log(f"held-out tracks ({len(e_before)} folds): RMS {heldout_before:.4f} px with the input, "
+                    f"{heldout_after:.4f} px with refits that did not see them: "
+                    + ("accepted" if accepted else "rejected"))
+    out = candidate if accepted else calib
+    verdicts = []
+    for v in range(n):
+        d = pose_change(calib.ref_T_view[v], fit.calib.ref_T_view[v])
+        a, b = fit.calib.intrinsics[v], calib.intrinsics[v]
+        dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
+        # a refined view reports the posterior of what was applied (held groups included); the others the full fit's
+        pv = cand_post if (v in sig_views and accepted and cand_post is not None) else post
+        if pv is not None:
+            s_rot = np.degrees(np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[:3], 0.0)))
+            s_pos = 1e3 * np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[3:], 0.0))
+            s_int = np.sqrt(np.maximum(np.diag(pv.intr_cov[v]), 0.0))
+            own = input_sigmas(calib)
+            if not pv.intrinsics_free and own is not None:  # held: what the input itself knew
+                s_int = own[1][v]
+            pred = predicted_transfer_px(calib, pv, v, rays) if v != ref else 0.0
+        else:
+            s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
+        obs_v = int(fit.valid[v].sum())
+        needs: tuple[str, ...] = ()
+        applied = False
+        if v == ref:
+            verdict, reason = REFERENCE, "the reference view (the gauge)"
+        elif v in fit.held:
+            verdict, reason = UNCERTAIN, f"only {obs_v} observations (< {config.min_view_observations}): held"
+            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
+        elif v in sig_views and accepted:
+            verdict, applied = DRIFTED, True
+            kept_groups = [g for g in zg[v] if g not in changed[v]]
+            reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v]) + " changed, confirmed by held-out "
+                      "tracks" + (f"; {', '.join(kept_groups)} kept (not significant)" if kept_groups else ""))
+        elif v in unsure:
+            verdict = UNCERTAIN
+            reason = (f"a {z[v]:.1f}-sigma change, but applied alone it would leave {unsure[v]:.2f} px (1 sigma) at "
+                      f"infinity undetermined (> {config.uncertain_transfer_px:g} px): kept")
+            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
+        elif v in sig_views:
+            verdict = UNCERTAIN
+            reason = (f"a {z[v]:.1f}-sigma change that refits did not confirm on held-out tracks "
+                      f"({heldout_before:.3f} -> {heldout_after:.3f} px): kept")
+            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
+        elif post is None or not pred <= config.uncertain_transfer_px:
+            verdict = UNCERTAIN
+            reason = (f"no significant change ({z.get(v, 0.0):.1f} sigma) but the data leave {pred:.2f} px "
+                      f"(1 sigma) at infinity undetermined: kept")
+            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
+        else:
+            verdict = OK
+            reason = f"no significant change ({z.get(v, 0.0):.1f} sigma; 1 sigma = {pred:.3f} px at infinity)"
+        verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),
+                                    1e3 * d[3:], dk, float(proposed_px[v]), s_rot, s_pos, s_int, float(pred), obs_v,
+                                    applied, reason, needs))
+    return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
