@@ -7,8 +7,9 @@ to the input as a new version (``NAME.v2.json``, ``NAME.v3.json``, ...; never ov
 per camera goes into the results CSV (sorted, rewritten atomically after every camera; a re-run skips cameras
 already in it), with a verdict:
 
-- ``OK``: the calibration fits the recording (reprojection RMS <= ``max_px``);
-- ``DRIFTED``: it did not, and the refinement produced a better one (the new version's path is in the row);
+- ``OK``: the drift check finds no view significantly drifted and the reprojection RMS is <= ``max_px``;
+- ``DRIFTED``: a view drifted (or the RMS is above ``max_px``) and the refinement changed the calibration (views
+  confirmed by held-out tracks; the new version's path is in the row);
 - ``UNCERTAIN``: it did not fit, but the refinement could not improve it (too little texture, too few frames):
   inspect the recording;
 - ``ERROR``: the recording or calibration could not be used (the message is in the row); other cameras go on.
@@ -145,18 +146,17 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
         check_compatible(calib, capture.grid, capture.image_size_px, str(item.capture))
         report = check(calib, capture.frames(item.max_frames))
         row.update(rms_before_px=report.rms_px, frames=report.frames)
-        if report.rms_px <= item.max_px:
-            row.update(verdict="OK", rms_after_px=report.rms_px)
+        drifted = [v for v in report.verdicts if v.verdict == "DRIFTED"]
+        if not drifted and report.rms_px <= item.max_px:
+            row.update(verdict="OK", rms_after_px=report.rms_px, view_changes=_verdicts_json(report.verdicts))
         else:
             refined, ref_report = refine(calib, capture.frames(item.max_frames),
                                          RefineConfig(max_frames=item.max_frames))
             rot, pos = _changes(calib, refined)
             row.update(rms_after_px=ref_report.rms_after_px if ref_report.accepted else report.rms_px,
                        max_rotation_change_deg=float(rot.max()), max_position_change_mm=float(pos.max()),
-                       view_changes=json.dumps({calib.grid.name(v): {"rotation_deg": round(float(rot[v]), 6),
-                                                                    "position_mm": round(float(pos[v]), 6)}
-                                                for v in range(calib.num_views)}, sort_keys=True))
-            if ref_report.accepted:
+                       view_changes=_verdicts_json(ref_report.verdicts))
+            if ref_report.accepted and (rot.max() > 0 or pos.max() > 0):  # some view really changed
                 written = _save_new_version(refined, item.calibration)
                 row.update(verdict="DRIFTED", refined_calibration=os.path.relpath(written, item.root))
             else:
@@ -165,6 +165,16 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
         row.update(verdict="ERROR", error=f"{type(exc).__name__}: {exc}")
     row["seconds"] = time.perf_counter() - start
     return [row]
+
+
+def _verdicts_json(verdicts: Sequence[Any]) -> str:
+    """Per view: verdict, significance and posterior sigmas (JSON, sorted keys: identical across executors)."""
+    out = {}
+    for v in verdicts:
+        d = v.as_dict()
+        out[v.name] = {k: d[k] for k in ("verdict", "change_sigma", "rotation_change_deg", "position_change_mm",
+                                         "sigma_rotation_deg", "sigma_position_mm") if k in d}
+    return json.dumps(out, sort_keys=True)
 
 
 def _changes(before: Any, after: Any) -> tuple[np.ndarray, np.ndarray]:
