@@ -1,0 +1,108 @@
+"""Graph fragments of target-less self-calibration (`lfgraph.selfcal`): MAP priors from design values.
+
+Every view's pose and intrinsics are variables seen through `GeneralSFMFactor2Cal3DS2` (from
+`lfgraph.factors.scene_graph.sfm_factors`). A stage frees some parameter groups; each free parameter is pulled to its
+**design value** with its design tolerance (a MAP prior, centred on the design, never on the previous stage's
+estimate, so stages do not compound priors); each held parameter is pinned at its current estimate.
+
+Gauges: (1) the reference view's pose is the identity; (2) scale comes from the design pitch through the position
+priors (every free view pulled to its ideal grid position) — scene frames alone carry no scale; (3) the hidden
+principal-point gauge (a shift of every principal point in proportion to its view's baseline with a shift of every
+landmark's inverse depth; exact without distortion) and the common zoom of every focal length (with k1 and k2
+scaled alongside; exact for parallel views) are fixed by the principal-point and focal-length priors, weakly helped
+by distortion and the views' small rotations; the posterior sigmas say how much the frames added.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, cal3ds2_noise, gauge_pose_noise, pose_noise
+from lfgraph.geometry import to_pose3
+
+# parameter groups a stage may free, and their Cal3DS2 tangent indices (fx fy s cx cy k1 k2 p1 p2)
+INTRINSIC_GROUPS = {"focal": (0, 1), "principal": (3, 4), "distortion": (5, 6)}
+POSE_GROUPS = ("rotation", "position")
+GROUPS = ("rotation", "position", *INTRINSIC_GROUPS)
+
+
+@dataclass(frozen=True)
+class DesignSigmas:
+    """Design tolerances: the 1-sigma spread of real views about the design values (the MAP priors).
+
+    Attributes:
+        focal_px: fx and fy (pixels).
+        principal_px: cx and cy (pixels).
+        k1, k2: radial distortion.
+        rotation_rad: each view's rotation about each axis.
+        position_m: each view's position along each axis.
+    """
+
+    focal_px: float
+    principal_px: float
+    k1: float
+    k2: float
+    rotation_rad: float
+    position_m: float
+
+    def intrinsic_sigmas(self) -> np.ndarray:
+        """(9,) in Cal3DS2 order; skew and tangential distortion held (not in the model)."""
+        return np.array([self.focal_px, self.focal_px, MIN_SIGMA, self.principal_px, self.principal_px, self.k1,
+                         self.k2, MIN_SIGMA, MIN_SIGMA])
+
+
+def _cal_vector(intr: Intrinsics) -> np.ndarray:
+    return np.array([intr.fx, intr.fy, 0.0, intr.cx, intr.cy, intr.k1, intr.k2, intr.p1, intr.p2])
+
+
+def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: DesignSigmas,
+                          free: frozenset[str]) -> gtsam.NonlinearFactorGraph:
+    """One Cal3DS2 prior per view: free groups pulled to the design value with the design tolerance, everything
+    else (skew, p1, p2 and the groups this stage holds) pinned at ``current``."""
+    graph = gtsam.NonlinearFactorGraph()
+    design_vec = _cal_vector(design)
+    tol = sigmas.intrinsic_sigmas()
+    for v, intr in enumerate(current):
+        mean = _cal_vector(intr)
+        sig = np.full(9, HELD_SIGMA)
+        sig[[2, 7, 8]] = MIN_SIGMA
+        for group, idx in INTRINSIC_GROUPS.items():
+            if group in free:
+                mean[list(idx)] = design_vec[list(idx)]
+                sig[list(idx)] = tol[list(idx)]
+        prior = gtsam.Cal3DS2(*mean.tolist())
+        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, cal3ds2_noise(sig)))
+    return graph
+
+
+def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: DesignSigmas,
+                    free: frozenset[str]) -> gtsam.NonlinearFactorGraph:
+    """The reference pose (gauge: the identity); every other view's rotation and position pulled to the design
+    grid (parallel views at the nominal pitch) when free, pinned at ``current`` when held.
+
+    Args:
+        current: (V, 4, 4) current ``ref_T_view``; design: (V, 4, 4) the ideal grid.
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    for v in range(len(current)):
+        if v == reference:
+            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(np.eye(4)), gauge_pose_noise()))
+            continue
+        rot_free, pos_free = "rotation" in free, "position" in free
+        mean = np.array(current[v])
+        if rot_free:
+            mean[:3, :3] = design[v, :3, :3]
+        if pos_free:
+            mean[:3, 3] = design[v, :3, 3]
+        # Pose3 priors measure the error in the pose's own frame; with near-identity rotations the position sigma
+        # is (to well under a percent) the same along the reference axes
+        noise = pose_noise(sigmas.rotation_rad if rot_free else HELD_SIGMA,
+                           sigmas.position_m if pos_free else HELD_SIGMA)
+        graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(mean), noise))
+    return graph
