@@ -13,15 +13,15 @@ from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.factors.selfcal_graph import GROUPS, DesignSigmas
 from lfgraph.grid import ViewGrid
 from lfgraph.refinement.matching import MatchSettings
-
-# Design tolerances of a hand-built or mass-produced array (1 sigma); the MAP priors. Wider than the benchmark's
-# spreads (3 %, 15 px, 1 deg, 0.3 mm) so that the benchmark does not hand the solver its own truth.
-FOCAL_TOLERANCE = 0.05  # relative
-PRINCIPAL_TOLERANCE_PX = 20.0
-K1_TOLERANCE = 0.2
-K2_TOLERANCE = 0.1
-ROTATION_TOLERANCE_DEG = 2.0
-POSITION_TOLERANCE_MM = 1.0
+from lfgraph.selfcal.defaults import (
+    FOCAL_TOLERANCE,
+    K1_TOLERANCE,
+    K2_TOLERANCE,
+    POSITION_TOLERANCE_MM,
+    PRINCIPAL_TOLERANCE_PX,
+    ROTATION_TOLERANCE_DEG,
+    TRACKS_PER_FRAME,
+)
 
 # The default order of stages (measured on the benchmark rigs, see README "Calibrating without a target"): poses
 # first (a 1 deg rotation moves an image by ~f/60 px, far more than any other error), then the relative focal
@@ -135,7 +135,7 @@ class SelfCalConfig:
     stages: tuple[tuple[str, ...], ...] = DEFAULT_STAGES
     track_sigma_px: float = 0.1
     robust: NoiseSpec = "huber:2.0"
-    tracks_per_frame: int = 200
+    tracks_per_frame: int = TRACKS_PER_FRAME
     max_frames: int | None = None
     min_frames: int = 3
     max_iterations: int = 50

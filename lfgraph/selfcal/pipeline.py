@@ -29,6 +29,7 @@ from lfgraph.selfcal.solve import (
 from lfgraph.selfcal.tracks import PooledTracks, measure_coverage, pool_tracks
 
 NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
+PARAMS_PER_VIEW = 12  # pose (6) + fx, fy, cx, cy, k1, k2
 
 
 class SelfCalibrationError(ValueError):
@@ -38,6 +39,13 @@ class SelfCalibrationError(ValueError):
 def _rms(errors: np.ndarray) -> float:
     e = errors[np.isfinite(errors)]
     return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
+
+
+def per_coordinate_rms(errors: np.ndarray, landmarks: int, views: int) -> float:
+    """Noise per image coordinate from (V, N) Euclidean residuals: sqrt(sum e^2 / (2 n_obs - n_params))."""
+    e = errors[np.isfinite(errors)]
+    dof = 2 * len(e) - 3 * landmarks - PARAMS_PER_VIEW * views
+    return float(np.sqrt(np.sum(e**2) / dof)) if dof > 0 else float("nan")
 
 
 def _clean(calib: Calibration, tracks: PooledTracks, points: np.ndarray) -> tuple[PooledTracks, np.ndarray]:
@@ -102,9 +110,11 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
                 raise SelfCalibrationError("these frames cannot determine the calibration: " + "; ".join(problems))
     if not stages:
         raise SelfCalibrationError("no stage frees any parameter")
-    # final stage: plain least squares at the measured noise, so that the marginals are the posterior
+    # final stage: plain least squares at the measured noise, so that the marginals are the posterior. The noise
+    # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
+    # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-    noise = max(robust_sigma(errors), NOISE_FLOOR_PX)
+    noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
     free = frozenset(stages[-1].free)
     calib, points, graph, values, iters = run_map_stage(
         calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas, measurement(RobustKernel("none"), noise),
