@@ -16,6 +16,7 @@ self-calibration has no metric scale of its own), transfer at infinity (px).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -114,8 +115,6 @@ def track_noise(truth: Calibration, tracks: PooledTracks) -> float:
 
 def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> dict[str, float]:
     """The joint checkerboard calibration with ``frames`` boards (corner noise `CORNER_SIGMA_PX`)."""
-    import dataclasses
-
     import lfgraph as lf
     from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
     from lfgraph.datasets.scenes import get_scene
@@ -135,8 +134,13 @@ def main() -> int:
     parser.add_argument("--frames", nargs="+", type=int, default=list(FRAME_COUNTS))
     parser.add_argument("--tracks-per-frame", type=int, default=150)
     parser.add_argument("--cache", type=Path, default=data.CACHE)
+    parser.add_argument("--one-stage", action="store_true",
+                        help="free everything at once from the design values (to measure what the stages buy)")
+    parser.add_argument("--no-peer", action="store_true", help="skip the checkerboard calibration")
     args = parser.parse_args()
     config = SelfCalConfig(tracks_per_frame=args.tracks_per_frame)
+    if args.one_stage:
+        config = dataclasses.replace(config, stages=(config.stages[-1],))
     rows, failures, z_rows = [], [], []
     for rig in args.rigs:
         truth = data.truth_rig(rig)
@@ -152,7 +156,7 @@ def main() -> int:
             mine = errors(est, truth)
             zs = honesty(est, truth, report)
             z_rows.append([rig, frames, *(f"{zs[k]:.2f}" for k in ("fx", "cx", "k1", "rot", "pos"))])
-            board = checkerboard(rig, truth, frames)
+            board = {m: float("nan") for m in METRICS} if args.no_peer else checkerboard(rig, truth, frames)
             rows.append([rig, frames, f"self-cal ({report.verdict})"] + [f"{mine[m]:.4g}" for m in METRICS]
                         + [f"{report.noise_px:.3f} / {track_noise(truth, tracks):.3f}", f"{seconds:.0f}"])
             rows.append(["", frames, f"checkerboard {frames} boards"] + [f"{board[m]:.4g}" for m in METRICS]

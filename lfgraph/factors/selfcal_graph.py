@@ -25,6 +25,7 @@ from lfgraph.camera import Intrinsics
 from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, cal3ds2_noise, gauge_pose_noise, pose_noise
 from lfgraph.geometry import to_pose3
+from lfgraph.grid import ViewGrid
 
 # parameter groups a stage may free, and their Cal3DS2 tangent indices (fx fy s cx cy k1 k2 p1 p2)
 INTRINSIC_GROUPS = {"focal": (0, 1), "principal": (3, 4), "distortion": (5, 6)}
@@ -61,10 +62,27 @@ def _cal_vector(intr: Intrinsics) -> np.ndarray:
     return np.array([intr.fx, intr.fy, 0.0, intr.cx, intr.cy, intr.k1, intr.k2, intr.p1, intr.p2])
 
 
+def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
+    """The intrinsics an intermediate stage pins to keep the near-gauges out of Levenberg–Marquardt's way (view ->
+    Cal3DS2 indices): the reference view's fx, fy, cx, cy (common zoom and shift) and the hidden principal-point
+    gauge of `scene_graph.principal_point_gauge`. The final stage releases them to the design priors."""
+    ref = grid.reference
+    out: dict[int, tuple[int, ...]] = {ref: (0, 1, 3, 4)}
+    r0, c0 = grid.position(ref)
+    if grid.cols > 1:
+        out[grid.index(r0, c0 + 1 if c0 + 1 < grid.cols else c0 - 1)] = (3,)
+    if grid.rows > 1:  # the gauge moves cy along columns as it moves cx along rows
+        view = grid.index(r0 + 1 if r0 + 1 < grid.rows else r0 - 1, c0)
+        out[view] = (*out.get(view, ()), 4)
+    return out
+
+
 def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: DesignSigmas,
-                          free: frozenset[str]) -> gtsam.NonlinearFactorGraph:
+                          free: frozenset[str],
+                          pinned: dict[int, tuple[int, ...]] | None = None) -> gtsam.NonlinearFactorGraph:
     """One Cal3DS2 prior per view: free groups pulled to the design value with the design tolerance, everything
-    else (skew, p1, p2 and the groups this stage holds) pinned at ``current``."""
+    else (skew, p1, p2, the groups this stage holds and the ``pinned`` Cal3DS2 indices of some views, e.g.
+    `intrinsics_gauges`) pinned at ``current``."""
     graph = gtsam.NonlinearFactorGraph()
     design_vec = _cal_vector(design)
     tol = sigmas.intrinsic_sigmas()
@@ -76,6 +94,9 @@ def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sig
             if group in free:
                 mean[list(idx)] = design_vec[list(idx)]
                 sig[list(idx)] = tol[list(idx)]
+        for i in (pinned or {}).get(v, ()):
+            mean[i] = _cal_vector(intr)[i]
+            sig[i] = HELD_SIGMA
         prior = gtsam.Cal3DS2(*mean.tolist())
         graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, cal3ds2_noise(sig)))
     return graph

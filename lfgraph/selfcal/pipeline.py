@@ -25,10 +25,12 @@ from lfgraph.selfcal.solve import (
     posterior,
     robust_sigma,
     run_map_stage,
+    zoom_to_prior,
 )
 from lfgraph.selfcal.tracks import PooledTracks, measure_coverage, pool_tracks
 
 NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
+FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to the MAP: give it more iterations
 PARAMS_PER_VIEW = 12  # pose (6) + fx, fy, cx, cy, k1, k2
 
 
@@ -116,9 +118,12 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
     free = frozenset(stages[-1].free)
+    if "focal" in free:
+        calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
     calib, points, graph, values, iters = run_map_stage(
         calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas, measurement(RobustKernel("none"), noise),
-        config.max_iterations, FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks)
+        FINAL_ITERATIONS_FACTOR * config.max_iterations, FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks,
+        hold_gauges=False)
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
