@@ -32,7 +32,14 @@ from lfgraph.calibration import Calibration  # noqa: E402
 from lfgraph.capture import open_capture  # noqa: E402
 from lfgraph.evaluation import evaluate_calibration  # noqa: E402
 from lfgraph.report import format_table  # noqa: E402
-from lfgraph.selfcal import Design, PooledTracks, SelfCalConfig, calibrate_tracks, pool_tracks  # noqa: E402
+from lfgraph.selfcal import (  # noqa: E402
+    Design,
+    PooledTracks,
+    SelfCalConfig,
+    SelfCalibrationError,
+    calibrate_tracks,
+    pool_tracks,
+)  # noqa: E402
 
 CORNER_SIGMA_PX = 0.1  # the checkerboard peer's corner noise (a good detector on sharp images)
 FRAME_COUNTS = (5, 10, 20, 30)
@@ -85,7 +92,7 @@ def design_of(rig: str) -> Design:
 def tracks_for(rig: str, frames: int, config: SelfCalConfig, cache: Path) -> PooledTracks:
     """Pooled tracks of the first ``frames`` rendered frames (tracked once, cached as npz)."""
     root = data.render(rig, frames, cache=cache)
-    path = root / f"tracks_{frames}_{config.tracks_per_frame}.npz"
+    path = root / f"tracks_{frames}_{config.tracks_per_frame}_klt{config.match.klt_levels}.npz"
     if path.exists():
         z = np.load(path)
         return PooledTracks(z["pixels"], z["valid"], z["frame"], int(z["seen"]), int(z["used"]))
@@ -151,7 +158,14 @@ def main() -> int:
         for frames in sorted(args.frames):
             tracks = first_frames(all_tracks, frames)
             t0 = time.perf_counter()
-            est, report = calibrate_tracks(tracks, design, config)
+            try:
+                est, report = calibrate_tracks(tracks, design, config)
+            except SelfCalibrationError as exc:  # the frames cannot do it: say so (a refusal is a result)
+                rows.append([rig, frames, "self-cal refused"] + ["-"] * len(METRICS) + ["", ""])
+                print(f"{rig} {frames} frames: refused: {exc}\n", flush=True)
+                if frames == TARGET_FRAMES:
+                    failures.append(f"{rig}, {frames} frames: refused")
+                continue
             seconds = time.perf_counter() - t0
             mine = errors(est, truth)
             zs = honesty(est, truth, report)

@@ -27,10 +27,13 @@ from lfgraph.selfcal.solve import (
     run_map_stage,
     zoom_to_prior,
 )
-from lfgraph.selfcal.tracks import PooledTracks, measure_coverage, pool_tracks
+from lfgraph.selfcal.tracks import MIN_TRACKS, PooledTracks, measure_coverage, pool_tracks
 
 NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
 FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to the MAP: give it more iterations
+FINAL_PASSES = 3  # the final stage re-runs at the noise its own residuals show until they agree ...
+NOISE_AGREEMENT = 0.2  # ... to 20 %
+MIN_ARRAY_DISPARITY_PX = 1.0  # a landmark whose disparity across the whole array is below this has (almost) no depth
 PARAMS_PER_VIEW = 12  # pose (6) + fx, fy, cx, cy, k1, k2
 
 
@@ -50,10 +53,25 @@ def per_coordinate_rms(errors: np.ndarray, landmarks: int, views: int) -> float:
     return float(np.sqrt(np.sum(e**2) / dof)) if dof > 0 else float("nan")
 
 
-def _clean(calib: Calibration, tracks: PooledTracks, points: np.ndarray) -> tuple[PooledTracks, np.ndarray]:
-    """Drop landmarks behind a view or seen from one centre only."""
+def _clean(calib: Calibration, tracks: PooledTracks, points: np.ndarray,
+           design: Design) -> tuple[PooledTracks, np.ndarray]:
+    """Drop landmarks behind a view, seen from one centre only, or so far that their disparity across the whole
+    array is below `MIN_ARRAY_DISPARITY_PX` (no depth; XYZ at kilometres makes the marginals indeterminate)."""
     ok = in_front(calib, points, tracks.valid)
+    centres = calib.ref_T_view[:, :3, 3]
+    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
+    ok &= points[:, 2] < design.focal_px * span / MIN_ARRAY_DISPARITY_PX
     return tracks.subset(ok), points[ok]
+
+
+def graph_landmarks(values: gtsam.Values) -> int:
+    """Landmarks in a stage's values."""
+    from lfgraph.factors.keys import landmark_key
+
+    n = 0
+    while values.exists(landmark_key(n)):
+        n += 1
+    return n
 
 
 def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,
@@ -74,7 +92,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
                                    f"{tracks.frames_seen} frame(s); use textured scenes that every view sees")
     calib = nominal
     points = initial_landmarks(calib, tracks.pixels, tracks.valid)
-    tracks, points = _clean(calib, tracks, points)
+    tracks, points = _clean(calib, tracks, points, design)
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     stages: list[StageResult] = []
     warnings: list[str] = []
@@ -99,12 +117,17 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         calib, points, _, _, iters = run_map_stage(calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
                                                    measurement(config.noise, stage_sigma), config.max_iterations,
                                                    STAGE_RELATIVE_TOL, say.iteration, config.graph_hooks)
-        tracks, points = _clean(calib, tracks, points)
+        tracks, points = _clean(calib, tracks, points, design)
         keep, errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)
         stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
         say.log(f"self-calibration stage {k + 1} ({'+'.join(sorted(free))}): {tracks.num_tracks} tracks, "
                 f"{iters} iterations, rms {stages[-1].rms_px:.3f} px")
         tracks, points = tracks.subset(keep), points[keep]
+        if tracks.num_tracks < MIN_TRACKS:
+            raise SelfCalibrationError(f"stage {k + 1} ({'+'.join(sorted(free))}) left {tracks.num_tracks} usable "
+                                       f"tracks (at least {MIN_TRACKS} are needed): the frames do not hold the "
+                                       "landmarks' depths; add frames at other depths or tighten the design "
+                                       "tolerances")
         if k == 0:  # after the poses the landmarks' depths are right: refuse now if the frames cannot do it
             coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
             problems = coverage.problems(config.min_frames)
@@ -118,14 +141,21 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
     free = frozenset(stages[-1].free)
-    if "focal" in free:
+    if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
         calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
-    calib, points, graph, values, iters = run_map_stage(
-        calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas, measurement(RobustKernel("none"), noise),
-        FINAL_ITERATIONS_FACTOR * config.max_iterations, FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks,
-        hold_gauges=False)
-    errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-    stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
+    for _ in range(FINAL_PASSES):
+        used_noise = noise  # the graph's noise, which the marginals scale with
+        calib, points, graph, values, iters = run_map_stage(
+            calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
+            measurement(RobustKernel("none"), noise), FINAL_ITERATIONS_FACTOR * config.max_iterations,
+            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False)
+        tracks, points = _clean(calib, tracks, points, design)
+        errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
+        stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
+        measured = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
+        if abs(measured / noise - 1.0) < NOISE_AGREEMENT and len(points) == graph_landmarks(values):
+            break
+        noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
     post = posterior(graph, values, grid.num_views)
     with gtsam_quiet():
@@ -134,14 +164,14 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     mode_list: list[Mode] = modes(np.asarray(joint), sigmas.intrinsic_sigmas(), grid, distortion)
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
-    report = SelfCalReport(coverage, tuple(stages), noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
+    report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
                            tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES)
     metrics = {"source": "self-calibration from scene frames (lfgraph calibrate-scene)", "scale_from": "design pitch",
                "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
                           "focal_px": design.focal_px},
-               "selfcal_rms_px": report.rms_px, "selfcal_noise_px": noise, "verdict": report.verdict,
+               "selfcal_rms_px": report.rms_px, "selfcal_noise_px": used_noise, "verdict": report.verdict,
                "sigmas": post.as_dict()}
-    say.log(f"self-calibration: rms {report.rms_px:.3f} px at a measured noise of {noise:.3f} px; verdict "
+    say.log(f"self-calibration: rms {report.rms_px:.3f} px at a measured noise of {used_noise:.3f} px; verdict "
             f"{report.verdict}")
     return calib.replace(metrics=metrics), report
 
