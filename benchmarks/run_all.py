@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-BENCHMARKS = ["render.py", "detection.py", "calibration.py", "rectify.py", "refine.py", "ring.py"]
+BENCHMARKS = ["render.py", "detection.py", "calibration.py", "rectify.py", "refine.py", "ring.py", "targetless.py"]
 
 
 def main() -> int:
