@@ -14,7 +14,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from lfgraph.cli import calibrate, fleet, interop, rectify, refine, study, synth
+from lfgraph.cli import calibrate, fleet, interop, rectify, refine, selfcal, study, synth
 from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_OK, EXIT_USAGE, UsageError
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_DRIFT", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-q", "--log-quiet", dest="log_quiet", action="store_true",
                            help="warnings and errors only on the log")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (synth, calibrate, rectify, refine, fleet, study, interop):
+    for module in (synth, calibrate, selfcal, rectify, refine, fleet, study, interop):
         module.add_parsers(sub)
     return parser
 

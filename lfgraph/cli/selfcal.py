@@ -1,0 +1,122 @@
+"""``lfgraph calibrate-scene``: calibrate an array without a target, from design values and scene frames."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from lfgraph.cli.args import (
+    EXIT_OK,
+    LAYOUT_CHOICES,
+    UsageError,
+    check_output_file,
+    grid_size,
+    positive_float,
+    positive_int,
+)
+
+
+def _focal_px(args: argparse.Namespace, image_width_px: int) -> float:
+    from lfgraph.selfcal import focal_from_lens
+
+    if args.focal_px is not None:
+        if args.focal_mm is not None or args.sensor_width_mm is not None:
+            raise UsageError("give either --focal-px or --focal-mm with --sensor-width-mm, not both")
+        return args.focal_px
+    if args.focal_mm is None or args.sensor_width_mm is None:
+        raise UsageError("the nominal focal length is needed: --focal-px F, or --focal-mm F --sensor-width-mm W")
+    return focal_from_lens(args.focal_mm, args.sensor_width_mm, image_width_px)
+
+
+def cmd_calibrate_scene(args: argparse.Namespace) -> int:
+    import json
+
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from lfgraph.capture import open_capture
+    from lfgraph.grid import ViewGrid
+    from lfgraph.io_utils import write_text_atomic
+    from lfgraph.rectification import rectify
+    from lfgraph.selfcal import Design, SelfCalConfig, calibrate_scene
+
+    rows, cols = args.grid
+    reference = args.reference or 0
+    if not 0 <= reference < rows * cols:
+        raise UsageError(f"--reference {reference} is not a view of the {rows}x{cols} grid")
+    try:
+        config = SelfCalConfig(tracks_per_frame=args.tracks_per_frame, max_frames=args.max_frames,
+                               focal_tolerance=args.focal_tolerance_pct / 100.0,
+                               principal_tolerance_px=args.principal_tolerance_px,
+                               rotation_tolerance_deg=args.rotation_tolerance_deg,
+                               position_tolerance_mm=args.position_tolerance_mm)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    capture = open_capture(args.input, ViewGrid(rows, cols, reference), args.layout)
+    inputs = [p for f in range(len(capture)) for p in capture.paths(f)]
+    check_output_file(args.output, inputs=inputs)
+    if args.report_json is not None:
+        check_output_file(args.report_json, inputs=[*inputs, args.output])
+    design = Design(rows, cols, args.pitch_mm, _focal_px(args, capture.image_size_px[0]), capture.image_size_px,
+                    reference)
+    n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
+    print(f"{args.input}: {capture.layout} layout, {len(capture)} frames of {rows}x{cols} views "
+          f"{design.image_size_px[0]}x{design.image_size_px[1]} px; design: pitch {design.pitch_mm:g} mm, focal "
+          f"{design.focal_px:.1f} px")
+    bar = tqdm(capture.frames(limit=n), total=n, desc="tracking", unit="frame", disable=args.quiet)
+    with logging_redirect_tqdm():
+        calib, report = calibrate_scene(bar, design, config)
+    if not args.no_rectify:
+        from lfgraph.rectification import stored_rectification
+        from lfgraph.report import rectification_text
+
+        calib = rectify(calib, args.crop)
+        print(rectification_text(calib, stored_rectification(calib)))
+    calib.save(args.output)
+    print(report.text())
+    print("scale comes from the design pitch (scene frames carry none)")
+    if args.report_json is not None:
+        write_text_atomic(args.report_json, json.dumps(report.as_dict(), indent=1) + "\n")
+        print(f"wrote {args.report_json}")
+    print(f"wrote {args.output}" + ("" if args.no_rectify else " (with its rectification; `lfgraph rectify` uses it)"))
+    return EXIT_OK
+
+
+def add_parsers(sub: Any) -> None:
+    """Add this module's commands to the ``lfgraph`` subparsers."""
+    from lfgraph.selfcal.defaults import (
+        FOCAL_TOLERANCE,
+        POSITION_TOLERANCE_MM,
+        PRINCIPAL_TOLERANCE_PX,
+        ROTATION_TOLERANCE_DEG,
+        TRACKS_PER_FRAME,
+    )
+
+    p = sub.add_parser("calibrate-scene", help="calibrate without a target: from design values and ordinary "
+                                               "textured scene frames")
+    p.add_argument("input", type=Path, help="capture folder of textured scenes (many frames, varied depths)")
+    p.add_argument("--grid", type=grid_size, required=True, help="views as ROWSxCOLS, e.g. 5x5")
+    p.add_argument("--pitch-mm", type=positive_float, required=True, help="nominal distance between adjacent views")
+    p.add_argument("--focal-px", type=positive_float, help="nominal focal length in pixels")
+    p.add_argument("--focal-mm", type=positive_float, help="nominal lens focal length (with --sensor-width-mm)")
+    p.add_argument("--sensor-width-mm", type=positive_float, help="sensor width (with --focal-mm)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
+    p.add_argument("--reference", type=int, help="reference view (row-major index; default 0)")
+    p.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    p.add_argument("--max-frames", type=positive_int, help="use at most this many frames")
+    p.add_argument("--tracks-per-frame", type=positive_int, default=TRACKS_PER_FRAME,
+                   help=f"tracks kept per frame, spread over the image (default {TRACKS_PER_FRAME})")
+    p.add_argument("--focal-tolerance-pct", type=positive_float, default=100 * FOCAL_TOLERANCE,
+                   help=f"1-sigma spread of the focal lengths about the design, %% (default {100 * FOCAL_TOLERANCE:g})")
+    p.add_argument("--principal-tolerance-px", type=positive_float, default=PRINCIPAL_TOLERANCE_PX,
+                   help=f"1-sigma spread of the principal points (default {PRINCIPAL_TOLERANCE_PX:g} px)")
+    p.add_argument("--rotation-tolerance-deg", type=positive_float, default=ROTATION_TOLERANCE_DEG,
+                   help=f"1-sigma spread of the view rotations (default {ROTATION_TOLERANCE_DEG:g} deg)")
+    p.add_argument("--position-tolerance-mm", type=positive_float, default=POSITION_TOLERANCE_MM,
+                   help=f"1-sigma spread of the view positions (default {POSITION_TOLERANCE_MM:g} mm)")
+    p.add_argument("--no-rectify", action="store_true", help="do not compute and store the rectification")
+    p.add_argument("--crop", choices=("valid", "full"), default="valid", help="rectification crop (default valid)")
+    p.add_argument("--report-json", type=Path, help="also write the report (coverage, sigmas, modes, verdict)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_calibrate_scene)

@@ -1,0 +1,133 @@
+"""Graph fragments of target-less self-calibration (`lfgraph.selfcal`): MAP priors from design values.
+
+Every view's pose and intrinsics are variables seen through `GeneralSFMFactor2Cal3DS2` (from
+`lfgraph.factors.scene_graph.sfm_factors`). A stage frees some parameter groups; each free parameter is pulled to its
+**design value** with its design tolerance (a MAP prior, centred on the design, never on the previous stage's
+estimate, so stages do not compound priors); each held parameter is pinned at its current estimate.
+
+Gauges: (1) the reference view's pose is the identity; (2) scale comes from the design pitch through the position
+priors (every free view pulled to its ideal grid position) — scene frames alone carry no scale; (3) the hidden
+principal-point gauge (a shift of every principal point in proportion to its view's baseline with a shift of every
+landmark's inverse depth; exact without distortion) and the common zoom of every focal length (with k1 and k2
+scaled alongside; exact for parallel views) are fixed by the principal-point and focal-length priors, weakly helped
+by distortion and the views' small rotations; the posterior sigmas say how much the frames added.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.camera import Intrinsics
+from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, cal3ds2_noise, gauge_pose_noise, pose_noise
+from lfgraph.geometry import to_pose3
+from lfgraph.grid import ViewGrid
+
+# parameter groups a stage may free, and their Cal3DS2 tangent indices (fx fy s cx cy k1 k2 p1 p2)
+INTRINSIC_GROUPS = {"focal": (0, 1), "principal": (3, 4), "distortion": (5, 6)}
+POSE_GROUPS = ("rotation", "position")
+GROUPS = ("rotation", "position", *INTRINSIC_GROUPS)
+
+
+@dataclass(frozen=True)
+class DesignSigmas:
+    """Design tolerances: the 1-sigma spread of real views about the design values (the MAP priors).
+
+    Attributes:
+        focal_px: fx and fy (pixels).
+        principal_px: cx and cy (pixels).
+        k1, k2: radial distortion.
+        rotation_rad: each view's rotation about each axis.
+        position_m: each view's position along each axis.
+    """
+
+    focal_px: float
+    principal_px: float
+    k1: float
+    k2: float
+    rotation_rad: float
+    position_m: float
+
+    def intrinsic_sigmas(self) -> np.ndarray:
+        """(9,) in Cal3DS2 order; skew and tangential distortion held (not in the model)."""
+        return np.array([self.focal_px, self.focal_px, MIN_SIGMA, self.principal_px, self.principal_px, self.k1,
+                         self.k2, MIN_SIGMA, MIN_SIGMA])
+
+
+def _cal_vector(intr: Intrinsics) -> np.ndarray:
+    return np.array([intr.fx, intr.fy, 0.0, intr.cx, intr.cy, intr.k1, intr.k2, intr.p1, intr.p2])
+
+
+def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
+    """The intrinsics an intermediate stage pins to keep the near-gauges out of Levenberg–Marquardt's way (view ->
+    Cal3DS2 indices): the reference view's fx, fy, cx, cy (common zoom and shift) and the hidden principal-point
+    gauge of `scene_graph.principal_point_gauge`. The final stage releases them to the design priors."""
+    ref = grid.reference
+    out: dict[int, tuple[int, ...]] = {ref: (0, 1, 3, 4)}
+    r0, c0 = grid.position(ref)
+    if grid.cols > 1:
+        out[grid.index(r0, c0 + 1 if c0 + 1 < grid.cols else c0 - 1)] = (3,)
+    if grid.rows > 1:  # the gauge moves cy along columns as it moves cx along rows
+        view = grid.index(r0 + 1 if r0 + 1 < grid.rows else r0 - 1, c0)
+        out[view] = (*out.get(view, ()), 4)
+    return out
+
+
+def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: DesignSigmas,
+                          free: frozenset[str],
+                          pinned: dict[int, tuple[int, ...]] | None = None) -> gtsam.NonlinearFactorGraph:
+    """One Cal3DS2 prior per view: free groups pulled to the design value with the design tolerance, everything
+    else (skew, p1, p2, the groups this stage holds and the ``pinned`` Cal3DS2 indices of some views, e.g.
+    `intrinsics_gauges`) pinned at ``current``."""
+    graph = gtsam.NonlinearFactorGraph()
+    design_vec = _cal_vector(design)
+    tol = sigmas.intrinsic_sigmas()
+    for v, intr in enumerate(current):
+        mean = _cal_vector(intr)
+        sig = np.full(9, HELD_SIGMA)
+        sig[[2, 7, 8]] = MIN_SIGMA
+        for group, idx in INTRINSIC_GROUPS.items():
+            if group in free:
+                mean[list(idx)] = design_vec[list(idx)]
+                sig[list(idx)] = tol[list(idx)]
+        for i in (pinned or {}).get(v, ()):
+            mean[i] = _cal_vector(intr)[i]
+            sig[i] = HELD_SIGMA
+        prior = gtsam.Cal3DS2(*mean.tolist())
+        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, cal3ds2_noise(sig)))
+    return graph
+
+
+def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: DesignSigmas,
+                    free: frozenset[str]) -> gtsam.NonlinearFactorGraph:
+    """The reference pose (gauge: the identity); every other view's rotation and position pulled to the design
+    grid (parallel views at the nominal pitch) when free, pinned at ``current`` when held.
+
+    Args:
+        current: (V, 4, 4) current ``ref_T_view``; design: (V, 4, 4) the ideal grid.
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    for v in range(len(current)):
+        if v == reference:
+            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(np.eye(4)), gauge_pose_noise()))
+            continue
+        rot_free, pos_free = "rotation" in free, "position" in free
+        mean = np.array(current[v])
+        if rot_free:
+            mean[:3, :3] = design[v, :3, :3]
+        if pos_free:
+            mean[:3, 3] = design[v, :3, 3]
+        # Pose3 priors measure the error in the pose's own frame; with near-identity rotations the position sigma
+        # is (to well under a percent) the same along the reference axes. The grid's plane is the reference view's
+        # z = 0 plane only up to the reference view's own rotation: depth (z) gets that tilt's spread too (measured
+        # on paper-5x5, 400 mm across: without it every view was pulled 4-9 mm towards z = 0)
+        baseline = float(np.linalg.norm(design[v, :3, 3] - design[reference, :3, 3]))
+        tilt_z = np.hypot(sigmas.position_m, sigmas.rotation_rad * baseline)
+        noise = pose_noise(sigmas.rotation_rad if rot_free else HELD_SIGMA,
+                           [sigmas.position_m, sigmas.position_m, tilt_z] if pos_free else HELD_SIGMA)
+        graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(mean), noise))
+    return graph

@@ -1,0 +1,182 @@
+"""Design values and options of target-less self-calibration, validated once."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.camera import Intrinsics
+from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
+from lfgraph.factors.selfcal_graph import GROUPS, DesignSigmas
+from lfgraph.grid import ViewGrid
+from lfgraph.refinement.matching import MatchSettings
+from lfgraph.selfcal.defaults import (
+    FOCAL_TOLERANCE,
+    K1_TOLERANCE,
+    K2_TOLERANCE,
+    POSITION_TOLERANCE_MM,
+    PRINCIPAL_TOLERANCE_PX,
+    ROTATION_TOLERANCE_DEG,
+    TRACKS_PER_FRAME,
+)
+
+# The default order of stages (measured on the benchmark rigs, see README "Calibrating without a target"): poses
+# first (a 1 deg rotation moves an image by ~f/60 px, far more than any other error), then the relative focal
+# lengths, then principal points, then distortion once tracks reach the image corners.
+DEFAULT_STAGES: tuple[tuple[str, ...], ...] = (
+    ("rotation", "position"),
+    ("rotation", "position", "focal"),
+    ("rotation", "position", "focal", "principal"),
+    ("rotation", "position", "focal", "principal", "distortion"),
+)
+
+
+@dataclass(frozen=True)
+class Design:
+    """What the maker of the array says: the grid, the nominal pitch, the nominal focal length, the image size.
+
+    Attributes:
+        rows, cols, reference: the grid (views row-major; the reference view is the rig frame).
+        pitch_mm: distance between adjacent views (millimetres).
+        focal_px: nominal focal length in pixels (`focal_from_lens` converts a lens and a sensor).
+        image_size_px: (width, height).
+        k1, k2: nominal radial distortion (0 when unknown).
+    """
+
+    rows: int
+    cols: int
+    pitch_mm: float
+    focal_px: float
+    image_size_px: tuple[int, int]
+    reference: int = 0
+    k1: float = 0.0
+    k2: float = 0.0
+
+    def __post_init__(self) -> None:
+        ViewGrid(self.rows, self.cols, self.reference)
+        if self.rows * self.cols < 2:
+            raise ValueError("self-calibration needs at least two views")
+        for name in ("pitch_mm", "focal_px"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be positive, got {value}")
+        w, h = (int(x) for x in self.image_size_px)
+        if w <= 0 or h <= 0:
+            raise ValueError(f"image size must be positive, got {self.image_size_px}")
+        object.__setattr__(self, "image_size_px", (w, h))
+
+    @property
+    def grid(self) -> ViewGrid:
+        return ViewGrid(self.rows, self.cols, self.reference)
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        """Nominal focal length, principal point at the image centre, nominal distortion."""
+        w, h = self.image_size_px
+        return Intrinsics(self.focal_px, self.focal_px, (w - 1) / 2, (h - 1) / 2, self.k1, self.k2)
+
+    def ref_T_view(self) -> np.ndarray:  # noqa: N802
+        """(V, 4, 4) ideal poses: parallel views, view (r, c) at ((c - c_ref), (r - r_ref), 0) x pitch."""
+        grid = self.grid
+        poses = np.tile(np.eye(4), (grid.num_views, 1, 1))
+        for v in range(grid.num_views):
+            dr, dc = grid.offset(v)
+            poses[v, :3, 3] = np.array([dc, dr, 0.0]) * self.pitch_mm / 1000.0
+        return poses
+
+    def calibration(self) -> Calibration:
+        """The ideal grid: parallel views at the nominal pitch, every view with the nominal intrinsics."""
+        grid = self.grid
+        return Calibration(grid, self.image_size_px, (self.intrinsics,) * grid.num_views,
+                           self.ref_T_view(),
+                           metrics={"source": "design values"})
+
+
+def focal_from_lens(focal_mm: float, sensor_width_mm: float, image_width_px: int) -> float:
+    """Nominal focal length in pixels from the lens focal length and the sensor width."""
+    if min(focal_mm, sensor_width_mm, image_width_px) <= 0:
+        raise ValueError("focal length, sensor width and image width must be positive")
+    return focal_mm * image_width_px / sensor_width_mm
+
+
+# Tracking from design values: views may be a few degrees and 15+ px of principal point off the ideal grid, so KLT
+# searches two pyramid levels higher than the refinement does (3 levels kept 2 of 922 features through paper-5x5's
+# 25 views with 1 deg rotations, 5 levels and a 21 px window 179; 0.1 s per frame either way).
+SELFCAL_MATCH = MatchSettings(klt_levels=5, klt_window_px=21)
+
+
+@dataclass(frozen=True)
+class SelfCalConfig:
+    """Options of `calibrate_scene`.
+
+    Attributes:
+        focal_tolerance: 1-sigma spread of fx, fy about the nominal focal length, relative.
+        principal_tolerance_px, k1_tolerance, k2_tolerance, rotation_tolerance_deg, position_tolerance_mm: the
+            other design tolerances (1 sigma). Together they are the MAP priors; the report says for every
+            parameter whether the frames or the prior determined it.
+        stages: parameter groups freed by each stage, in order (groups: rotation, position, focal, principal,
+            distortion); distortion is dropped from every stage when the tracks do not reach the image corners.
+        track_sigma_px: the assumed tracking noise of the early stages; the final stage uses the noise measured
+            from the residuals, so the reported sigmas follow the data.
+        robust: the measurement kernel of the early stages (the final stage is plain least squares on the tracks
+            that survive the outlier filter, so the marginals are Gaussian).
+        tracks_per_frame: at most this many tracks kept per frame, spread over an 8x8 grid of image cells.
+        max_frames: use at most this many frames.
+        min_frames: refuse with fewer usable frames.
+        max_iterations: Levenberg–Marquardt cap per stage.
+        match: feature tracking options (`lfgraph.refinement.matching.MatchSettings`); every view must see a track.
+        graph_hooks: user functions called with a `lfgraph.factors.GraphContext` (kind ``"selfcal"``) before each
+            stage's graph is optimised.
+    """
+
+    focal_tolerance: float = FOCAL_TOLERANCE
+    principal_tolerance_px: float = PRINCIPAL_TOLERANCE_PX
+    k1_tolerance: float = K1_TOLERANCE
+    k2_tolerance: float = K2_TOLERANCE
+    rotation_tolerance_deg: float = ROTATION_TOLERANCE_DEG
+    position_tolerance_mm: float = POSITION_TOLERANCE_MM
+    stages: tuple[tuple[str, ...], ...] = DEFAULT_STAGES
+    track_sigma_px: float = 0.1
+    robust: NoiseSpec = "huber:2.0"
+    tracks_per_frame: int = TRACKS_PER_FRAME
+    max_frames: int | None = None
+    min_frames: int = 3
+    max_iterations: int = 50
+    match: MatchSettings = field(default_factory=lambda: SELFCAL_MATCH)
+    graph_hooks: tuple[Callable, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("focal_tolerance", "principal_tolerance_px", "k1_tolerance", "k2_tolerance",
+                     "rotation_tolerance_deg", "position_tolerance_mm", "track_sigma_px"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be positive, got {value}")
+        stages = tuple(tuple(s) for s in self.stages)
+        if not stages:
+            raise ValueError("at least one stage is needed")
+        for s in stages:
+            unknown = set(s) - set(GROUPS)
+            if unknown or not s:
+                raise ValueError(f"a stage frees a non-empty set of {', '.join(GROUPS)}; got {s}")
+        object.__setattr__(self, "stages", stages)
+        object.__setattr__(self, "robust", as_noise(self.robust))
+        object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
+        for name in ("tracks_per_frame", "min_frames", "max_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1, got {self.max_frames}")
+
+    @property
+    def noise(self) -> Noise:
+        return self.robust  # type: ignore[return-value]
+
+    def sigmas(self, design: Design) -> DesignSigmas:
+        """The design tolerances in the graph's units."""
+        return DesignSigmas(focal_px=self.focal_tolerance * design.focal_px,
+                            principal_px=self.principal_tolerance_px, k1=self.k1_tolerance, k2=self.k2_tolerance,
+                            rotation_rad=float(np.radians(self.rotation_tolerance_deg)),
+                            position_m=self.position_tolerance_mm / 1000.0)

@@ -1,0 +1,210 @@
+"""`calibrate_scene`: a camera array's intrinsics and poses from design values and ordinary scene frames."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.factors.keys import calib_key
+from lfgraph.factors.noise import RobustKernel
+from lfgraph.observer import Observer, resolve
+from lfgraph.optimize import gtsam_quiet
+from lfgraph.refinement.tracks import in_front
+from lfgraph.selfcal.config import Design, SelfCalConfig
+from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
+from lfgraph.selfcal.solve import (
+    FINAL_RELATIVE_TOL,
+    STAGE_RELATIVE_TOL,
+    drop_outliers,
+    initial_landmarks,
+    measurement,
+    posterior,
+    robust_sigma,
+    run_map_stage,
+    zoom_to_prior,
+)
+from lfgraph.selfcal.tracks import MIN_TRACKS, PooledTracks, measure_coverage, pool_tracks
+
+NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
+FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to the MAP: give it more iterations
+FINAL_PASSES = 3  # the final stage re-runs at the noise its own residuals show until they agree ...
+NOISE_AGREEMENT = 0.2  # ... to 20 %
+MIN_ARRAY_DISPARITY_PX = 1.0  # a landmark whose disparity across the whole array is below this has (almost) no depth
+PARAMS_PER_VIEW = 12  # pose (6) + fx, fy, cx, cy, k1, k2
+
+
+class SelfCalibrationError(ValueError):
+    """The frames cannot determine the parameters; the message says what is missing."""
+
+
+def _rms(errors: np.ndarray) -> float:
+    e = errors[np.isfinite(errors)]
+    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
+
+
+def per_coordinate_rms(errors: np.ndarray, landmarks: int, views: int) -> float:
+    """Noise per image coordinate from (V, N) Euclidean residuals: sqrt(sum e^2 / (2 n_obs - n_params))."""
+    e = errors[np.isfinite(errors)]
+    dof = 2 * len(e) - 3 * landmarks - PARAMS_PER_VIEW * views
+    return float(np.sqrt(np.sum(e**2) / dof)) if dof > 0 else float("nan")
+
+
+def _clean(calib: Calibration, tracks: PooledTracks, points: np.ndarray,
+           design: Design) -> tuple[PooledTracks, np.ndarray]:
+    """Drop landmarks behind a view, seen from one centre only, or so far that their disparity across the whole
+    array is below `MIN_ARRAY_DISPARITY_PX` (no depth; XYZ at kilometres makes the marginals indeterminate)."""
+    ok = in_front(calib, points, tracks.valid)
+    centres = calib.ref_T_view[:, :3, 3]
+    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
+    ok &= points[:, 2] < design.focal_px * span / MIN_ARRAY_DISPARITY_PX
+    return tracks.subset(ok), points[ok]
+
+
+def graph_landmarks(values: gtsam.Values) -> int:
+    """Landmarks in a stage's values."""
+    from lfgraph.factors.keys import landmark_key
+
+    n = 0
+    while values.exists(landmark_key(n)):
+        n += 1
+    return n
+
+
+def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,
+                     observer: Observer | None = None) -> tuple[Calibration, SelfCalReport]:
+    """Self-calibrate from pooled tracks (the solver of `calibrate_scene`; tests feed it exact synthetic tracks).
+
+    Raises:
+        SelfCalibrationError: the tracks cannot determine the parameters (the message says what is missing).
+    """
+    config = config or SelfCalConfig()
+    say = resolve(observer)
+    start = time.perf_counter()
+    nominal = design.calibration()
+    sigmas = config.sigmas(design)
+    grid = nominal.grid
+    if tracks.num_tracks == 0:
+        raise SelfCalibrationError(f"no track was followed through all {grid.num_views} views in "
+                                   f"{tracks.frames_seen} frame(s); use textured scenes that every view sees")
+    calib = nominal
+    points = initial_landmarks(calib, tracks.pixels, tracks.valid)
+    tracks, points = _clean(calib, tracks, points, design)
+    errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
+    stages: list[StageResult] = []
+    warnings: list[str] = []
+    distortion = True
+    coverage = None
+    for k, groups in enumerate(config.stages):
+        free = frozenset(groups)
+        if "distortion" in free:
+            if coverage is None:
+                coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
+            if not coverage.distortion_covered:
+                free = free - {"distortion"}
+                if distortion:
+                    warnings.append(f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: distortion "
+                                    f"held at the design values (k1 {design.k1:g}, k2 {design.k2:g}); add frames "
+                                    "with texture in the image corners")
+                distortion = False
+        if not free:
+            continue
+        # the kernel's scale follows the stage's own residuals: early stages see pixels of model error
+        stage_sigma = max(config.track_sigma_px, robust_sigma(errors))
+        calib, points, _, _, iters = run_map_stage(calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
+                                                   measurement(config.noise, stage_sigma), config.max_iterations,
+                                                   STAGE_RELATIVE_TOL, say.iteration, config.graph_hooks)
+        tracks, points = _clean(calib, tracks, points, design)
+        keep, errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)
+        stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
+        say.log(f"self-calibration stage {k + 1} ({'+'.join(sorted(free))}): {tracks.num_tracks} tracks, "
+                f"{iters} iterations, rms {stages[-1].rms_px:.3f} px")
+        tracks, points = tracks.subset(keep), points[keep]
+        if tracks.num_tracks < MIN_TRACKS:
+            raise SelfCalibrationError(f"stage {k + 1} ({'+'.join(sorted(free))}) left {tracks.num_tracks} usable "
+                                       f"tracks (at least {MIN_TRACKS} are needed): the frames do not hold the "
+                                       "landmarks' depths; add frames at other depths or tighten the design "
+                                       "tolerances")
+        if k == 0:  # after the poses the landmarks' depths are right: refuse now if the frames cannot do it
+            coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
+            problems = coverage.problems(config.min_frames)
+            if problems:
+                raise SelfCalibrationError("these frames cannot determine the calibration: " + "; ".join(problems))
+    if not stages:
+        raise SelfCalibrationError("no stage frees any parameter")
+    # final stage: plain least squares at the measured noise, so that the marginals are the posterior. The noise
+    # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
+    # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
+    errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
+    noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
+    free = frozenset(stages[-1].free)
+    if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
+        calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
+    for _ in range(FINAL_PASSES):
+        used_noise = noise  # the graph's noise, which the marginals scale with
+        calib, points, graph, values, iters = run_map_stage(
+            calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
+            measurement(RobustKernel("none"), noise), FINAL_ITERATIONS_FACTOR * config.max_iterations,
+            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False)
+        tracks, points = _clean(calib, tracks, points, design)
+        errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
+        stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
+        measured = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
+        if abs(measured / noise - 1.0) < NOISE_AGREEMENT and len(points) == graph_landmarks(values):
+            break
+        noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
+    coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
+    post = posterior(graph, values, grid.num_views)
+    with gtsam_quiet():
+        joint = gtsam.Marginals(graph, values).jointMarginalCovariance(
+            [calib_key(v) for v in range(grid.num_views)]).fullMatrix()
+    mode_list: list[Mode] = modes(np.asarray(joint), sigmas.intrinsic_sigmas(), grid, distortion)
+    if coverage.missing_regions():
+        warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
+    report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
+                           tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES)
+    metrics = {"source": "self-calibration from scene frames (lfgraph calibrate-scene)", "scale_from": "design pitch",
+               "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
+                          "focal_px": design.focal_px},
+               "selfcal_rms_px": report.rms_px, "selfcal_noise_px": used_noise, "verdict": report.verdict,
+               "sigmas": post.as_dict()}
+    say.log(f"self-calibration: rms {report.rms_px:.3f} px at a measured noise of {used_noise:.3f} px; verdict "
+            f"{report.verdict}")
+    return calib.replace(metrics=metrics), report
+
+
+def calibrate_scene(frames: Iterable[np.ndarray], design: Design, config: SelfCalConfig | None = None,
+                    observer: Observer | None = None) -> tuple[Calibration, SelfCalReport]:
+    """Calibrate a camera array without a target: from its design values and ordinary textured scene frames.
+
+    Starts from the ideal grid (parallel views at the nominal pitch, principal points at the image centre, the
+    nominal focal length and distortion), tracks features through the grid in every frame (chain KLT, as the
+    refinement does), and grows a MAP solution in stages (`SelfCalConfig.stages`), each freeing more parameter
+    groups pulled to their design values with the design tolerances. Gauges: the reference view's pose; scale from
+    the design pitch; the hidden principal-point gauge and the common zoom from the priors (see the report's modes).
+
+    Args:
+        frames: (V, H, W) uint8 grayscale views of each frame (e.g. ``open_capture(path, grid).frames()``); use
+            many frames at varied depths with texture across the whole image.
+        design: the design values.
+        config: options (`SelfCalConfig()` by default).
+        observer: hears log lines and every optimiser iteration.
+
+    Returns:
+        the calibration (its ``metrics`` say that scale comes from the design pitch, and hold the sigmas) and the
+        report (coverage, stages, posterior sigmas, weakly seen modes, verdict).
+
+    Raises:
+        SelfCalibrationError: the frames cannot determine the parameters (too few frames or tracks, too narrow a
+            depth range, image regions without texture); the message says what is missing.
+    """
+    config = config or SelfCalConfig()
+    t0 = time.perf_counter()
+    tracks = pool_tracks(frames, design.grid, design.image_size_px, config.tracks_per_frame, config.match,
+                         config.max_frames)
+    seconds = time.perf_counter() - t0
+    calib, report = calibrate_tracks(tracks, design, config, observer)
+    return calib, SelfCalReport(**{**report.__dict__, "seconds": {"tracking": seconds, **report.seconds}})

@@ -1,0 +1,170 @@
+"""What self-calibration reports: coverage, stages, measured noise, posterior sigmas, what the frames (and not the
+design priors) determined, and an overall verdict."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lfgraph.grid import ViewGrid
+from lfgraph.selfcal.solve import Posterior
+from lfgraph.selfcal.tracks import Coverage
+
+PRIOR_LIMITED = 0.5  # a mode whose posterior sigma is over half its prior sigma was set by the design, not frames
+CAL_DIM = 9  # Cal3DS2 tangent size: fx fy s cx cy k1 k2 p1 p2
+
+GAUGES = (
+    "pose: the reference view is the rig frame (identity pose)",
+    "scale: from the design pitch (position priors at the nominal grid) - scene frames carry no scale",
+    "hidden principal-point gauge and common zoom: fixed by the design priors of the principal points and focal "
+    "lengths, helped only by distortion and the views' small rotations; their posterior sigmas are in 'modes'",
+)
+
+
+@dataclass(frozen=True)
+class Mode:
+    """A combination of every view's intrinsics that scene frames see weakly, with its posterior and prior sigma.
+
+    Attributes:
+        name: e.g. ``zoom``; unit: of the sigmas; effect: what an error in it does.
+    """
+
+    name: str
+    unit: str
+    posterior_sigma: float
+    prior_sigma: float
+    effect: str
+
+    @property
+    def ratio(self) -> float:
+        return self.posterior_sigma / self.prior_sigma
+
+    @property
+    def from_prior(self) -> bool:
+        return bool(self.ratio > PRIOR_LIMITED)
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "unit": self.unit, "posterior_sigma": self.posterior_sigma,
+                "prior_sigma": self.prior_sigma, "ratio": self.ratio, "from_prior": self.from_prior,
+                "effect": self.effect}
+
+
+def modes(joint_cov: np.ndarray, prior_sigmas: np.ndarray, grid: ViewGrid, distortion: bool) -> list[Mode]:
+    """Posterior and prior sigma of the weakly seen modes.
+
+    Args:
+        joint_cov: (9V, 9V) joint marginal covariance of every view's Cal3DS2 (views in order).
+        prior_sigmas: (9,) the design tolerances in Cal3DS2 order.
+        distortion: whether k1, k2 were estimated.
+    """
+    n = grid.num_views
+    off = np.array([grid.offset(v) for v in range(n)], dtype=float)  # (dr, dc)
+
+    def mode(weights: dict[int, np.ndarray]) -> tuple[float, float]:
+        a = np.zeros(CAL_DIM * n)
+        for idx, w in weights.items():
+            a[idx::CAL_DIM] = w
+        prior = float(np.sqrt(np.sum(a**2 * np.tile(prior_sigmas, n) ** 2)))
+        return float(np.sqrt(max(a @ joint_cov @ a, 0.0))), prior
+
+    out = []
+    mean = np.full(n, 1.0 / n)
+    post, prior = mode({0: mean / 2, 1: mean / 2})
+    out.append(Mode("zoom (mean focal length)", "px", post, prior,
+                    "absolute focal length and metric depth; rectified alignment does not depend on it"))
+    for idx, name in ((3, "cx"), (4, "cy")):
+        post, prior = mode({idx: mean})
+        out.append(Mode(f"common {name} shift", "px", post, prior, "where the rectified image centre lies"))
+    for axis, idx, name, step in ((1, 3, "cx", "column"), (0, 4, "cy", "row")):
+        d = off[:, axis] - off[:, axis].mean()
+        if np.sum(d**2) == 0:
+            continue
+        post, prior = mode({idx: d / np.sum(d**2)})
+        out.append(Mode(f"{name} per grid {step} (hidden principal-point gauge)", "px/step", post, prior,
+                        "disparity at infinity: an error e moves infinity by e px per grid step"))
+    if distortion:
+        post, prior = mode({5: mean})
+        out.append(Mode("mean k1", "-", post, prior, "straightness of lines far from the image centre"))
+    return out
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """One stage: the parameter groups it freed, tracks, LM iterations and the reprojection RMS after it."""
+
+    free: tuple[str, ...]
+    tracks: int
+    iterations: int
+    rms_px: float
+
+    def as_dict(self) -> dict:
+        return {"free": list(self.free), "tracks": self.tracks, "iterations": self.iterations, "rms_px": self.rms_px}
+
+
+@dataclass(frozen=True)
+class SelfCalReport:
+    """The result of `calibrate_scene` besides the calibration.
+
+    Attributes:
+        coverage: what the frames cover; stages: what ran; noise_px: tracking noise measured from the residuals
+            (per coordinate); rms_px: final reprojection RMS; posterior: per-parameter sigmas; modes: the weakly
+            seen combinations; distortion_estimated: False when tracks did not reach the corners (held at design);
+            warnings; seconds: wall time of tracking and of the graph.
+    """
+
+    coverage: Coverage
+    stages: tuple[StageResult, ...]
+    noise_px: float
+    rms_px: float
+    posterior: Posterior
+    modes: tuple[Mode, ...]
+    distortion_estimated: bool
+    warnings: tuple[str, ...] = ()
+    seconds: dict[str, float] = field(default_factory=dict)
+    gauges: tuple[str, ...] = GAUGES
+
+    @property
+    def from_prior(self) -> list[Mode]:
+        return [m for m in self.modes if m.from_prior]
+
+    @property
+    def verdict(self) -> str:
+        """``good``: the frames determined every mode; ``prior-limited``: some came from the design tolerances (the
+        calibration is still usable for what does not depend on them); ``poor``: the fit is inconsistent."""
+        if not np.isfinite(self.rms_px) or self.rms_px > 3.0 * max(self.noise_px, 1e-9):
+            return "poor"
+        return "prior-limited" if self.from_prior or not self.distortion_estimated else "good"
+
+    def as_dict(self) -> dict:
+        return {"verdict": self.verdict, "scale_from": "design pitch", "gauges": list(self.gauges),
+                "coverage": self.coverage.as_dict(), "stages": [s.as_dict() for s in self.stages],
+                "noise_px": self.noise_px, "rms_px": self.rms_px, "distortion_estimated": self.distortion_estimated,
+                "modes": [m.as_dict() for m in self.modes], "posterior_sigmas": self.posterior.as_dict(),
+                "warnings": list(self.warnings), "seconds": dict(self.seconds)}
+
+    def text(self) -> str:
+        """A readable summary for the CLI."""
+        c = self.coverage
+        lines = [f"frames {c.frames}, tracks {c.tracks}; depths {c.depth_m[0]:.3g}-{c.depth_m[2]:.3g} m (far/near "
+                 f"{c.depth_ratio:.2f}); disparity per grid step {c.disparity_px[2]:.3g}-{c.disparity_px[0]:.3g} px",
+                 "image regions missing: " + (", ".join(c.missing_regions()) or "none")
+                 + f"; tracks reach {c.max_radius:.0%} of the half diagonal",
+                 "stages:"]
+        for s in self.stages:
+            lines.append(f"  {'+'.join(s.free):<45} {s.tracks:>6} tracks {s.iterations:>3} it  rms {s.rms_px:.3f} px")
+        lines.append(f"tracking noise {self.noise_px:.3f} px (from the residuals); final rms {self.rms_px:.3f} px")
+        p = self.posterior.intrinsics
+        lines.append("posterior 1-sigma, median (max) over views: " + ", ".join(
+            f"{name} {np.median(p[:, i]):.3g} ({np.max(p[:, i]):.3g})"
+            for i, name in enumerate(("fx", "fy", "cx", "cy", "k1", "k2")))
+                     + f", rotation {np.median(self.posterior.rotation_deg):.2g} deg, position "
+                       f"{np.median(self.posterior.position_mm):.2g} mm")
+        lines.append("weakly seen modes (posterior / design prior sigma):")
+        for m in self.modes:
+            lines.append(f"  {m.name:<48} {m.posterior_sigma:.3g} / {m.prior_sigma:.3g} {m.unit}"
+                         f"{'  <- from the design prior: ' + m.effect if m.from_prior else ''}")
+        lines.append("gauges: " + "; ".join(self.gauges))
+        lines.extend(f"warning: {w}" for w in self.warnings)
+        lines.append(f"verdict: {self.verdict}")
+        return "\n".join(lines)

@@ -1,0 +1,173 @@
+"""The staged MAP graph of self-calibration: landmarks seen through free poses and intrinsics, design priors, the
+outlier filter, the measured noise and the marginals."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.camera import Intrinsics
+from lfgraph.factors import scene_graph, selfcal_graph
+from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.noise import Noise, measurement_noise
+from lfgraph.factors.selfcal_graph import DesignSigmas
+from lfgraph.factors.values import (
+    insert_intrinsics,
+    insert_landmarks,
+    insert_view_poses,
+    read_intrinsics,
+    read_landmarks,
+    read_view_poses,
+)
+from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+
+MAD_TO_SIGMA = 1.4826  # median absolute deviation -> Gaussian sigma
+OUTLIER_FACTOR = 4.0  # drop a track whose worst residual exceeds 4x the median track's worst ...
+OUTLIER_FLOOR_PX = 0.5  # ... and 0.5 px
+STAGE_RELATIVE_TOL = 1e-6  # an intermediate stage stops when an iteration gains less than this share of the error
+FINAL_RELATIVE_TOL = 1e-9  # the final stage converges fully (the marginals are taken at its optimum)
+# Cal3DS2 tangent order -> the parameters lfgraph reports
+SIGMA_FIELDS = (("fx_px", 0), ("fy_px", 1), ("cx_px", 3), ("cy_px", 4), ("k1", 5), ("k2", 6))
+
+
+def initial_landmarks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """DLT landmarks; a landmark behind the reference view or not finite goes on its reference ray at the median
+    depth of the others (GTSAM gives landmarks behind a camera zero Jacobians)."""
+    pts = triangulate_dlt(calib, pixels, valid)
+    ref = calib.grid.reference
+    bad = ~(np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0))
+    good_z = pts[~bad, 2]
+    depth = float(np.median(good_z)) if len(good_z) else 1000.0 * float(np.max(np.abs(calib.ref_T_view[:, :3, 3])))
+    if bad.any():
+        xy = calib.intrinsics[ref].undistort(pixels[ref, bad])
+        xy = np.where(np.isfinite(xy), xy, 0.0)
+        pts[bad] = np.column_stack([xy, np.ones(len(xy))]) * depth
+    return pts
+
+
+def _ref_frame(poses: np.ndarray, points: np.ndarray, reference: int) -> tuple[np.ndarray, np.ndarray]:
+    """Express poses and landmarks exactly relative to the reference view (the gauge holds it to ~1e-8)."""
+    inv = np.linalg.inv(poses[reference])
+    poses = inv[None] @ poses
+    poses[reference] = np.eye(4)
+    points = points @ inv[:3, :3].T + inv[:3, 3]
+    return poses, points
+
+
+def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+                  free: frozenset[str], sigmas: DesignSigmas, model: gtsam.noiseModel.Base, max_iterations: int,
+                  relative_tol: float = STAGE_RELATIVE_TOL, callback: IterationCallback | None = None,
+                  hooks: tuple[Callable, ...] = (), hold_gauges: bool = True,
+                  ) -> tuple[Calibration, np.ndarray, gtsam.NonlinearFactorGraph, gtsam.Values, int]:
+    """One stage: poses and intrinsics are variables; the groups in ``free`` are pulled to the design, the rest
+    pinned at ``calib``; ``hold_gauges`` pins `selfcal_graph.intrinsics_gauges` too (intermediate stages: measured
+    on paper-4x4 with 20 frames, releasing the common zoom before distortion was free let it absorb the unmodelled
+    distortion and drift 25 % away, 110 px, beyond what 50 iterations walk back). Returns the calibration,
+    landmarks, the graph, its optimum and the LM iterations."""
+    from lfgraph.factors.hooks import GraphContext, run_hooks
+
+    n = calib.num_views
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    insert_landmarks(values, points)
+    insert_view_poses(values, calib.ref_T_view)
+    insert_intrinsics(values, calib.intrinsics)
+    graph.push_back(selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference, sigmas,
+                                                  free))
+    pinned = selfcal_graph.intrinsics_gauges(calib.grid) if hold_gauges else None
+    graph.push_back(selfcal_graph.intrinsics_map_priors(calib.intrinsics, design.intrinsics[0], sigmas, free, pinned))
+    graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
+    run_hooks(hooks, GraphContext("selfcal", "+".join(sorted(free)), graph, values, n, calib))
+    settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol)
+    result = optimize(graph, values, settings, callback)
+    poses, pts = _ref_frame(read_view_poses(result.values, n), read_landmarks(result.values, len(points)),
+                            calib.grid.reference)
+    intr = read_intrinsics(result.values, n, tangential=False)
+    return calib.replace(intrinsics=intr, ref_T_view=poses), pts, graph, result.values, result.iterations
+
+
+def zoom_to_prior(calib: Calibration, points: np.ndarray, design: Intrinsics) -> tuple[Calibration, np.ndarray]:
+    """Move along the common-zoom gauge to where the focal-length priors are least strained.
+
+    For parallel views the images do not change when every fx, fy is scaled by s, k1 by s^2, k2 by s^4, every
+    landmark's depth and every view's z position by s. Levenberg–Marquardt walks this near-flat valley very slowly
+    (measured: 150 iterations left paper-4x4's mean focal length 10 px from its optimum), so the final stage starts
+    at the valley's MAP point s = sum(f_design f_v) / sum(f_v^2) over every fx and fy; it then refines the rest.
+    """
+    f = np.array([[i.fx, i.fy] for i in calib.intrinsics])
+    scale = float(np.sum(design.fx * f[:, 0] + design.fy * f[:, 1]) / np.sum(f**2))
+    intr = tuple(Intrinsics(i.fx * scale, i.fy * scale, i.cx, i.cy, i.k1 * scale**2, i.k2 * scale**4, i.p1, i.p2)
+                 for i in calib.intrinsics)
+    poses = np.array(calib.ref_T_view)
+    poses[:, 2, 3] *= scale
+    pts = np.array(points, dtype=float)
+    pts[:, 2] *= scale
+    return calib.replace(intrinsics=intr, ref_T_view=poses), pts
+
+
+def robust_sigma(errors: np.ndarray) -> float:
+    """Per-coordinate noise from (V, N) Euclidean reprojection errors: 1.4826 x MAD of a 2-D Rayleigh norm is
+    converted through its median (sigma x sqrt(2 ln 2))."""
+    e = errors[np.isfinite(errors)]
+    if not len(e):
+        return float("nan")
+    return float(np.median(e) / np.sqrt(2.0 * np.log(2.0)))
+
+
+def drop_outliers(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
+                  points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep tracks whose worst residual is <= max(4x the median track's worst, 0.5 px); returns (keep, errors)."""
+    errors = reprojection_errors(calib, points, pixels, valid)
+    keep = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+    return keep, errors
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """Posterior 1-sigma of every parameter from the graph's marginals (rescaled by nothing: the final stage uses
+    the measured noise).
+
+    Attributes:
+        intrinsics: (V, 6) sigmas of fx, fy, cx, cy (px), k1, k2 (0 for the reference view's gauge pose only).
+        rotation_deg: (V, 3) and position_mm: (V, 3): pose sigmas about / along the view's own axes.
+    """
+
+    intrinsics: np.ndarray
+    rotation_deg: np.ndarray
+    position_mm: np.ndarray
+
+    def as_dict(self) -> dict:
+        fields = [f for f, _ in SIGMA_FIELDS]
+        return {"views": [{**{f: float(self.intrinsics[v, i]) for i, f in enumerate(fields)},
+                           "rotation_deg": self.rotation_deg[v].tolist(), "position_mm": self.position_mm[v].tolist()}
+                          for v in range(len(self.intrinsics))]}
+
+
+def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, num_views: int) -> Posterior:
+    """Marginal sigmas of every view's Cal3DS2 and pose at the optimum.
+
+    Raises:
+        RuntimeError: the system is indeterminate (a parameter without information).
+    """
+    try:
+        with gtsam_quiet():
+            marginals = gtsam.Marginals(graph, values)
+            cal = np.array([np.sqrt(np.diag(marginals.marginalCovariance(calib_key(v))))
+                            for v in range(num_views)])
+            pose = np.array([np.sqrt(np.diag(marginals.marginalCovariance(view_pose_key(v))))
+                             for v in range(num_views)])
+    except RuntimeError as exc:
+        raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
+    intr = cal[:, [i for _, i in SIGMA_FIELDS]]
+    return Posterior(intr, np.degrees(pose[:, :3]), 1e3 * pose[:, 3:])
+
+
+def measurement(noise: Noise, sigma_px: float) -> gtsam.noiseModel.Base:
+    """The measurement model of a stage (the kernel wrapped around ``sigma_px``)."""
+    return measurement_noise(noise, sigma_px)
+
+
