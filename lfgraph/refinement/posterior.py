@@ -1,0 +1,127 @@
+"""The posterior of a refinement fit: marginals of the MAP graph, the predicted transfer error at infinity they
+imply, and the chi-square deviate used by the significance tests (`lfgraph.refinement.assess`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.noise import measurement_noise
+from lfgraph.geometry import rotation_from_rotvec, to_pose3
+from lfgraph.optimize import gtsam_quiet
+from lfgraph.refinement.config import RefineConfig, Stage
+from lfgraph.refinement.priors import ViewPriors, view_priors
+from lfgraph.refinement.stages import stage_graph
+
+TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
+JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
+NEGLIGIBLE_SIGMA = 1e-5  # rad, m, px: posterior directions held by a gauge or a hold are left out of the test
+
+
+def chi2_sigma(d2: float, dof: int) -> float:
+    """The one-sided normal deviate equivalent to a chi-square value (Wilson-Hilferty; no scipy needed)."""
+    if dof <= 0 or not np.isfinite(d2):
+        return 0.0
+    a = 2.0 / (9.0 * dof)
+    return float(((max(d2, 0.0) / dof) ** (1.0 / 3.0) - (1.0 - a)) / np.sqrt(a))
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """Marginal covariances of the refinement graph at its solution, per view.
+
+    ``pose_cov``: (V, 6, 6) body-frame Pose3 covariance (rotation x, y, z in rad, then position in m);
+    ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else zeros (held);
+    ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
+    ``intrinsics_free``: whether the graph freed fx, fy, cx, cy."""
+
+    pose_cov: np.ndarray
+    intr_cov: np.ndarray
+    cross: np.ndarray
+    intrinsics_free: bool
+    sigma_px: float
+
+
+def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors | None = None) -> Posterior | None:
+    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran);
+    ``priors`` replaces the config's (as the fit had them)."""
+    n = calib.num_views
+    pose_cov = np.zeros((n, 6, 6))
+    intr_cov = np.zeros((n, 4, 4))
+    cross = np.zeros((n, 6, 4))
+    if fit.last_stage is None or fit.valid.shape[1] == 0:
+        return None
+    if priors is None and config.priors:
+        priors = view_priors(calib, config.drift)
+    model = measurement_noise(config.noise, fit.sigma_px)
+    graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                                config.scale_sigma_mm, fit.held, priors)
+    intr_free = fit.last_stage in (Stage.INTRINSICS, Stage.ALL)
+    idx = [0, 1, 3, 4]
+    try:
+        with gtsam_quiet():
+            marginals = gtsam.Marginals(graph, values)
+            for v in range(n):
+                if intr_free:
+                    keys = gtsam.KeyVector([view_pose_key(v), calib_key(v)])
+                    joint = marginals.jointMarginalCovariance(keys)
+                    pose_cov[v] = joint.at(view_pose_key(v), view_pose_key(v))
+                    kk = np.asarray(joint.at(calib_key(v), calib_key(v)))
+                    intr_cov[v] = kk[np.ix_(idx, idx)]
+                    cross[v] = np.asarray(joint.at(view_pose_key(v), calib_key(v)))[:, idx]
+                else:
+                    pose_cov[v] = marginals.marginalCovariance(view_pose_key(v))
+    except RuntimeError:  # an indeterminate system: report no posterior rather than a wrong one
+        return None
+    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px)
+
+
+def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
+    w, h = calib.image_size_px
+    xs = np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples)
+    ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)
+    gx, gy = np.meshgrid(xs, ys)
+    xy = calib.intrinsics[calib.grid.reference].undistort(np.column_stack([gx.ravel(), gy.ravel()]))
+    return np.column_stack([xy, np.ones(len(xy))])
+
+
+def _transfer(calib: Calibration, v: int, rays: np.ndarray, omega: np.ndarray, dk: np.ndarray) -> np.ndarray:
+    """Reference rays at infinity projected into view v turned by body-frame ``omega`` with fx, fy, cx, cy + dk."""
+    import dataclasses
+
+    R = calib.ref_T_view[v][:3, :3] @ rotation_from_rotvec(omega)  # noqa: N806
+    i = calib.intrinsics[v]
+    i = dataclasses.replace(i, fx=i.fx + dk[0], fy=i.fy + dk[1], cx=i.cx + dk[2], cy=i.cy + dk[3])
+    return i.project(rays @ R).ravel()
+
+
+def transfer_jacobian(calib: Calibration, v: int, rays: np.ndarray) -> np.ndarray:
+    """(2S, 7) derivative of the transfer at infinity into view v by body rotation (3, rad) and fx, fy, cx, cy."""
+    base = _transfer(calib, v, rays, np.zeros(3), np.zeros(4))
+    cols = []
+    for k in range(7):
+        step = np.zeros(7)
+        step[k] = JACOBIAN_STEP
+        cols.append((_transfer(calib, v, rays, step[:3], step[3:]) - base) / JACOBIAN_STEP)
+    return np.column_stack(cols)
+
+
+def predicted_transfer_px(calib: Calibration, post: Posterior, v: int, rays: np.ndarray) -> float:
+    """RMS over reference pixels of the 1-sigma transfer error at infinity the posterior predicts for view v."""
+    cov = np.zeros((7, 7))
+    cov[:3, :3] = post.pose_cov[v][:3, :3]
+    cov[3:, 3:] = post.intr_cov[v]
+    cov[:3, 3:] = post.cross[v][:3]
+    cov[3:, :3] = post.cross[v][:3].T
+    J = transfer_jacobian(calib, v, rays)  # noqa: N806
+    per_coord = np.einsum("ij,jk,ik->i", J, cov, J)
+    return float(np.sqrt(max(np.sum(per_coord) / (len(per_coord) / 2), 0.0)))
+
+
+def pose_change(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """(6,) body-frame change, rotation (rad) then translation (m): Logmap(before^-1 after), as a Pose3 prior."""
+    return np.asarray(gtsam.Pose3.Logmap(to_pose3(before).between(to_pose3(after))))
