@@ -142,7 +142,7 @@ def add_parsers(sub: Any) -> None:
 
 
     demo = sub.add_parser("demo", help="the main job on the embedded synthetic default: render, calibrate, "
-                                       "evaluate and rectify paper-4x4, then refine a shaken paper-5x5 (~2 min)")
+                                       "evaluate and rectify paper-4x4, then refine a shaken paper-5x5 (~20 s)")
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")
     demo.add_argument("--scene", default="paper-4x4", help="named scene (default paper-4x4; small-2x2 is quick)")
     demo.add_argument("--no-refine", action="store_true", help="skip the refinement part (shaken paper-5x5)")
