@@ -42,34 +42,31 @@ def grid_size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def positive_int(text: str) -> int:
+def _bounded(text: str, kind: type, minimum: float, inclusive: bool, what: str) -> int | float:
+    """``text`` as a finite ``kind`` >= (or >) ``minimum``; argparse's type error naming ``what`` otherwise."""
     try:
-        value = int(text)
+        value = kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value) or value < minimum or (not inclusive and value == minimum):
+        raise argparse.ArgumentTypeError(f"expected {what} {'>=' if inclusive else '>'} {minimum:g}, got {text!r}")
     return value
+
+
+def positive_int(text: str) -> int:
+    return _bounded(text, int, 1, True, "a whole number")
+
+
+def view_index(text: str) -> int:
+    return _bounded(text, int, 0, True, "a view index (a whole number)")
 
 
 def non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return value
+    return _bounded(text, float, 0.0, True, "a number")
 
 
 def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
-    return value
+    return _bounded(text, float, 0.0, False, "a number")
 
 
 LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs", "views", "video")

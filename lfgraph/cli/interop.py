@@ -17,22 +17,12 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size
+from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size, view_index
 
 # the format names as lfgraph.interop defines them (tests/test_interop.py checks they agree), here so that building
 # the parser does not import the format modules (OpenCV, GTSAM)
 EXPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json")
 IMPORT_FORMATS = (*EXPORT_FORMATS, "middlebury", "hci")
-
-
-def _view_index(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a view index (a whole number >= 0), got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a view index >= 0, got {value}")
-    return value
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -92,7 +82,7 @@ def add_parsers(sub: Any) -> None:
     im.add_argument("--grid", type=grid_size, metavar="RxC",
                     help="view grid ROWSxCOLS, views row-major; required for kalibr (and colmap models not written "
                          "by lfgraph), otherwise checked against the file")
-    im.add_argument("--reference", type=_view_index, metavar="N",
+    im.add_argument("--reference", type=view_index, metavar="N",
                     help="reference view (row-major index; needs --grid): poses are re-expressed relative to it. "
                          "Default: the file's reference (view 0 for kalibr, middlebury and hci)")
     im.add_argument("-o", "--output", type=Path, required=True, metavar="CALIB.json", help="calibration.json to write")
