@@ -51,41 +51,46 @@ def _smoothness_basis(cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
     return uv, np.stack(terms, axis=1)
 
 
-def _grid_roughness_px(corners: np.ndarray, board: BoardSpec) -> float:
-    """RMS of the corners about a smooth map of the board grid (homography + polynomial), px.
+def _grid_residuals_px(corners: np.ndarray, board: BoardSpec) -> np.ndarray | None:
+    """(C, 2) corners minus a smooth map of the board grid (homography + polynomial), px; None without a homography.
 
-    Lens distortion and perspective bend the grid smoothly; corner localisation noise does not, so the residual
-    ranks refinements of the same detection by their noise without needing a calibration.
+    Lens distortion and perspective bend the grid smoothly; corner localisation noise and misplaced corners do not.
     """
-    uv, basis = _smoothness_basis(board.cols, board.rows)
-    H, _ = cv2.findHomography(uv, corners, 0)  # noqa: N806
-    if H is None:
-        return float("inf")
-    rest = corners - cv2.perspectiveTransform(uv.reshape(-1, 1, 2), H).reshape(-1, 2)
-    coef, *_ = np.linalg.lstsq(basis, rest, rcond=None)
-    return float(np.sqrt(np.mean((rest - basis @ coef) ** 2)))
-
-
-def _min_spacing_px(corners: np.ndarray, board: BoardSpec) -> float:
-    """Shortest distance between neighbouring corners of the grid, px."""
-    grid = corners.reshape(board.rows, board.cols, 2)
-    return float(min(np.min(np.linalg.norm(np.diff(grid, axis=0), axis=-1)),
-                     np.min(np.linalg.norm(np.diff(grid, axis=1), axis=-1))))
-
-
-def _off_grid_squares(corners: np.ndarray, board: BoardSpec) -> float:
-    """Largest distance of a corner from the smooth map of the grid (`_grid_roughness_px`'s model), in squares."""
     pts = corners.reshape(-1, 2).astype(np.float64)
     uv, basis = _smoothness_basis(board.cols, board.rows)
     H, _ = cv2.findHomography(uv, pts, 0)  # noqa: N806
     if H is None:
-        return float("inf")
+        return None
     rest = pts - cv2.perspectiveTransform(uv.reshape(-1, 1, 2), H).reshape(-1, 2)
     coef, *_ = np.linalg.lstsq(basis, rest, rcond=None)
-    grid = pts.reshape(board.rows, board.cols, 2)
-    spacing = float(np.median(np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
-                                              np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()])))
-    return float(np.max(np.linalg.norm(rest - basis @ coef, axis=1))) / max(spacing, 1e-9)
+    return rest - basis @ coef
+
+
+def _grid_roughness_px(corners: np.ndarray, board: BoardSpec) -> float:
+    """RMS of `_grid_residuals_px`: ranks refinements of the same detection by their noise without a calibration."""
+    res = _grid_residuals_px(corners, board)
+    return float("inf") if res is None else float(np.sqrt(np.mean(res**2)))
+
+
+def _neighbour_distances_px(corners: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """Distances between neighbouring corners along rows and columns of the grid, px."""
+    grid = corners.reshape(board.rows, board.cols, 2).astype(np.float64)
+    return np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
+                           np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()])
+
+
+def _min_spacing_px(corners: np.ndarray, board: BoardSpec) -> float:
+    """Shortest distance between neighbouring corners of the grid, px."""
+    return float(np.min(_neighbour_distances_px(corners, board)))
+
+
+def _off_grid_squares(corners: np.ndarray, board: BoardSpec) -> float:
+    """Largest distance of a corner from the smooth map of the grid (`_grid_residuals_px`), in (median) squares."""
+    res = _grid_residuals_px(corners, board)
+    if res is None:
+        return float("inf")
+    spacing = float(np.median(_neighbour_distances_px(corners, board)))
+    return float(np.max(np.linalg.norm(res, axis=1))) / max(spacing, 1e-9)
 
 
 def _locate_board(gray: np.ndarray, board: BoardSpec) -> np.ndarray | None:
