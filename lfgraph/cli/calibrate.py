@@ -39,8 +39,6 @@ def cmd_info(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-
-
 def _board_and_config(args: argparse.Namespace):
     from lfgraph.board import BoardSpec
     from lfgraph.grid import ViewGrid
@@ -166,8 +164,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"{args.calibration} against {args.truth}:")
         print(evaluation_table(errors, "truth"))
     return EXIT_OK
-
-
 
 
 def add_parsers(sub: Any) -> None:

@@ -153,8 +153,6 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-
-
 def add_parsers(sub: Any) -> None:
     """Add this module's commands to the ``lfgraph`` subparsers."""
     rc = sub.add_parser("rectify", help="rectify a capture with a calibration (paper Section 3.3)")

@@ -59,8 +59,6 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-
-
 def _study_common(args: argparse.Namespace) -> None:
     from lfgraph.executor import parse_executor
 
@@ -170,8 +168,6 @@ def cmd_study_calibration(args: argparse.Namespace) -> int:
     print(format_table(["method", "sigma_px", "frames", "fx_err_px", "pos_err_mm", "rot_err_deg"], table))
     print(f"wrote {args.output} and {len(plots)} plots ({plots[0].parent if plots else ''})")
     return EXIT_OK
-
-
 
 
 def add_parsers(sub: Any) -> None:

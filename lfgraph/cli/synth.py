@@ -103,8 +103,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
                     with_refinement=not args.no_refine)
 
 
-
-
 def add_parsers(sub: Any) -> None:
     """Add this module's commands to the ``lfgraph`` subparsers."""
     synth = sub.add_parser("synth", help="render synthetic light fields with ground truth")
