@@ -13,7 +13,8 @@ import numpy as np
 
 from lfgraph.board import BoardSpec
 from lfgraph.camera import Intrinsics
-from lfgraph.datasets.checkerboard import BLACK_LEVEL, WHITE_LEVEL, CheckerboardConfig
+from lfgraph.datasets.board_render import BLACK_LEVEL, WHITE_LEVEL
+from lfgraph.datasets.checkerboard import CheckerboardConfig
 from lfgraph.datasets.scene import Scene, SceneConfig
 
 
