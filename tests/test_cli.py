@@ -29,6 +29,18 @@ def test_synth_checkerboard_then_info(tmp_path, capsys):
     assert "r01_c01" in text and "fx_px" in text and "grid 2x2" in text
 
 
+def test_global_quiet_hides_progress_bars_and_info_logs(tmp_path, capsys):
+    """`lfgraph -q CMD` shows neither progress bars nor info lines on standard error; results stay on stdout."""
+    assert main(["-q", "synth", "checkerboard", str(tmp_path / "q"), "--scene", "small-2x2", "--frames", "2",
+                 "--jobs", "1"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    assert "ground truth" in captured.out
+    assert main(["synth", "checkerboard", str(tmp_path / "loud"), "--scene", "small-2x2", "--frames", "2",
+                 "--jobs", "1"]) == 0
+    assert "rendering" in capsys.readouterr().err  # the bar is there without -q
+
+
 def test_synth_mosaic_with_grid_override(tmp_path):
     out = tmp_path / "mosaic"
     assert main(["synth", "checkerboard", str(out), "--scene", "small-2x2", "--grid", "1x3", "--frames", "2",

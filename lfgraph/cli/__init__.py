@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="more log output (debug level)")
     verbosity.add_argument("-q", "--log-quiet", dest="log_quiet", action="store_true",
-                           help="warnings and errors only on the log")
+                           help="warnings and errors only on the log, no progress bars")
     sub = parser.add_subparsers(dest="command", required=True)
     for module in (synth, calibrate, selfcal, rectify, refine, fleet, study, interop):
         module.add_parsers(sub)
@@ -71,6 +71,8 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.log_quiet and hasattr(args, "quiet"):
+        args.quiet = True
     configure_logging(args.verbose, args.log_quiet or getattr(args, "quiet", False))
     try:
         return int(args.func(args) or 0)

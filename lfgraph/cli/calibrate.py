@@ -169,7 +169,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def add_parsers(sub: Any) -> None:
     """Add this module's commands to the ``lfgraph`` subparsers."""
     info = sub.add_parser("info", help="print a calibration file as a table")
-    info.add_argument("calibration", type=Path)
+    info.add_argument("calibration", type=Path, help="calibration.json or truth.json")
     info.add_argument("--json", action="store_true", help="print grid, per-view parameters and metrics as JSON")
     info.set_defaults(func=cmd_info)
 
@@ -221,7 +221,7 @@ def add_parsers(sub: Any) -> None:
     cal.set_defaults(func=cmd_calibrate)
 
     ev = sub.add_parser("evaluate", help="compare a calibration with ground truth (e.g. a synthetic truth.json)")
-    ev.add_argument("calibration", type=Path)
+    ev.add_argument("calibration", type=Path, help="calibration.json to evaluate")
     ev.add_argument("--truth", type=Path, required=True, help="ground-truth calibration.json")
     ev.add_argument("--json", action="store_true", help="print the RMS errors as JSON")
     ev.set_defaults(func=cmd_evaluate)

@@ -161,9 +161,9 @@ def add_parsers(sub: Any) -> None:
     rc.add_argument("-o", "--output", type=Path, required=True, help="new folder for the rectified capture")
     rc.add_argument("--crop", choices=("valid", "full"), default="valid",
                     help="valid: the rectangle every view fills (default); full: keep the source size")
-    rc.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
-    rc.add_argument("--jobs", type=positive_int, default=jobs_default())
-    rc.add_argument("--quiet", action="store_true")
+    rc.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
+    rc.add_argument("--jobs", type=positive_int, default=jobs_default(), help="worker processes")
+    rc.add_argument("--quiet", action="store_true", help="no progress bar")
     add_rerun_args(rc)
     rc.set_defaults(func=cmd_rectify)
 
@@ -179,6 +179,6 @@ def add_parsers(sub: Any) -> None:
     ck.add_argument("--drift", default="",
                     help="drift model sigmas, e.g. roll_deg=1,pan_tilt_deg=0.5,position_mm=5 (see RefineConfig)")
     ck.add_argument("--max-frames", type=positive_int, default=3, help="frames to use (default 3)")
-    ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
     ck.add_argument("--json", action="store_true", help="print the figures and the verdict as JSON")
     ck.set_defaults(func=cmd_check)

@@ -103,7 +103,7 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--sensor-width-mm", type=positive_float, help="sensor width (with --focal-mm)")
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
     p.add_argument("--reference", type=int, help="reference view (row-major index; default 0)")
-    p.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto")
+    p.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
     p.add_argument("--max-frames", type=positive_int, help="use at most this many frames")
     p.add_argument("--tracks-per-frame", type=positive_int, default=TRACKS_PER_FRAME,
                    help=f"tracks kept per frame, spread over the image (default {TRACKS_PER_FRAME})")
@@ -118,5 +118,5 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--no-rectify", action="store_true", help="do not compute and store the rectification")
     p.add_argument("--crop", choices=("valid", "full"), default="valid", help="rectification crop (default valid)")
     p.add_argument("--report-json", type=Path, help="also write the report (coverage, sigmas, modes, verdict)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_calibrate_scene)

@@ -195,7 +195,7 @@ def add_parsers(sub: Any) -> None:
         p.add_argument("--jobs", type=positive_int, default=jobs_default(), help="processes / Dask workers")
         p.add_argument("-o", "--output", type=Path, default=Path(default_out),
                        help=f"tidy CSV (default {default_out}); a re-run skips trials already in it")
-        p.add_argument("--quiet", action="store_true")
+        p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     ss = st_sub.add_parser("shake", help="refine shaken rigs (the paper's Fig. avg_synth)")
     common_study(ss, "paper-5x5", "shake_study.csv")

@@ -144,6 +144,6 @@ def add_parsers(sub: Any) -> None:
     demo.add_argument("--out", default="out/demo", help="working directory (default out/demo)")
     demo.add_argument("--scene", default="paper-4x4", help="named scene (default paper-4x4; small-2x2 is quick)")
     demo.add_argument("--no-refine", action="store_true", help="skip the refinement part (shaken paper-5x5)")
-    demo.add_argument("--jobs", type=positive_int, default=jobs_default())
-    demo.add_argument("--quiet", action="store_true")
+    demo.add_argument("--jobs", type=positive_int, default=jobs_default(), help="worker processes")
+    demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(func=cmd_demo)
