@@ -19,7 +19,14 @@ import numpy as np
 
 from lfgraph.board import BoardSpec
 from lfgraph.camera import Intrinsics, transform_points
-from lfgraph.datasets.render import NEAR_PLANE_M, LensRays, clip_polygon_near, inverse_from_columns, sample_rays
+from lfgraph.datasets.render import (
+    NEAR_PLANE_M,
+    LensRays,
+    clip_polygon_near,
+    inverse_from_columns,
+    sample_rays,
+    to_uint8,
+)
 
 if TYPE_CHECKING:  # the config type only annotates (checkerboard.py imports this module)
     from lfgraph.datasets.checkerboard import CheckerboardConfig
@@ -217,12 +224,17 @@ def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, i
             sub[ys, xs] = _edge_pixels(board, rays, rows, cols, uv[ys, xs], to_squares, n, config.background_level,
                                        partly_behind)
         img[window] = sub
-    if config.blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma_px)
-    if rng is not None and config.noise_sigma > 0:
-        noise = rng.standard_normal(img.shape)  # float64, the same stream as before issue 16
-        noise *= config.noise_sigma
-        noise += img
-        img = noise
-    np.rint(img, out=img)
-    return np.clip(img, 0, 255, out=img).astype(np.uint8)
+        if config.blur_sigma_px > 0:
+            # Outside the window the image is uniform background, which the blur keeps: blur only the window grown
+            # by twice the kernel's reach (what the grown part reflects at its border is background too).
+            grow = 2 * _blur_radius_px(config.blur_sigma_px) + 1
+            rows, cols = window
+            grown = (slice(max(rows.start - grow, 0), min(rows.stop + grow, h)),
+                     slice(max(cols.start - grow, 0), min(cols.stop + grow, w)))
+            img[grown] = cv2.GaussianBlur(img[grown], (0, 0), config.blur_sigma_px)
+    return to_uint8(img, config.noise_sigma, rng)
+
+
+def _blur_radius_px(sigma: float) -> int:
+    """Half the kernel width `cv2.GaussianBlur` picks for a float image when ksize is (0, 0)."""
+    return (int(round(sigma * 4 * 2 + 1)) | 1) // 2

@@ -26,7 +26,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
 from lfgraph.capture import write_frame
-from lfgraph.datasets.render import LensRays, clip_polygon_near, plane_maps, sample_rays
+from lfgraph.datasets.render import LensRays, clip_polygon_near, plane_maps, sample_rays, to_uint8
 from lfgraph.geometry import rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
@@ -274,9 +274,7 @@ def _render_view(scene: Scene, textures: list[np.ndarray] | None, intrinsics: In
     grey = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA) if config.supersample > 1 else grey
     if config.blur_sigma_px > 0:
         grey = cv2.GaussianBlur(grey, (0, 0), config.blur_sigma_px)
-    if rng is not None and config.noise_sigma > 0:
-        grey = grey + config.noise_sigma * rng.standard_normal(grey.shape)
-    return np.clip(np.rint(grey), 0, 255).astype(np.uint8)
+    return to_uint8(grey, config.noise_sigma, rng)
 
 
 def _render_frame_task(args: tuple) -> int:
