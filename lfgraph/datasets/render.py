@@ -20,6 +20,7 @@ from statistics import NormalDist
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from lfgraph.camera import Intrinsics
 
@@ -76,7 +77,7 @@ def sample_rays(intrinsics: Intrinsics, image_size_px: tuple[int, int], supersam
 
     The lens is undistorted exactly (`Intrinsics.undistort`, Newton) on a coarse grid, one node per
     ``UNDISTORT_GRID_STRIDE_PX`` pixels, and interpolated to every sample by separable 6-point Lagrange polynomials
-    (6-tap sums along x, then y). The undistortion is smooth: the interpolation error is ~1e-7 px in float64
+    (6-tap sums along x, then y, by phase). The undistortion is smooth: the interpolation error is ~1e-7 px in float64
     (pixel centres) and ~1e-4 px in float32 (supersampled grids), at a small fraction of the cost of Newton
     iteration at every sample. Samples whose stencil holds a node beyond the lens fold (NaN) are undistorted
     exactly.
@@ -93,19 +94,24 @@ def sample_rays(intrinsics: Intrinsics, image_size_px: tuple[int, int], supersam
     # Pixel centres (n = 1: boards, depth maps) in float64; supersampled grids are only rendered, float32 suffices.
     dtype = np.float64 if n == 1 else np.float32
     nodes = np.where(bad[..., None], 0.0, nodes).astype(dtype)
-    base_x, wx = _lagrange_taps(np.arange(w * n) / s + pad, dtype)  # (W n,), (W n, TAPS)
-    base_y, wy = _lagrange_taps(np.arange(h * n) / s + pad, dtype)
-    # Elementwise sums over the taps, not matrix products: BLAS (numpy's and cv2.gemm's) rounds differently with
-    # different thread counts, and renders must not depend on the executor's threading.
-    planes = []
-    for c in range(2):  # x, y: (H n, W n) each
-        along_x = sum(wx[:, j] * nodes[:, base_x + j, c] for j in range(LAGRANGE_TAPS))  # (Ky, W n)
-        plane = along_x[base_y] * wy[:, 0, None]
-        for j in range(1, LAGRANGE_TAPS):
-            plane += along_x[base_y + j] * wy[:, j, None]
-        planes.append(plane)
+    # Sample i = k s + p (phase p < s) interpolates nodes k + 1 .. k + TAPS (indices into kx, ky) with weights that
+    # depend on p only: one (s, TAPS) table, applied to a sliding window of nodes by einsum. einsum's own loops, not
+    # BLAS: BLAS (numpy's and cv2.gemm's) rounds differently with different thread counts, and renders must not
+    # depend on the executor's threading.
+    first, weights = _lagrange_taps(np.arange(s) / s + pad, dtype)
+    assert np.all(first == first[0])
+    k0 = int(first[0])
+    blocks_x, blocks_y = -(-w * n // s), -(-h * n // s)
+    windows = sliding_window_view(nodes, LAGRANGE_TAPS, axis=1)[:, k0 : k0 + blocks_x]  # (Ky, Bx, 2, TAPS)
+    along_x = np.einsum("ykcj,pj->ykpc", windows, weights).reshape(len(ky), blocks_x * s, 2)[:, : w * n]
+    windows = sliding_window_view(along_x, LAGRANGE_TAPS, axis=0)[k0 : k0 + blocks_y]  # (By, W n, 2, TAPS)
+    xy = np.einsum("kwcj,pj->kpwc", windows, weights).reshape(blocks_y * s, w * n, 2)[: h * n]
+    xy = np.ascontiguousarray(xy)
+    planes = [xy[..., 0], xy[..., 1]]
     if bad.any():
         # Samples whose stencil holds a node beyond the lens fold: undistort them exactly.
+        base_x, _ = _lagrange_taps(np.arange(w * n) / s + pad, dtype)
+        base_y, _ = _lagrange_taps(np.arange(h * n) / s + pad, dtype)
         bad_x = np.logical_or.reduce([bad[:, base_x + j] for j in range(LAGRANGE_TAPS)])
         rows, cols = np.nonzero(np.logical_or.reduce([bad_x[base_y + j] for j in range(LAGRANGE_TAPS)]))
         exact = intrinsics.undistort(np.column_stack([_sample_to_pixel(cols, n), _sample_to_pixel(rows, n)]))
@@ -113,8 +119,8 @@ def sample_rays(intrinsics: Intrinsics, image_size_px: tuple[int, int], supersam
             planes[c][rows, cols] = exact[:, c]
     with np.errstate(invalid="ignore"):  # rows/columns all beyond the lens fold stay NaN and are never selected
         row_y = np.stack([np.fmin.reduce(planes[1], axis=1), np.fmax.reduce(planes[1], axis=1)], axis=1)
-        col_x = np.stack([np.fmin.reduce(planes[0], axis=0), np.fmax.reduce(planes[0], axis=0)], axis=1)
-    xy = np.stack(planes, axis=-1)
+        # along axis 0 on both channels at once: elementwise over contiguous rows, ~8x faster than a strided plane
+        col_x = np.stack([np.fmin.reduce(xy, axis=0)[:, 0], np.fmax.reduce(xy, axis=0)[:, 0]], axis=1)
     xy32 = xy if dtype == np.float32 else xy.astype(np.float32)
     for arr in (xy, xy32, row_y, col_x):
         arr.setflags(write=False)

@@ -279,10 +279,12 @@ def _render_view(scene: Scene, textures: list[np.ndarray] | None, intrinsics: In
 
 def _render_frame_task(args: tuple) -> int:
     """Render views ``views`` of one frame; all of them go through ``write_frame`` in ``layout``, a part of them
-    is written as one PNG per view (``folders``) for the parent to assemble."""
-    calib_json, config, seed, frame, views, out_dir, layout = args
+    is written as one PNG per view (``folders``) for the parent to assemble. The frame's scene comes with the task
+    when the parent drew it (a frame split over several tasks), else it is drawn here."""
+    calib_json, config, seed, frame, views, out_dir, layout, scene = args
     calib = Calibration.from_dict(json.loads(calib_json))
-    scene = make_scene(config, np.random.default_rng([seed, frame]))
+    if scene is None:
+        scene = make_scene(config, np.random.default_rng([seed, frame]))
     images = render_scene_views(scene, calib, config, views, [np.random.default_rng([seed, frame, v]) for v in views])
     if len(views) == calib.num_views:
         write_frame(out_dir, f"{frame:03d}", images, calib.grid, layout=layout)
@@ -301,9 +303,9 @@ def write_scene_dataset(out_dir: str | os.PathLike, calib: Calibration, config: 
                         original: Calibration | None = None) -> None:
     """Render ``frames`` random scenes seen by ``calib`` to ``out_dir`` with ``truth.json`` (and ``original.json``).
 
-    One task per frame; with fewer frames than ``jobs``, each frame's views are split over several tasks (each
-    draws the frame's scene itself) so that every process has work. Frame f's scene is drawn from (seed, f) and
-    its noise from (seed, f, view), so any ``jobs`` gives the same files.
+    One task per frame; with fewer frames than ``jobs``, each frame's views are split over several tasks so that
+    every process has work (the frame's scene is then drawn once, here, and sent to them). Frame f's scene is drawn
+    from (seed, f) and its noise from (seed, f, view), so any ``jobs`` gives the same files.
     """
     if layout not in ("folders", "mosaic"):
         raise ValueError(f"layout must be 'folders' or 'mosaic', got {layout!r}")
@@ -313,7 +315,8 @@ def write_scene_dataset(out_dir: str | os.PathLike, calib: Calibration, config: 
     parts = min(calib.num_views, -(-n_jobs // max(frames, 1)))
     views = [list(c) for c in np.array_split(np.arange(calib.num_views), parts)]
     render_dir = out if parts == 1 or layout == "folders" else Path(tempfile.mkdtemp(prefix=".render-", dir=out))
-    tasks = [(calib.to_json(), config, seed, f, [int(v) for v in vs], str(render_dir), layout)
+    scenes = [make_scene(config, np.random.default_rng([seed, f])) if parts > 1 else None for f in range(frames)]
+    tasks = [(calib.to_json(), config, seed, f, [int(v) for v in vs], str(render_dir), layout, scenes[f])
              for f in range(frames) for vs in views]
     try:
         run_tasks(_render_frame_task, tasks, jobs, "rendering frames", "frame", progress)
