@@ -5,24 +5,35 @@ Cases, all measured in this run on this machine:
 * ``paper-5x5`` textured scene frame: 25 views of 512x512, 2x2 samples per pixel, as ``lfgraph synth scene``.
   The new renderer writes the whole frame with ``write_scene_dataset`` (``--jobs`` processes; start-up, scene
   generation and PNGs included). Old, new and peer each render ``--old-views`` views in this process (lens rays
-  cold); the old frame is extrapolated as the new frame plus (old - new) per view x 25 views (wall: / ``--jobs``).
+  cold), twice: noise-free (the render alone: ``render`` columns, accuracy) and as each writer does per image
+  (noise, PNG encoding: ``image`` columns). The old frame is extrapolated as the new frame plus (old - new) per
+  image x 25 views (wall: / ``--jobs``), plus the scene generation the old writer repeated in each of its tasks
+  (CPU only: they ran in parallel; the new writer draws a split frame's scene once).
 * ``paper-4x4`` checkerboard set: 16 views x 40 frames of 960x960. The new renderer writes the whole set with
   ``write_checkerboard_dataset``. Old and new render ``--old-frames`` frames of ``--old-views`` views in this
-  process (each view's rays computed once, timed apart: CPU ms per view in the note); the old set is
-  extrapolated the same way, swapping the per-view rays too. Per-view times are per image, noise-free, PNG
-  writing excluded.
+  process (each view's rays computed once, timed apart: CPU ms per view in the note), noise-free and as the
+  writers do; the old set is extrapolated the same way, swapping the per-view rays too.
 * ``test rig`` checkerboards (the accuracy case of tests/test_checkerboard.py: 2x2 views of 640x480, k1 = -0.12,
   noise-free, blur 0.8 px): RMS of OpenCV-detected corners vs the true projections; the test's limit is 0.05 px.
+
+Like with like: both writers encode PNGs with OpenCV's defaults (``cv2.imwrite`` without parameters: zlib level 1,
+RLE strategy, SUB filter); only the renderer and the noise source differ (old: ``Generator.standard_normal`` in
+float64; new: a 16-bit Gaussian quantile lookup, `lfgraph.datasets.render.to_uint8`). The PNG encoding (~9 ms
+per noisy 960x960 board, ~3 ms per 512x512 view) is the same in both and bounds the set's speed-up; the
+``x_old_render`` column is the renderer's own (noise-free image in memory, CPU).
 
 The peer does the least an OpenCV user would: per view, ``cv2.warpPerspective`` (bilinear) of each planar texture
 into a pinhole image of the view's size (painter's order, far to near; a board drawn at 40 px per square) and the
 lens applied with ``cv2.remap`` through a map from ``cv2.undistortPoints`` (once per lens); no anti-aliasing, no
-margin for the lens (barrel-distorted corners see background), one process (its wall time divided by ``--jobs``).
+noise, no margin for the lens (barrel-distorted corners see background), PNG encoding as the writers, one process
+(its wall time divided by ``--jobs``).
 
-Columns: wall and CPU time per view (ms) and per set (s), speed vs old (wall and CPU), RMS of detected corners vs
-truth (px; detection may fail on a few peer images), mean absolute grey-level difference from the old renderer
-(noise-free renders of the same views). The machine is shared: wall times swing with the other users' load, CPU
-times (this process plus the writers' worker pools) much less; compare ratios from the same run.
+Columns: wall and CPU time per view (ms) of the render alone and of a written image, and per set (s); speed vs
+old (render: CPU; set: wall and CPU) and vs the peer (``x_peer``: peer time / this time, > 1 = faster than the
+peer); RMS of detected corners vs truth (px; detection may fail on a few peer images); mean absolute grey-level
+difference from the old renderer (noise-free renders of the same views). The machine is shared: wall times swing
+with the other users' load, CPU times (this process plus the writers' worker pools) much less; compare ratios
+from the same run.
 """
 
 from __future__ import annotations
@@ -157,8 +168,10 @@ def scene_case(args, rows: list) -> bool:
     cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4)  # as `lfgraph synth scene`
     quiet = dataclasses.replace(cfg, noise_sigma=0.0)
     size = calib.image_size_px
-    views = np.linspace(0, calib.num_views - 1, args.old_views).round().astype(int)
+    views = [int(v) for v in np.linspace(0, calib.num_views - 1, args.old_views).round().astype(int)]
+    start = _clock()
     scene = make_scene(cfg, np.random.default_rng([0, 0]))
+    scene_spent = np.array(_since(start))
     n = calib.num_views
     # new: the whole frame through the writer (processes, scene generation, PNGs)
     with tempfile.TemporaryDirectory() as tmp:
@@ -167,14 +180,34 @@ def scene_case(args, rows: list) -> bool:
         new_frame = np.array(_since(start))
     # per view, in this process; each renderer in its own loop (interleaving them slows the new one by sharing
     # caches and allocator with the old one's ~1 GB of temporaries); lens rays computed cold for each view
-    sample_rays.cache_clear()
-    start = _clock()
-    news = list(render_scene_views(scene, calib, quiet, [int(v) for v in views]))  # as the writer: textures once
-    new_view = np.array(_since(start)) / len(views)
-    olds, old_view = _timed(lambda v: render_scene_view_reference(scene, calib.intrinsics[v], size,
-                                                                  calib.view_T_ref(v), quiet), views)
-    peers, peer_view = _timed(lambda v: peer_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
-                                                        _peer_lens_map(calib.intrinsics[v], size)), views)
+    def new_views(config, rngs):
+        sample_rays.cache_clear()
+        start = _clock()
+        imgs = list(render_scene_views(scene, calib, config, views, rngs))  # as the writer: textures once
+        if rngs[0] is not None:
+            for img in imgs:
+                _encode(img)
+        return imgs, np.array(_since(start)) / len(views)
+
+    def old_view(v, config, rng):
+        img = render_scene_view_reference(scene, calib.intrinsics[v], size, calib.view_T_ref(v), config, rng)
+        if rng is not None:
+            _encode(img)
+        return img
+
+    def peer_view(v, encode):
+        img = peer_scene_view(scene, calib.intrinsics[v], size, calib.view_T_ref(v),
+                              _peer_lens_map(calib.intrinsics[v], size))
+        if encode:
+            _encode(img)
+        return img
+
+    news, new_render = new_views(quiet, [None] * len(views))
+    _, new_image = new_views(cfg, [np.random.default_rng([0, 0, v]) for v in views])
+    olds, old_render = _timed(lambda v: old_view(v, quiet, None), views)
+    _, old_image = _timed(lambda v: old_view(v, cfg, np.random.default_rng([0, 0, v])), views)
+    peers, peer_render = _timed(lambda v: peer_view(v, False), views)
+    _, peer_image = _timed(lambda v: peer_view(v, True), views)
     depth_err = []
     for v in views:
         intr, T = calib.intrinsics[v], calib.view_T_ref(v)  # noqa: N806
@@ -182,17 +215,21 @@ def scene_case(args, rows: list) -> bool:
         d_old = render_scene_depth_reference(scene, intr, size, T)
         assert np.array_equal(np.isnan(d_new), np.isnan(d_old))
         depth_err.append(float(np.nanmax(np.abs(d_new - d_old))))
-    # the old writer: the new frame with the per-view render cost swapped for the old one (wall: spread over jobs)
-    old_frame = new_frame + (old_view - new_view) * n / np.array([args.jobs, 1])
-    peer_frame = peer_view * n / np.array([args.jobs, 1])
+    # the old writer: the new frame with the per-image cost swapped for the old one (wall: spread over jobs), and
+    # the scene drawn once per task (parallel: CPU only)
+    per_core = np.array([args.jobs, 1])
+    parts = min(n, args.jobs)  # tasks the writers split the single frame into
+    old_frame = new_frame + (old_image - new_image) * n / per_core + np.array([0.0, (parts - 1) * scene_spent[1]])
+    peer_frame = peer_image * n / per_core
     mad = {k: np.mean([_mad(a, b) for a, b in zip(imgs, olds, strict=True)]) for k, imgs in (("new", news),
                                                                                           ("peer", peers))}
     rows += [
-        _row("scene paper-5x5, old (ray cast)", n, old_view, old_frame, old_frame, None, 0.0,
-             f"{len(views)} views, extrap."),
-        _row("scene paper-5x5, new", n, new_view, new_frame, old_frame, None, mad["new"], "frame: writer"),
-        _row("scene paper-5x5, opencv peer", n, peer_view, peer_frame, old_frame, None, mad["peer"],
-             "no AA, painter; extrap."),
+        _row("scene paper-5x5, old (ray cast)", n, old_render, old_image, old_frame, old_render, old_frame,
+             peer_frame, None, 0.0, f"{len(views)} views, extrap."),
+        _row("scene paper-5x5, new", n, new_render, new_image, new_frame, old_render, old_frame, peer_frame, None,
+             mad["new"], f"frame: writer; scene drawn in {scene_spent[1]:.2f} s CPU"),
+        _row("scene paper-5x5, opencv peer", n, peer_render, peer_image, peer_frame, old_render, old_frame,
+             peer_frame, None, mad["peer"], "no AA, painter; extrap."),
     ]
     print(f"scene depth maps: new vs old max |dz| = {max(depth_err):.2e} m (same NaN pattern)")
     return new_frame[0] <= SCENE_FRAME_TARGET_S
@@ -233,42 +270,65 @@ def board_set_case(args, rows: list) -> bool:
         sample_rays.cache_clear()
         return ViewRays.compute(calib.intrinsics[v], size)
 
+    def new_image(vf, config, noisy):
+        v, f = vf
+        img = render_checkerboard_view(calib.intrinsics[v], size, pose(v, f), cfg.board, config,
+                                       np.random.default_rng([0, f, v]) if noisy else None, new_rays_of[v])
+        return _encode(img) if noisy else img
+
+    def old_image(vf, config, noisy):
+        v, f = vf
+        img = render_checkerboard_view_reference(calib.intrinsics[v], size, pose(v, f), cfg.board, config,
+                                                 np.random.default_rng([0, f, v]) if noisy else None, old_rays_of[v])
+        return _encode(img) if noisy else img
+
     rays, new_rays_spent = _timed(new_rays, views)
     new_rays_of = dict(zip((int(v) for v in views), rays, strict=True))
-    new_imgs, new_view = _timed(lambda vf: render_checkerboard_view(calib.intrinsics[vf[0]], size, pose(*vf),
-                                                                    cfg.board, quiet, None, new_rays_of[vf[0]]), pairs)
+    new_imgs, new_render = _timed(lambda vf: new_image(vf, quiet, False), pairs)
+    _, new_written = _timed(lambda vf: new_image(vf, cfg, True), pairs)
     rays, old_rays_spent = _timed(lambda v: OldViewRays.compute(calib.intrinsics[v], size), views)
     old_rays_of = dict(zip((int(v) for v in views), rays, strict=True))
-    old_imgs, old_view = _timed(lambda vf: render_checkerboard_view_reference(
-        calib.intrinsics[vf[0]], size, pose(*vf), cfg.board, quiet, None, old_rays_of[vf[0]]), pairs)
+    old_imgs, old_render = _timed(lambda vf: old_image(vf, quiet, False), pairs)
+    _, old_written = _timed(lambda vf: old_image(vf, cfg, True), pairs)
     peer_maps = {int(v): _peer_lens_map(calib.intrinsics[v], size) for v in views}
     imgs = {"old": old_imgs, "new": new_imgs,
             "peer": [peer_board_view(calib.intrinsics[v], size, pose(v, f), cfg.board, peer_maps[v], texture)
                      for v, f in pairs]}
     truths = [(cfg.board, truth.corners_px[v, f]) for v, f in pairs]
-    # The old writer differed only in the renderer: the new set with the per-image and per-view (rays) render
-    # costs swapped for the old ones (PNG writing, noise, process start-up counted as measured).
+    # The old writer differed only in the renderer and the noise: the new set with the per-image and per-view
+    # (rays) costs swapped for the old ones (PNG encoding, process start-up and file writing counted as measured).
     per_core = np.array([args.jobs, 1])
-    old_set = new_set + ((old_view - new_view) * n + (old_rays_spent - new_rays_spent) * calib.num_views) / per_core
+    swapped = (old_written - new_written) * n + (old_rays_spent - new_rays_spent) * calib.num_views
+    old_set = new_set + swapped / per_core
     rms = {k: _corner_rms(imgs[k], truths)[0] for k in imgs}
     mad = {k: np.mean([_mad(a, b) for a, b in zip(imgs[k], imgs["old"], strict=True)]) for k in ("new", "peer")}
     note = f"{len(views)}x{len(frames)} images"
     rows += [
-        _row("board paper-4x4, old", n, old_view, old_set, old_set, rms["old"], 0.0,
-             f"{note}, extrap.; rays {1e3 * old_rays_spent[1]:.0f} ms/view"),
-        _row("board paper-4x4, new", n, new_view, new_set, old_set, rms["new"], mad["new"],
-             f"set: writer; rays {1e3 * new_rays_spent[1]:.0f} ms/view"),
-        _row("board paper-4x4, opencv peer", n, None, peer_set, old_set, rms["peer"], mad["peer"],
-             "no AA; 1 process"),
+        _row("board paper-4x4, old", n, old_render, old_written, old_set, old_render, old_set, peer_set, rms["old"],
+             0.0, f"{note}, extrap.; rays {1e3 * old_rays_spent[1]:.0f} ms/view"),
+        _row("board paper-4x4, new", n, new_render, new_written, new_set, old_render, old_set, peer_set, rms["new"],
+             mad["new"], f"set: writer; rays {1e3 * new_rays_spent[1]:.0f} ms/view"),
+        _row("board paper-4x4, opencv peer", n, None, None, peer_set, old_render, old_set, peer_set, rms["peer"],
+             mad["peer"], "no AA; 1 process"),
     ]
     return new_set[0] <= BOARD_SET_TARGET_S
 
 
-def _row(case, images, per_view, per_set, old_set, rms, mad, note) -> list:
-    """A table row; ``per_view``, ``per_set`` and ``old_set`` are (wall, CPU) seconds."""
-    pv = (None, None) if per_view is None else (1e3 * per_view[0], 1e3 * per_view[1])
-    return [case, images, *pv, per_set[0], per_set[1], old_set[0] / per_set[0], old_set[1] / per_set[1], rms, mad,
-            note]
+def _encode(img: np.ndarray) -> np.ndarray:
+    """The image as the writers store it (``cv2.imwrite``'s default PNG parameters), encoded in memory."""
+    ok, _ = cv2.imencode(".png", img)
+    assert ok
+    return img
+
+
+def _row(case, images, render, written, per_set, old_render, old_set, peer_set, rms, mad, note) -> list:
+    """A table row; ``render``, ``written`` (per image), ``per_set`` and the references are (wall, CPU) seconds."""
+    def ms(x):
+        return (None, None) if x is None else (1e3 * x[0], 1e3 * x[1])
+
+    x_render = None if render is None else old_render[1] / render[1]
+    return [case, images, *ms(render), *ms(written), per_set[0], per_set[1], x_render, old_set[0] / per_set[0],
+            old_set[1] / per_set[1], peer_set[0] / per_set[0], peer_set[1] / per_set[1], rms, mad, note]
 
 
 def accuracy_case(rows: list) -> bool:
@@ -293,8 +353,7 @@ def accuracy_case(rows: list) -> bool:
     n = len(truths)
     for k, label in (("old", "old"), ("new", "new"), ("peer", "opencv peer")):
         diff = 0.0 if k == "old" else np.mean([_mad(a, b) for a, b in zip(imgs[k], imgs["old"], strict=True)])
-        rows.append([f"board test rig, {label}", n, None, None, None, None, None, None, rms[k][0], diff,
-                     f"{rms[k][1]} boards found"])
+        rows.append([f"board test rig, {label}", n, *[None] * 11, rms[k][0], diff, f"{rms[k][1]} boards found"])
     return rms["new"][0] <= CORNER_RMS_LIMIT_PX
 
 
@@ -312,7 +371,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"render benchmark: {args.jobs} jobs on {os.cpu_count()} cores, load average {load_before:.1f} before and "
           f"{os.getloadavg()[0]:.1f} after (wall times suffer above ~{os.cpu_count()}); old renderer extrapolated "
           f"from the images it rendered (see note)")
-    print(format_table(["case", "images", "ms_view", "cpu_ms_view", "s_set", "cpu_s_set", "x_old_wall", "x_old_cpu",
+    print(format_table(["case", "images", "ms_render", "cpu_ms_render", "ms_image", "cpu_ms_image", "s_set",
+                        "cpu_s_set", "x_old_render_cpu", "x_old_wall", "x_old_cpu", "x_peer_wall", "x_peer_cpu",
                         "corner_rms_px", "mad_old_grey", "note"], rows, floatfmt=".3g"))
     print(f"targets: scene frame <= {SCENE_FRAME_TARGET_S} s, board set <= {BOARD_SET_TARGET_S} s, "
           f"new corner RMS <= {CORNER_RMS_LIMIT_PX} px (test rig), renderers >= {SPEEDUP_TARGET:.0f}x old")

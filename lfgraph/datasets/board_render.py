@@ -33,7 +33,6 @@ if TYPE_CHECKING:  # the config type only annotates (checkerboard.py imports thi
 
 BLACK_LEVEL, WHITE_LEVEL = 30.0, 220.0
 EDGE_WINDOW_MARGIN_PX = 2  # pixels around the board's footprint in its render window (3x3 edge test + rounding)
-ANALYTIC_MAX_SQUARES_PER_PX = 0.5  # edge pixels integrated in closed form span less than this along a row
 EDGE_NEIGHBOURHOOD = np.ones((3, 3), np.uint8)  # a pixel is on an edge when its 3x3 neighbourhood changes colour
 
 
@@ -78,104 +77,155 @@ def _board_grey(board: BoardSpec, uv: np.ndarray, background: float) -> np.ndarr
 
 
 def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.ndarray, uv: np.ndarray,
-                 to_squares: np.ndarray, n: int, background: float, partly_behind: bool) -> np.ndarray:
-    """Mean grey level over the area of each edge pixel, the lens linearised inside the pixel.
+                 ys: np.ndarray, xs: np.ndarray, to_squares: np.ndarray, n: int, background: float,
+                 partly_behind: bool) -> np.ndarray:
+    """Mean grey level over the area of each edge pixel, the lens and homography linearised inside the pixel.
 
-    Pixels well inside the squares (their whole footprint) are integrated exactly along n sub-rows: along a
-    sub-row both board coordinates are linear, so the colour flips where u or v crosses an integer, and the
-    covered fraction follows in closed form (`_checker_rows`). Pixels near the squares' border or the board's
-    outline are integrated along sub-rows too, over the pieces between the crossings of any colour boundary
-    (`_outline_rows`). The rest (squares or margins narrower than `ANALYTIC_MAX_SQUARES_PER_PX`, a board partly
-    behind the camera) are point-sampled N x N.
+    ``uv`` holds the board coordinates (squares) of every pixel centre of the render window; the edge pixels sit at
+    ``(ys, xs)`` in it and at ``(rows, cols)`` in the image. A pixel's footprint on the board is the parallelogram
+    spanned by the derivatives of ``uv`` along x and y (central differences of the neighbouring centres), and the
+    board's lines (square edges, the squares' border, the outline) are straight across it. A footprint inside one
+    cell takes its colour; one crossed by a single line takes the exact area on either side (`_single_line`).
+    Footprints crossed by a u-line and a v-line (at the corners) are integrated along n sub-rows, each exactly over
+    the at most three pieces between its crossings (`_sub_rows`). Pixels whose sub-rows cross more lines (squares
+    narrower than two pixels) and boards partly behind the camera are point-sampled N x N.
     """
-    d_dx, d_dy = rays.derivatives(rows, cols)
-    xy0 = rays.lens.xy[rows, cols]
-    # Jacobian of the homography (normalised -> squares) at the pixel centre, chained with the lens derivatives
-    g = to_squares
-    # elementwise, not BLAS: the same rounding on any thread count
-    w0, u0, v0 = (xy0[:, 0] * g[r, 0] + xy0[:, 1] * g[r, 1] + g[r, 2] for r in (2, 0, 1))
-    uv0 = np.stack([u0, v0], axis=1) / w0[:, None]
-    dp = (g[None, :2, :2] - uv0[:, :, None] * g[None, 2:3, :2]) / w0[:, None, None]  # (E, 2, 2)
-    j_x = np.einsum("eij,ej->ei", dp, d_dx)  # (E, 2) d(u, v) / d(pixel x)
-    j_y = np.einsum("eij,ej->ei", dp, d_dy)
-    reach = 0.5 * (np.abs(j_x) + np.abs(j_y))  # half extent of the pixel's footprint along u and v, squares
-    with np.errstate(invalid="ignore"):
-        analytic = ((not partly_behind) & np.all(np.abs(j_x) < ANALYTIC_MAX_SQUARES_PER_PX, axis=1)
-                    & (uv0[:, 0] - reach[:, 0] > -1) & (uv0[:, 0] + reach[:, 0] < board.cols)
-                    & (uv0[:, 1] - reach[:, 1] > -1) & (uv0[:, 1] + reach[:, 1] < board.rows))
     out = np.empty(len(rows), dtype=np.float32)
-    offsets = (np.arange(n) + 0.5) / n - 0.5
-    a = np.flatnonzero(analytic)
-    out[a] = _checker_rows(uv0[a], j_x[a], j_y[a], offsets)
-    s = np.flatnonzero(~analytic)
-    if len(s) and not partly_behind:
-        values, ok = _outline_rows(board, uv0[s], j_x[s], j_y[s], offsets, background)
+    s = np.arange(len(rows))
+    if not partly_behind:
+        h, w = uv.shape[:2]
+        x0, x1 = np.maximum(xs - 1, 0), np.minimum(xs + 1, w - 1)
+        y0, y1 = np.maximum(ys - 1, 0), np.minimum(ys + 1, h - 1)
+        j_x = (uv[ys, x1] - uv[ys, x0]) / (x1 - x0)[:, None].astype(np.float32)  # (E, 2) d(u, v) / d(pixel x)
+        j_y = (uv[y1, xs] - uv[y0, xs]) / (y1 - y0)[:, None].astype(np.float32)
+        uv0 = uv[ys, xs]
+        values, done = _single_line(board, uv0, j_x, j_y, background)
+        out[done] = values[done]
+        s = np.flatnonzero(~done)
+        values, ok = _sub_rows(board, uv0[s], j_x[s], j_y[s], n, background)
         out[s[ok]] = values[ok]
         s = s[~ok]
     if len(s):
+        d_dx, d_dy = rays.derivatives(rows[s], cols[s])
+        xy0 = rays.lens.xy[rows[s], cols[s]]
+        offsets = (np.arange(n) + 0.5) / n - 0.5
         ox, oy = (o.ravel() for o in np.meshgrid(offsets, offsets))
-        samples = xy0[s, None, :] + d_dx[s, None, :] * ox[None, :, None] + d_dy[s, None, :] * oy[None, :, None]
+        samples = xy0[:, None, :] + d_dx[:, None, :] * ox[None, :, None] + d_dy[:, None, :] * oy[None, :, None]
         uv_s = cv2.perspectiveTransform(samples.reshape(-1, 1, 2), to_squares).reshape(len(s), n * n, 2)
         if partly_behind:
+            g = to_squares
             uv_s[(samples[..., 0] * g[2, 0] + samples[..., 1] * g[2, 1] + g[2, 2]) <= 0] = np.nan
         out[s] = _board_grey(board, uv_s, background).mean(axis=1)
     return out
 
 
-def _outline_rows(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray, offsets: np.ndarray,
-                  background: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact mean grey along sub-rows at ``offsets`` (pixels) of each pixel, for any part of the board.
+def _cells(coord: np.ndarray, size: int, margin: float) -> np.ndarray:
+    """Index of the board cell along one axis holding ``coord`` (squares), clipped to [-3, size + 1].
 
-    The colour is constant between consecutive boundary lines along u (the outline, the squares' border, the
-    squares' edges) and along v. A sub-row crossing at most one line of each kind splits into at most three
-    pieces, each coloured by its midpoint (`_board_grey`) and weighted by its length.
-
-    Returns:
-        (E,) float32 grey levels and (E,) True where every sub-row crossed at most one line of each kind (the
-        others are not computed).
+    Cells -1 .. size - 1 are squares (cell k spans [k, k + 1)), -2 and ``size`` the white margin on either side,
+    -3 and ``size + 1`` beyond the outline. Returned as float32 (exact small integers).
     """
-    m = board.margin_squares
-    start = uv0[:, None, :] + offsets[None, :, None] * j_y[:, None, :] - 0.5 * j_x[:, None, :]  # (E, n, 2)
-    step = np.broadcast_to(j_x[:, None, :], start.shape)
-    t = np.ones(start.shape)
+    cell = np.floor(coord)
+    if margin != 1.0:  # the margin cells span ``margin`` squares
+        below, above = coord < -1, coord >= size
+        cell[below] = -1 + np.floor((coord[below] + 1) / margin)
+        cell[above] = size + np.floor((coord[above] - size) / margin)
+    return np.clip(cell, -3, size + 1, out=cell)
+
+
+def _cell_start(cell: np.ndarray, size: int, margin: float) -> np.ndarray:
+    """Coordinate (squares) of the line where cell ``cell`` (from `_cells`) starts."""
+    if margin == 1.0:
+        return cell
+    return cell + (margin - 1) * (np.minimum(cell + 1, 0) + np.maximum(cell - size, 0))
+
+
+def _cell_grey_table(board: BoardSpec, background: float) -> np.ndarray:
+    """(rows + 5, cols + 5) float32 grey level of cell (iv, iu) at [iv + 3, iu + 3] (cells as in `_cells`)."""
+    iv, iu = np.mgrid[-3 : board.rows + 2, -3 : board.cols + 2]
+    printed = (iu >= -2) & (iu <= board.cols) & (iv >= -2) & (iv <= board.rows)
+    squares = (iu >= -1) & (iu < board.cols) & (iv >= -1) & (iv < board.rows)
+    table = np.where(printed, np.float32(WHITE_LEVEL), np.float32(background))
+    table[squares & ((iu + iv) & 1 == 0)] = BLACK_LEVEL  # floor(u) + floor(v) even: black (as `_board_grey`)
+    return table
+
+
+def _single_line(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray,
+                 background: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact mean grey (float32) of footprints inside one cell or crossed by one line, and True for those.
+
+    Over the pixel ``[-1/2, 1/2]^2`` a coordinate is ``c0 + a x + b y``; with ``p >= q`` the larger and smaller of
+    ``|a|, |b|`` and ``t`` the line's offset from ``c0``, the share of the pixel beyond the line is ``1/2 - t/p``
+    while the line crosses two opposite sides (``|t| <= (p - q)/2``), else a corner triangle of area
+    ``((p + q)/2 - |t|)^2 / (2 p q)``.
+    """
+    m = float(board.margin_squares)
+    table = _cell_grey_table(board, background)
+    width = np.float32(table.shape[1])
+    reach = np.float32(0.5) * (np.abs(j_x) + np.abs(j_y))  # (E, 2) half extent of the footprint along u and v
+    lo = [_cells(uv0[:, c] - reach[:, c], size, m) for c, size in enumerate((board.cols, board.rows))]
+    hi = [_cells(uv0[:, c] + reach[:, c], size, m) for c, size in enumerate((board.cols, board.rows))]
+    crossed = [hi[c] - lo[c] for c in range(2)]
+    one_u, one_v = (crossed[0] == 1) & (crossed[1] == 0), (crossed[0] == 0) & (crossed[1] == 1)
+    done = ((crossed[0] == 0) & (crossed[1] == 0)) | one_u | one_v
+    c = np.where(one_v, 1, 0)  # the crossed axis (0 for footprints in one cell: no crossing, share 0)
+    rows = np.arange(len(uv0))
+    a, b = np.abs(j_x[rows, c]), np.abs(j_y[rows, c])
+    p, q = np.maximum(a, b), np.minimum(a, b)
+    line = np.where(one_v, _cell_start(hi[1], board.rows, m), _cell_start(hi[0], board.cols, m))
+    t = line - uv0[rows, c]  # offset of the line from the pixel centre, board units
+    half = np.float32(0.5) * (p + q)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corner = np.square(np.maximum(half - np.abs(t), 0)) / (2 * p * q)
+        beyond = np.where(np.abs(t) <= np.float32(0.5) * (p - q), np.float32(0.5) - t / p,
+                          np.where(t > 0, corner, 1 - corner))
+    beyond = np.where(one_u | one_v, np.clip(beyond, 0, 1), 0).astype(np.float32)
+
+    def grey(iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
+        return np.take(table, ((iv + 3) * width + (iu + 3)).astype(np.int32))
+
+    below = grey(lo[0], lo[1])
+    above = grey(hi[0], hi[1])
+    return below + beyond * (above - below), done
+
+
+def _sub_rows(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray, n: int,
+              background: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact mean grey along n sub-rows of each pixel (float32), and True where that applies.
+
+    Sub-row k runs from ``uv0 + o_k j_y - j_x / 2`` to ``+ j_x / 2`` (o_k the sub-row's offset in pixels). Along it
+    the cell index changes by at most one along u and along v (else: False), at fractions t_u and t_v of its length
+    (1 when it does not change): the pieces [0, t1], [t1, t2], [t2, 1] (t1 <= t2) each lie in one cell, whose grey
+    level a lookup table gives.
+    """
+    offsets = ((np.arange(n) + 0.5) / n - 0.5).astype(np.float32)[None, :]
+    m = float(board.margin_squares)
     ok = np.ones(len(uv0), dtype=bool)
-    for c, size in enumerate((board.cols, board.rows)):
-        lines = np.unique(np.r_[-1.0 - m, np.arange(-1, size + 1, dtype=float), size + m])
-        i_start = np.searchsorted(lines, start[..., c], side="right")
-        i_end = np.searchsorted(lines, start[..., c] + step[..., c], side="right")
-        ok &= np.abs(i_start - i_end).max(axis=1) <= 1
-        crossed = i_start != i_end
-        line = lines[np.clip(np.maximum(i_start, i_end) - 1, 0, len(lines) - 1)]
+    axes = []
+    for c, size in enumerate((board.cols, board.rows)):  # u, then v: contiguous (E, n) arrays
+        step = j_x[:, c, None]
+        start = uv0[:, c, None] + offsets * j_y[:, c, None] - np.float32(0.5) * step
+        first = _cells(start, size, m)
+        last = _cells(start + step, size, m)
+        ok &= np.all(np.abs(last - first) <= 1, axis=1)
+        line = _cell_start(np.maximum(first, last), size, m)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t[..., c] = np.where(crossed, (line - start[..., c]) / step[..., c], 1.0)
-    t1, t2 = np.minimum(t[..., 0], t[..., 1]), np.maximum(t[..., 0], t[..., 1])
-    grey = np.zeros(t1.shape)
-    for weight, mid in ((t1, 0.5 * t1), (t2 - t1, 0.5 * (t1 + t2)), (1.0 - t2, 0.5 * (t2 + 1.0))):
-        grey += weight * _board_grey(board, start + mid[..., None] * step, background)
-    return grey.mean(axis=1).astype(np.float32), ok
+            t = np.where(first != last, (line - start) / step, np.float32(1.0))
+        axes.append((first, last, np.clip(t, 0.0, 1.0, out=t)))
+    (first_u, last_u, t_u), (first_v, last_v, t_v) = axes
+    t1, t2 = np.minimum(t_u, t_v), np.maximum(t_u, t_v)
+    u_first = t_u < t_v  # the middle piece: past the first crossing, before the second
+    table = _cell_grey_table(board, background)
+    width = np.float32(table.shape[1])
 
+    def grey(iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
+        return np.take(table, ((iv + 3) * width + (iu + 3)).astype(np.int32))
 
-def _checker_rows(uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Exact mean grey of the checker squares along sub-rows at ``offsets`` (pixels) of each pixel.
-
-    A sub-row runs from ``uv0 + oy j_y - j_x / 2`` to ``+ j_x / 2``; with |j_x| < 1 square it crosses at most
-    one integer u and one integer v, each flipping the colour, so black covers t1 + (1 - t2) of it when it starts
-    black (t1 <= t2 the crossings as fractions of the sub-row, 1 when none) and t2 - t1 otherwise.
-    """
-    # float32: board coordinates below ~100 squares keep 1e-5 squares (< 1e-3 px) of precision
-    uv0, j_x, j_y, offsets = (a.astype(np.float32) for a in (uv0, j_x, j_y, offsets))
-    t = []
-    parity = 0
-    for c in range(2):  # u, then v: (E, n) arrays
-        start = uv0[:, c, None] + offsets[None, :] * j_y[:, c, None] - 0.5 * j_x[:, c, None]
-        end = start + j_x[:, c, None]
-        f_start, f_end = np.floor(start), np.floor(end)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t.append(np.where(f_start != f_end, (np.maximum(f_start, f_end) - start) / j_x[:, c, None], 1.0))
-        parity = parity + f_start.astype(np.int32)
-    t1, t2 = np.minimum(t[0], t[1]), np.maximum(t[0], t[1])
-    black = np.where((parity & 1) == 0, 1.0 - (t2 - t1), t2 - t1).mean(axis=1)
-    return (BLACK_LEVEL * black + WHITE_LEVEL * (1.0 - black)).astype(np.float32)
+    a, c = grey(first_u, first_v), grey(last_u, last_v)
+    b = grey(np.where(u_first, last_u, first_u), np.where(u_first, first_v, last_v))
+    # t1 a + (t2 - t1) b + (1 - t2) c
+    mean = c + t1 * (a - b) + t2 * (b - c)
+    return mean.mean(axis=1, dtype=np.float32), ok
 
 
 def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, int], view_T_board: np.ndarray,  # noqa: N803
@@ -221,7 +271,7 @@ def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, i
         if len(ys) and n > 1:
             rows, cols = ys + window[0].start, xs + window[1].start
             partly_behind = len(visible) != 4 or bool(np.any(outline[:, 2] < NEAR_PLANE_M))
-            sub[ys, xs] = _edge_pixels(board, rays, rows, cols, uv[ys, xs], to_squares, n, config.background_level,
+            sub[ys, xs] = _edge_pixels(board, rays, rows, cols, uv, ys, xs, to_squares, n, config.background_level,
                                        partly_behind)
         img[window] = sub
         if config.blur_sigma_px > 0:
