@@ -63,17 +63,18 @@ class ViewRays:
 
 
 def _board_grey(board: BoardSpec, uv: np.ndarray, background: float) -> np.ndarray:
-    """Grey level (float32) at board coordinates ``uv`` (..., 2) in squares (corner (0, 0) at 0); NaN = off-board."""
-    u, v = uv[..., 0], uv[..., 1]
-    m = board.margin_squares
-    with np.errstate(invalid="ignore"):
-        on_board = (u >= -1 - m) & (u <= board.cols + m) & (v >= -1 - m) & (v <= board.rows + m)
-        in_squares = (u >= -1) & (u < board.cols) & (v >= -1) & (v < board.rows)
-        # squares where floor(u) + floor(v) is even are black (as the detector's corner order expects)
-        black = in_squares & ((np.floor(u) + np.floor(v)).astype(np.int32) & 1 == 0)
-    out = np.where(on_board, np.float32(WHITE_LEVEL), np.float32(background))
-    out[black] = BLACK_LEVEL
-    return out
+    """Grey level (float32) at board coordinates ``uv`` (..., 2) in squares (corner (0, 0) at 0); NaN = off-board.
+
+    Each coordinate's cell (`_cells`) indexes a table of the cells' grey levels (`_cell_grey_table`).
+    """
+    m = float(board.margin_squares)
+    return _cell_grey(_cell_grey_table(board, background), _cells(uv[..., 0], board.cols, m),
+                      _cells(uv[..., 1], board.rows, m))
+
+
+def _cell_grey(table: np.ndarray, iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
+    """Grey levels of cells ``(iu, iv)`` (float32 arrays from `_cells`) from `_cell_grey_table`."""
+    return np.take(table, ((iv + 3) * np.float32(table.shape[1]) + (iu + 3)).astype(np.int32))
 
 
 def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.ndarray, uv: np.ndarray,
@@ -120,7 +121,7 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
 
 
 def _cells(coord: np.ndarray, size: int, margin: float) -> np.ndarray:
-    """Index of the board cell along one axis holding ``coord`` (squares), clipped to [-3, size + 1].
+    """Index of the board cell along one axis holding ``coord`` (squares), clipped to [-3, size + 1] (NaN: size + 1).
 
     Cells -1 .. size - 1 are squares (cell k spans [k, k + 1)), -2 and ``size`` the white margin on either side,
     -3 and ``size + 1`` beyond the outline. Returned as float32 (exact small integers).
@@ -130,7 +131,8 @@ def _cells(coord: np.ndarray, size: int, margin: float) -> np.ndarray:
         below, above = coord < -1, coord >= size
         cell[below] = -1 + np.floor((coord[below] + 1) / margin)
         cell[above] = size + np.floor((coord[above] - size) / margin)
-    return np.clip(cell, -3, size + 1, out=cell)
+    # fmin / fmax rather than clip: NaN (no hit) becomes size + 1, beyond the outline
+    return np.fmax(np.fmin(cell, np.float32(size + 1), out=cell), np.float32(-3), out=cell)
 
 
 def _cell_start(cell: np.ndarray, size: int, margin: float) -> np.ndarray:
@@ -146,7 +148,7 @@ def _cell_grey_table(board: BoardSpec, background: float) -> np.ndarray:
     printed = (iu >= -2) & (iu <= board.cols) & (iv >= -2) & (iv <= board.rows)
     squares = (iu >= -1) & (iu < board.cols) & (iv >= -1) & (iv < board.rows)
     table = np.where(printed, np.float32(WHITE_LEVEL), np.float32(background))
-    table[squares & ((iu + iv) & 1 == 0)] = BLACK_LEVEL  # floor(u) + floor(v) even: black (as `_board_grey`)
+    table[squares & ((iu + iv) & 1 == 0)] = BLACK_LEVEL  # floor(u) + floor(v) even: black
     return table
 
 
@@ -161,7 +163,6 @@ def _single_line(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.nda
     """
     m = float(board.margin_squares)
     table = _cell_grey_table(board, background)
-    width = np.float32(table.shape[1])
     reach = np.float32(0.5) * (np.abs(j_x) + np.abs(j_y))  # (E, 2) half extent of the footprint along u and v
     lo = [_cells(uv0[:, c] - reach[:, c], size, m) for c, size in enumerate((board.cols, board.rows))]
     hi = [_cells(uv0[:, c] + reach[:, c], size, m) for c, size in enumerate((board.cols, board.rows))]
@@ -180,12 +181,8 @@ def _single_line(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.nda
         beyond = np.where(np.abs(t) <= np.float32(0.5) * (p - q), np.float32(0.5) - t / p,
                           np.where(t > 0, corner, 1 - corner))
     beyond = np.where(one_u | one_v, np.clip(beyond, 0, 1), 0).astype(np.float32)
-
-    def grey(iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
-        return np.take(table, ((iv + 3) * width + (iu + 3)).astype(np.int32))
-
-    below = grey(lo[0], lo[1])
-    above = grey(hi[0], hi[1])
+    below = _cell_grey(table, lo[0], lo[1])
+    above = _cell_grey(table, hi[0], hi[1])
     return below + beyond * (above - below), done
 
 
@@ -216,13 +213,8 @@ def _sub_rows(board: BoardSpec, uv0: np.ndarray, j_x: np.ndarray, j_y: np.ndarra
     t1, t2 = np.minimum(t_u, t_v), np.maximum(t_u, t_v)
     u_first = t_u < t_v  # the middle piece: past the first crossing, before the second
     table = _cell_grey_table(board, background)
-    width = np.float32(table.shape[1])
-
-    def grey(iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
-        return np.take(table, ((iv + 3) * width + (iu + 3)).astype(np.int32))
-
-    a, c = grey(first_u, first_v), grey(last_u, last_v)
-    b = grey(np.where(u_first, last_u, first_u), np.where(u_first, first_v, last_v))
+    a, c = _cell_grey(table, first_u, first_v), _cell_grey(table, last_u, last_v)
+    b = _cell_grey(table, np.where(u_first, last_u, first_u), np.where(u_first, first_v, last_v))
     # t1 a + (t2 - t1) b + (1 - t2) c
     mean = c + t1 * (a - b) + t2 * (b - c)
     return mean.mean(axis=1, dtype=np.float32), ok

@@ -213,7 +213,7 @@ def to_uint8(img: np.ndarray, noise_sigma: float = 0.0, rng: np.random.Generator
         noise = np.zeros_like(img)
     else:
         index = np.frombuffer(rng.bytes(2 * img.size), dtype="<u2").reshape(img.shape)
-        noise = _noise_table(float(noise_sigma))[index]
+        noise = np.take(_noise_table(float(noise_sigma)), index)  # ~2x faster than fancy indexing
     return cv2.add(img, noise, dtype=cv2.CV_8U)  # saturate_cast<uchar>: round half to even, clip
 
 
