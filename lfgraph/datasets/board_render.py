@@ -12,6 +12,7 @@ other pixels take the colour at their centre.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import cv2
@@ -95,11 +96,14 @@ def _edge_pixels(board: BoardSpec, rays: ViewRays, rows: np.ndarray, cols: np.nd
     s = np.arange(len(rows))
     if not partly_behind:
         h, w = uv.shape[:2]
-        x0, x1 = np.maximum(xs - 1, 0), np.minimum(xs + 1, w - 1)
-        y0, y1 = np.maximum(ys - 1, 0), np.minimum(ys + 1, h - 1)
-        j_x = (uv[ys, x1] - uv[ys, x0]) / (x1 - x0)[:, None].astype(np.float32)  # (E, 2) d(u, v) / d(pixel x)
-        j_y = (uv[y1, xs] - uv[y0, xs]) / (y1 - y0)[:, None].astype(np.float32)
-        uv0 = uv[ys, xs]
+        flat = uv.reshape(-1, 2)
+        at = ys * w + xs
+        x0, x1 = np.where(xs > 0, at - 1, at), np.where(xs < w - 1, at + 1, at)
+        y0, y1 = np.where(ys > 0, at - w, at), np.where(ys < h - 1, at + w, at)
+        # (E, 2) d(u, v) / d(pixel x) and / d(pixel y): central differences (one-sided at the window's border)
+        j_x = (np.take(flat, x1, axis=0) - np.take(flat, x0, axis=0)) / (x1 - x0)[:, None].astype(np.float32)
+        j_y = (np.take(flat, y1, axis=0) - np.take(flat, y0, axis=0)) / ((y1 - y0) // w)[:, None].astype(np.float32)
+        uv0 = np.take(flat, at, axis=0)
         values, done = _single_line(board, uv0, j_x, j_y, background)
         out[done] = values[done]
         s = np.flatnonzero(~done)
@@ -142,6 +146,7 @@ def _cell_start(cell: np.ndarray, size: int, margin: float) -> np.ndarray:
     return cell + (margin - 1) * (np.minimum(cell + 1, 0) + np.maximum(cell - size, 0))
 
 
+@lru_cache(maxsize=8)
 def _cell_grey_table(board: BoardSpec, background: float) -> np.ndarray:
     """(rows + 5, cols + 5) float32 grey level of cell (iv, iu) at [iv + 3, iu + 3] (cells as in `_cells`)."""
     iv, iu = np.mgrid[-3 : board.rows + 2, -3 : board.cols + 2]
@@ -149,6 +154,7 @@ def _cell_grey_table(board: BoardSpec, background: float) -> np.ndarray:
     squares = (iu >= -1) & (iu < board.cols) & (iv >= -1) & (iv < board.rows)
     table = np.where(printed, np.float32(WHITE_LEVEL), np.float32(background))
     table[squares & ((iu + iv) & 1 == 0)] = BLACK_LEVEL  # floor(u) + floor(v) even: black
+    table.setflags(write=False)
     return table
 
 

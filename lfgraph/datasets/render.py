@@ -209,12 +209,12 @@ def to_uint8(img: np.ndarray, noise_sigma: float = 0.0, rng: np.random.Generator
     `_unit_gaussian_quantiles`), and seeded by ``rng`` alone.
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
+    # cv2.add to 8 bits: saturate_cast<uchar>, i.e. round half to even and clip, in one pass
     if rng is None or noise_sigma <= 0:
-        noise = np.zeros_like(img)
-    else:
-        index = np.frombuffer(rng.bytes(2 * img.size), dtype="<u2").reshape(img.shape)
-        noise = np.take(_noise_table(float(noise_sigma)), index)  # ~2x faster than fancy indexing
-    return cv2.add(img, noise, dtype=cv2.CV_8U)  # saturate_cast<uchar>: round half to even, clip
+        return cv2.add(img, 0.0, dtype=cv2.CV_8U)
+    index = np.frombuffer(rng.bytes(2 * img.size), dtype="<u2").reshape(img.shape)
+    noise = np.take(_noise_table(float(noise_sigma)), index)  # ~2x faster than fancy indexing
+    return cv2.add(img, noise, dtype=cv2.CV_8U)
 
 
 @lru_cache(maxsize=4)
