@@ -169,8 +169,13 @@ def inverse_from_columns(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndar
     Elementwise arithmetic only, so the result does not depend on the BLAS/LAPACK thread count (OpenBLAS's LU
     rounds differently with 1 and 2 threads, which made renders differ between process pools and Dask workers).
     """
-    rows = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)])
+    rows = np.stack([cross3(b, c), cross3(c, a), cross3(a, b)])
     return rows / float(np.sum(a * rows[0]))
+
+
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of two 3-vectors: the same products and differences, without its ~10 us of overhead."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def plane_maps(origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,7 +186,7 @@ def plane_maps(origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray) -> tu
         and ``inv_depth`` (1, 3) with ``1 / z = inv_depth @ (x, y, 1)`` for the ray's hit of the plane (<= 0 when
         the hit is behind the camera or the ray is parallel to the plane).
     """
-    normal = np.cross(axis_u, axis_v)
+    normal = cross3(axis_u, axis_v)
     # normal @ origin = 0 only for a plane through the camera centre, seen edge-on; callers skip those.
     return inverse_from_columns(axis_u, axis_v, origin), (normal / float(np.sum(normal * origin)))[None, :]
 

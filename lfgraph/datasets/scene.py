@@ -26,7 +26,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
 from lfgraph.capture import write_frame
-from lfgraph.datasets.render import LensRays, clip_polygon_near, plane_maps, sample_rays, to_uint8
+from lfgraph.datasets.render import LensRays, clip_polygon_near, cross3, plane_maps, sample_rays, to_uint8
 from lfgraph.geometry import rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
@@ -179,7 +179,7 @@ def _prepare(scene: Scene, view_T_ref: np.ndarray, textures: list[np.ndarray] | 
     out = []
     for i, q in enumerate(scene.quads):
         c, a, b = R @ q.centre + t, R @ q.axis_u, R @ q.axis_v
-        if abs(float(np.sum(np.cross(a, b) * c))) < PLANE_EDGE_ON_M3:
+        if abs(float(np.sum(cross3(a, b) * c))) < PLANE_EDGE_ON_M3:
             continue  # the plane contains the camera centre: seen edge-on, it covers no area
         outline = clip_polygon_near(np.array([c - a - b, c + a - b, c + a + b, c - a + b]))
         if len(outline) == 0:
