@@ -118,8 +118,10 @@ def sample_rays(intrinsics: Intrinsics, image_size_px: tuple[int, int], supersam
         for c in range(2):
             planes[c][rows, cols] = exact[:, c]
     with np.errstate(invalid="ignore"):  # rows/columns all beyond the lens fold stay NaN and are never selected
-        row_y = np.stack([np.fmin.reduce(planes[1], axis=1), np.fmax.reduce(planes[1], axis=1)], axis=1)
-        # along axis 0 on both channels at once: elementwise over contiguous rows, ~8x faster than a strided plane
+        # reductions over contiguous memory (SIMD), ~6x faster than over the strided plane: y copied out first,
+        # x reduced along axis 0 on both channels at once (elementwise over rows)
+        y = np.ascontiguousarray(planes[1])
+        row_y = np.stack([np.fmin.reduce(y, axis=1), np.fmax.reduce(y, axis=1)], axis=1)
         col_x = np.stack([np.fmin.reduce(xy, axis=0)[:, 0], np.fmax.reduce(xy, axis=0)[:, 0]], axis=1)
     xy32 = xy if dtype == np.float32 else xy.astype(np.float32)
     for arr in (xy, xy32, row_y, col_x):
