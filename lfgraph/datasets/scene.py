@@ -214,15 +214,15 @@ def _sample(quads: list[_PreparedQuad], rays: LensRays, want_texture: bool,
         sub = xy[window]
         texel = cv2.perspectiveTransform(sub, q.texel_H)
         w = cv2.transform(sub, q.inv_depth)
-        inside = cv2.inRange(texel, (-0.5, -0.5), q.texel_max) > 0
-        nearer = inside & (w > inv_z[window])  # NaN rays (beyond the lens fold) compare False
+        nearer = np.greater(w, inv_z[window])  # NaN rays (beyond the lens fold) compare False
+        nearer &= cv2.inRange(texel, (-0.5, -0.5), q.texel_max) > 0
         if not nearer.any():
             continue
-        inv_z[window][nearer] = w[nearer]
+        np.copyto(inv_z[window], w, where=nearer)  # in place, no gather and scatter of the samples (~2x faster)
         if want_texture:
             texel32 = texel if texel.dtype == np.float32 else texel.astype(np.float32)
             values = cv2.remap(q.texture, texel32, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            grey[window][nearer] = values[nearer]
+            np.copyto(grey[window], values, where=nearer)
     return inv_z, grey
 
 
