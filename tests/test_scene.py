@@ -181,3 +181,25 @@ def test_rendering_several_views_at_once_matches_one_by_one():
         assert np.array_equal(img, one)
     with pytest.raises(ValueError, match="one rng per view"):
         render_scene_views(scene, calib, cfg, [0, 1], [None])
+
+
+def test_background_drawn_last_matches_the_z_buffer():
+    """A quad behind every other one is drawn last where nothing else was hit: the same samples as the z-buffer.
+    A plane crossing the background (a corner beyond it) must keep the background in the z-buffer."""
+    import dataclasses
+
+    from lfgraph.datasets.render import sample_rays
+    from lfgraph.datasets.scene import _prepare, _sample
+
+    calib = _rig(size=(96, 64), f=90.0)
+    scene = make_scene(SceneConfig(objects=6, texels_per_m_at_1m=200), np.random.default_rng(4))
+    rays = sample_rays(calib.intrinsics[1], calib.image_size_px, 2)
+    prepared = _prepare(scene, calib.view_T_ref(1), None)
+    assert prepared[0].behind_all and not any(q.behind_all for q in prepared[1:])
+    _, last = _sample(prepared, rays, want_texture=True)
+    _, z_buffered = _sample([dataclasses.replace(q, behind_all=False) for q in prepared], rays, want_texture=True)
+    assert np.array_equal(last, z_buffered)
+    bg = scene.quads[0]
+    crossing = TexturedQuad(bg.centre - [0, 0, 0.5], np.array([0.5, 0, 0.0]), np.array([0, 0.5, 1.0]),
+                            bg.texture[:8, :8])
+    assert not any(q.behind_all for q in _prepare(Scene((bg, crossing)), np.eye(4), None))

@@ -26,7 +26,15 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
 from lfgraph.capture import write_frame
-from lfgraph.datasets.render import LensRays, clip_polygon_near, cross3, plane_maps, sample_rays, to_uint8
+from lfgraph.datasets.render import (
+    NEAR_PLANE_M,
+    LensRays,
+    clip_polygon_near,
+    cross3,
+    plane_maps,
+    sample_rays,
+    to_uint8,
+)
 from lfgraph.geometry import rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
@@ -172,18 +180,32 @@ class _PreparedQuad:
     corners_xy: np.ndarray  # (k, 2) normalised coordinates of its (near-clipped) outline, for the sample window
     texture: np.ndarray  # (h, w) float32
     texel_max: tuple[float, float]  # last texel column and row covered: (w - 0.5, h - 0.5)
+    behind_all: bool  # wholly in front of the camera and behind every other quad along every ray (see `_prepare`)
 
 
 def _prepare(scene: Scene, view_T_ref: np.ndarray, textures: list[np.ndarray] | None) -> list[_PreparedQuad]:  # noqa: N803
+    """The quads in the view's frame, without those seen edge-on or wholly behind the camera.
+
+    A quad is ``behind_all`` when it lies wholly in front of the camera and every corner of every other quad lies
+    strictly on the camera's side of its plane: then (the quads being convex) any ray meets every other quad
+    before its plane, so it only shows where nothing else does (the background, as a rule).
+    """
     R, t = view_T_ref[:3, :3], view_T_ref[:3, 3]  # noqa: N806
+    placed = [(R @ q.centre + t, R @ q.axis_u, R @ q.axis_v) for q in scene.quads]
+    corners = [np.array([c - a - b, c + a - b, c + a + b, c - a + b]) for c, a, b in placed]
     out = []
     for i, q in enumerate(scene.quads):
-        c, a, b = R @ q.centre + t, R @ q.axis_u, R @ q.axis_v
-        if abs(float(np.sum(cross3(a, b) * c))) < PLANE_EDGE_ON_M3:
+        c, a, b = placed[i]
+        normal = cross3(a, b)
+        if abs(float(np.sum(normal * c))) < PLANE_EDGE_ON_M3:
             continue  # the plane contains the camera centre: seen edge-on, it covers no area
-        outline = clip_polygon_near(np.array([c - a - b, c + a - b, c + a + b, c - a + b]))
+        outline = clip_polygon_near(corners[i])
         if len(outline) == 0:
             continue
+        camera_side = -float(np.sum(normal * c))  # sign of normal . (camera - c)
+        others = np.concatenate([corners[j] for j in range(len(corners)) if j != i] or [np.zeros((0, 3))])
+        behind_all = bool(np.all(corners[i][:, 2] >= NEAR_PLANE_M)
+                          and np.all(np.sum((others - c) * normal, axis=1) * camera_side > 0))
         st_H, inv_depth = plane_maps(c, a, b)  # noqa: N806
         th, tw = q.texture.shape
         # texel centres at (k + 0.5) / w of the [-1, 1] range: column = (s + 1) / 2 * w - 0.5 (written out rather
@@ -191,7 +213,8 @@ def _prepare(scene: Scene, view_T_ref: np.ndarray, textures: list[np.ndarray] | 
         texel_H = np.stack([tw / 2 * st_H[0] + (tw / 2 - 0.5) * st_H[2], th / 2 * st_H[1] + (th / 2 - 0.5) * st_H[2],  # noqa: N806
                             st_H[2]])
         texture = textures[i] if textures is not None else q.texture.astype(np.float32)
-        out.append(_PreparedQuad(texel_H, inv_depth, outline[:, :2] / outline[:, 2:], texture, (tw - 0.5, th - 0.5)))
+        out.append(_PreparedQuad(texel_H, inv_depth, outline[:, :2] / outline[:, 2:], texture, (tw - 0.5, th - 0.5),
+                                 behind_all))
     return out
 
 
@@ -203,11 +226,17 @@ def _sample(quads: list[_PreparedQuad], rays: LensRays, want_texture: bool,
     (`cv2.perspectiveTransform`), inverse depth by an affine map (`cv2.transform`), the texture by bilinear
     `cv2.remap` with edges replicated; a sample takes the quad when it lies inside the quad's outline and is nearer
     than what it holds (a per-sample z-buffer, exact for intersecting quads). ``exact`` works in float64.
+
+    For the grey level alone, quads behind all others (`_PreparedQuad.behind_all`) are drawn last and only where
+    no other quad was hit, without their inverse depth (which then stays 0 there).
     """
     xy = rays.xy if exact else rays.xy32
     inv_z = np.zeros(xy.shape[:2], dtype=xy.dtype)
     grey = np.zeros(xy.shape[:2], dtype=np.float32) if want_texture else None
+    last = [q for q in quads if q.behind_all] if want_texture and not exact else []
     for q in quads:
+        if q.behind_all and last:
+            continue  # drawn below
         window = rays.roi(q.corners_xy)
         if window is None:
             continue
@@ -223,6 +252,15 @@ def _sample(quads: list[_PreparedQuad], rays: LensRays, want_texture: bool,
             texel32 = texel if texel.dtype == np.float32 else texel.astype(np.float32)
             values = cv2.remap(q.texture, texel32, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             np.copyto(grey[window], values, where=nearer)
+    for q in last:  # behind every other quad: a sample shows it only where no other quad was hit
+        window = rays.roi(q.corners_xy)
+        if window is None:
+            continue
+        texel = cv2.perspectiveTransform(xy[window], q.texel_H)
+        empty = np.equal(inv_z[window], 0)
+        empty &= cv2.inRange(texel, (-0.5, -0.5), q.texel_max) > 0
+        values = cv2.remap(q.texture, texel, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        np.copyto(grey[window], values, where=empty)
     return inv_z, grey
 
 
