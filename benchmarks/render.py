@@ -312,6 +312,10 @@ def board_set_case(args, rows: list) -> bool:
     rms = {k: _corner_rms(imgs[k], truths)[0] for k in imgs}
     mad = {k: np.mean([_mad(a, b) for a, b in zip(imgs[k], imgs["old"], strict=True)]) for k in ("new", "peer")}
     note = f"{len(views)}x{len(frames)} images"
+    rest = new_set[1] - n * new_render[1] - calib.num_views * new_rays_spent[1]
+    print(f"board set: besides rendering, the new writer spends {rest:.1f} s CPU ({1e3 * rest / n:.1f} ms per image: "
+          f"noise, PNG encoding, files, processes); with a renderer costing nothing the old set would take "
+          f"{old_set[1] / rest:.1f}x its CPU time")
     rows += [
         _row("board paper-4x4, old", n, old_render, old_written, old_set, old_render, old_set, peer_set, rms["old"],
              0.0, f"{note}, extrap.; rays {1e3 * old_rays_spent[1]:.0f} ms/view"),
