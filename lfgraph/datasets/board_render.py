@@ -4,9 +4,10 @@ The renderer is exact up to the anti-aliasing: every pixel centre is undistorted
 (once per lens, `lfgraph.datasets.render.sample_rays`) and mapped to the board plane by its homography
 (`cv2.perspectiveTransform`, only over the pixels that can see the board). Pixels whose 3x3 neighbourhood changes
 colour hold an edge and are averaged over their area, with the undistortion linearised inside the pixel (its
-curvature over half a pixel is far below 1e-4 px): exactly along each of N sub-rows (the colour is piecewise
-constant between the crossings of square edges and outline), N x N point samples where that does not apply. All
-other pixels take the colour at their centre.
+curvature over half a pixel is far below 1e-4 px): in closed form where one board line crosses the pixel, exactly
+along each of N sub-rows where a u-line and a v-line do (the colour is piecewise constant between the crossings of
+square edges and outline), N x N point samples where neither applies. All other pixels take the colour at their
+centre. Colours come from a table of the board's cells (squares, margin, beyond the outline).
 """
 
 from __future__ import annotations
@@ -233,8 +234,8 @@ def render_checkerboard_view(intrinsics: Intrinsics, image_size_px: tuple[int, i
 
     Every pixel centre's ray (undistorted once per lens, `ViewRays`) is mapped to the board by the plane's
     homography (`cv2.perspectiveTransform`, only over the window of pixels that can see the board) and takes the
-    colour there. Pixels whose 3x3 neighbourhood changes colour hold an edge and take their mean colour over N
-    sub-rows, each integrated exactly with the lens and homography linearised inside the pixel (`_edge_pixels`).
+    colour there. Pixels whose 3x3 neighbourhood changes colour hold an edge and take their mean colour over their
+    area, the lens and homography linearised inside the pixel (`_edge_pixels`). Blur and noise per ``config``.
 
     Args:
         intrinsics: the view's lens.

@@ -45,7 +45,8 @@ class CheckerboardConfig:
         blur_sigma_px: Gaussian blur of the rendered image (0 = none).
         noise_sigma: sensor noise, grey levels std (0 = none).
         background_level: grey level behind the board.
-        supersample: N for the N sub-rows (N x N samples where sub-rows do not apply) of pixels on an edge.
+        supersample: N for the N sub-rows (N x N samples where they do not apply) of edge pixels at a corner
+            (pixels crossed by one edge take their exact area).
         margin_px: a board counts as visible in a view when its whole printed outline is this far inside.
     """
 
