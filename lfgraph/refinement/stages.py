@@ -15,6 +15,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors import scene_graph
 from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
+from lfgraph.factors.keys import LANDMARK_CHAR
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.factors.values import (
     insert_intrinsics,
@@ -102,7 +103,8 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     else:
         graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views, priors)
     run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
-    result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback)
+    result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback,
+                      eliminate=LANDMARK_CHAR)
     new_points = read_landmarks(result.values, len(points)) if len(points) else points
     if stage == Stage.POINTS:
         return calib, new_points, result.iterations
