@@ -215,7 +215,7 @@ def _solve(sys_: _System, lam: float) -> tuple[np.ndarray, np.ndarray]:
     S = sys_.H + lam * np.eye(n_c)  # noqa: N806
     rhs = sys_.g_c.copy()
     if n_lm and n_c:
-        vw = np.einsum("nab,nbc->nac", vinv, sys_.W)  # V^-1 W (N, 3, C)
+        vw = _times_w(vinv, sys_.W)  # V^-1 W (N, 3, C)
         S -= sys_.W.reshape(-1, n_c).T @ vw.reshape(-1, n_c)
         rhs -= vw.reshape(-1, n_c).T @ sys_.g_l.ravel()
     if n_c:
@@ -223,9 +223,15 @@ def _solve(sys_: _System, lam: float) -> tuple[np.ndarray, np.ndarray]:
         dc = np.linalg.solve(Ls.T, np.linalg.solve(Ls, rhs))
     else:
         dc = np.zeros(0)
-    t = sys_.g_l - (np.einsum("nkc,c->nk", sys_.W, dc) if n_c else 0.0)
-    dl = np.einsum("nab,nb->na", vinv, t)
+    t = sys_.g_l - ((sys_.W.reshape(-1, n_c) @ dc).reshape(-1, 3) if n_c else 0.0)
+    dl = vinv[:, :, 0] * t[:, 0:1] + vinv[:, :, 1] * t[:, 1:2] + vinv[:, :, 2] * t[:, 2:3]
     return dl, dc
+
+
+def _times_w(vinv: np.ndarray, W: np.ndarray) -> np.ndarray:  # noqa: N803
+    """Batched (N, 3, 3) @ (N, 3, C) without einsum (slow for such small inner dimensions)."""
+    return (vinv[:, :, 0, None] * W[:, None, 0] + vinv[:, :, 1, None] * W[:, None, 1]
+            + vinv[:, :, 2, None] * W[:, None, 2])
 
 
 def _full_step(layout: SchurLayout, dl: np.ndarray, dc: np.ndarray) -> np.ndarray:
@@ -254,6 +260,33 @@ class SchurResult:
     error_history: tuple[float, ...]
 
 
+class GraphProblem:
+    """A GTSAM graph whose landmarks (keys of ``landmark_char``, 3-D) are eliminated; state: `gtsam.Values`."""
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, landmark_char: str):
+        self.graph, self.initial = graph, initial
+        self.layout = schur_layout(initial, landmark_char)
+
+    def error(self, state: gtsam.Values) -> float:
+        return float(self.graph.error(state))
+
+    def system(self, state: gtsam.Values) -> _System:
+        return _system(self.graph.linearize(state), self.layout)
+
+    def retract(self, state: gtsam.Values, dl: np.ndarray, dc: np.ndarray) -> gtsam.Values:
+        return state.retract(_vector_values(self.layout, _full_step(self.layout, dl, dc)))
+
+
+def _linear_change(s: _System, dl: np.ndarray, dc: np.ndarray) -> float:
+    """Decrease of the linearised cost for the step: 0.5 |b|^2 - 0.5 |A d - b|^2 = d.g - 0.5 d.H.d."""
+    dg = float(np.sum(dl * s.g_l) + dc @ s.g_c)
+    vdl = s.V[:, :, 0] * dl[:, 0:1] + s.V[:, :, 1] * dl[:, 1:2] + s.V[:, :, 2] * dl[:, 2:3]
+    dhd = float(np.sum(dl * vdl) + dc @ s.H @ dc)
+    if dl.size and dc.size:
+        dhd += 2.0 * float(dl.ravel() @ (s.W.reshape(-1, len(dc)) @ dc))
+    return dg - 0.5 * dhd
+
+
 def optimize_schur(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, landmark_char: str,
                    max_iterations: int = 100, relative_error_tol: float = 1e-10, absolute_error_tol: float = 1e-12,
                    error_tol: float = 0.0, callback=None) -> SchurResult:
@@ -261,19 +294,23 @@ def optimize_schur(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, lan
 
     Raises:
         NotReducible: the graph cannot be reduced (the caller falls back to GTSAM).
-        RuntimeError: no step decreases the error at the largest damping on the first iteration (as GTSAM).
     """
+    return optimize_problem(GraphProblem(graph, initial, landmark_char), initial, max_iterations, relative_error_tol,
+                            absolute_error_tol, error_tol, callback)
+
+
+def optimize_problem(problem, state, max_iterations: int = 100, relative_error_tol: float = 1e-10,
+                     absolute_error_tol: float = 1e-12, error_tol: float = 0.0, callback=None) -> SchurResult:
+    """The Levenberg–Marquardt loop over a problem (``error``, ``system``, ``retract``); ``values`` of the result
+    is the final state."""
     with one_blas_thread():
-        return _optimize(graph, initial, landmark_char, max_iterations, relative_error_tol, absolute_error_tol,
-                         error_tol, callback)
+        return _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol, callback)
 
 
-def _optimize(graph, initial, landmark_char, max_iterations, relative_error_tol, absolute_error_tol, error_tol,
+def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol,
               callback) -> SchurResult:
     start = time.perf_counter()
-    layout = schur_layout(initial, landmark_char)
-    values = initial
-    error = graph.error(values)
+    error = problem.error(state)
     initial_error = error
     history = [error]
     lam = LAMBDA_INITIAL
@@ -283,26 +320,24 @@ def _optimize(graph, initial, landmark_char, max_iterations, relative_error_tol,
         if error <= error_tol:
             converged = True
             break
-        sys_ = _system(graph.linearize(values), layout)
+        sys_ = problem.system(state)
         accepted = False
-        new_values, new_error = values, error
+        new_state, new_error = state, error
         while True:
             try:
                 dl, dc = _solve(sys_, lam)
-                ok = True
+                ok = bool(np.all(np.isfinite(dl)) and np.all(np.isfinite(dc)))
             except np.linalg.LinAlgError:
                 ok = False
             if ok:
-                delta = _full_step(layout, dl, dc)
-                r = np.bincount(sys_.rows, weights=sys_.vals * delta[sys_.cols], minlength=len(sys_.b)) - sys_.b
-                linear_change = 0.5 * float(sys_.b @ sys_.b) - 0.5 * float(r @ r)
+                linear_change = _linear_change(sys_, dl, dc)
                 if linear_change >= 0:
-                    cand = values.retract(_vector_values(layout, delta))
-                    cand_error = graph.error(cand)
+                    cand = problem.retract(state, dl, dc)
+                    cand_error = problem.error(cand)
                     change = error - cand_error
                     fidelity = change / linear_change if linear_change > 1e-20 else (1.0 if change >= 0 else -1.0)
                     if np.isfinite(cand_error) and fidelity > MIN_MODEL_FIDELITY:
-                        new_values, new_error, accepted = cand, cand_error, True
+                        new_state, new_error, accepted = cand, cand_error, True
                         lam = lam / LAMBDA_FACTOR
                         break
             lam *= LAMBDA_FACTOR
@@ -316,12 +351,12 @@ def _optimize(graph, initial, landmark_char, max_iterations, relative_error_tol,
             callback(iterations, error, new_error)
         history.append(new_error)
         decrease = error - new_error
-        values, previous, error = new_values, error, new_error
+        state, previous, error = new_state, error, new_error
         if decrease <= absolute_error_tol or (previous > 0 and decrease / previous <= relative_error_tol) \
                 or error <= error_tol:
             converged = True
             break
-    return SchurResult(values, initial_error, error, iterations, converged or iterations < max_iterations,
+    return SchurResult(state, initial_error, error, iterations, converged or iterations < max_iterations,
                        time.perf_counter() - start, tuple(history))
 
 
@@ -333,18 +368,22 @@ def marginal_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     Raises:
         NotReducible, numpy.linalg.LinAlgError (indeterminate).
     """
+    problem = GraphProblem(graph, values, landmark_char)
+    return problem_covariance(problem, values), problem.layout
+
+
+def problem_covariance(problem, state) -> np.ndarray:
+    """The (C, C) marginal covariance of the camera variables of a problem at ``state``."""
     with one_blas_thread():
-        return _marginals(graph, values, landmark_char)
-
-
-def _marginals(graph, values, landmark_char) -> tuple[np.ndarray, SchurLayout]:
-    layout = schur_layout(values, landmark_char)
-    sys_ = _system(graph.linearize(values), layout)
-    vw = np.einsum("nab,nbc->nac", _inv3(sys_.V), sys_.W).reshape(-1, layout.n_camera)
-    S = sys_.H - sys_.W.reshape(-1, layout.n_camera).T @ vw  # noqa: N806
-    Ls = np.linalg.cholesky(S)  # noqa: N806  (raises when indeterminate)
-    inv_l = np.linalg.solve(Ls, np.eye(len(S)))
-    return inv_l.T @ inv_l, layout
+        sys_ = problem.system(state)
+        n_c = sys_.H.shape[0]
+        S = sys_.H.copy()  # noqa: N806
+        if sys_.V.shape[0]:
+            vw = _times_w(_inv3(sys_.V), sys_.W).reshape(-1, n_c)
+            S -= sys_.W.reshape(-1, n_c).T @ vw
+        Ls = np.linalg.cholesky(S)  # noqa: N806  (raises when indeterminate)
+        inv_l = np.linalg.solve(Ls, np.eye(n_c))
+        return inv_l.T @ inv_l
 
 
 def camera_block(layout: SchurLayout, key: int) -> slice:
@@ -354,3 +393,144 @@ def camera_block(layout: SchurLayout, key: int) -> slice:
         raise KeyError(key)
     first = int(layout.col_cam[layout.offsets[i]])
     return slice(first, first + int(layout.dims[i]))
+
+
+class ProjectionProblem:
+    """Landmarks seen by views with constant intrinsics (GTSAM's ``GenericProjectionFactorCal3DS2`` /
+    ``TriangulationFactorCal3DS2`` with an isotropic Gaussian noise), evaluated in bulk in numpy, plus a small GTSAM
+    graph of everything else on the camera variables (pose priors, gauges). The state is (camera `gtsam.Values`,
+    (N, 3) landmarks).
+
+    The residual and Jacobians are GTSAM's: ``h(x) - z`` whitened by ``1/sigma``, the pose perturbed on the right
+    (``pose * Exp([w, v])``), the Cal3DS2 model fx, fy, cx, cy, k1, k2, p1, p2 without skew.
+
+    Args:
+        graph: the other factors (on camera keys only); values: their variables (the camera state).
+        view, landmark: (M,) view and landmark index of each observation; uv: (M, 2) pixels.
+        sigma: pixel sigma; intrinsics: (V, 8) fx, fy, cx, cy, k1, k2, p1, p2.
+        pose_keys: (V,) key of each view's pose in ``values`` (poses free), or None with ``fixed_poses`` (V, 4, 4).
+
+    Raises:
+        NotReducible: an observation behind its camera at the start, or a view observed twice by one landmark.
+    """
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, view: np.ndarray,
+                 landmark: np.ndarray, uv: np.ndarray, sigma: float, intrinsics: np.ndarray, n_landmarks: int,
+                 pose_keys: list[int] | None = None, fixed_poses: np.ndarray | None = None):
+        self.graph = graph
+        self.view, self.landmark = np.asarray(view, dtype=np.int64), np.asarray(landmark, dtype=np.int64)
+        self.uv, self.sigma = np.asarray(uv, dtype=np.float64), float(sigma)
+        self.intr = np.asarray(intrinsics, dtype=np.float64)
+        self.n_views, self.n_landmarks = len(self.intr), int(n_landmarks)
+        self.layout = schur_layout(values, "\0") if values.size() else None
+        self.n_c = self.layout.n_camera if self.layout is not None else 0
+        self.pose_keys = pose_keys
+        self.fixed = fixed_poses
+        pair = self.landmark * self.n_views + self.view
+        if len(np.unique(pair)) != len(pair):
+            raise NotReducible("a landmark observed twice by one view")
+        if pose_keys is not None:
+            self.col0 = np.array([camera_block(self.layout, k).start for k in pose_keys], dtype=np.int64)
+            self.by_view = [np.nonzero(self.view == v)[0] for v in range(self.n_views)]
+            self.w_index = (((self.landmark * 3)[:, None, None] + np.arange(3)[None, :, None]) * self.n_c
+                            + (self.col0[self.view][:, None, None] + np.arange(6)[None, None, :])).reshape(-1)
+
+    def _poses(self, values: gtsam.Values) -> np.ndarray:
+        if self.pose_keys is None:
+            return self.fixed
+        return np.stack([values.atPose3(k).matrix() for k in self.pose_keys])
+
+    def _residuals(self, state, jacobians: bool):
+        values, points = state
+        poses = self._poses(values)
+        R, t = poses[:, :3, :3], poses[:, :3, 3]  # noqa: N806
+        Rm = R[self.view]  # noqa: N806
+        d = points[self.landmark] - t[self.view]
+        pc = d[:, 0:1] * Rm[:, 0] + d[:, 1:2] * Rm[:, 1] + d[:, 2:3] * Rm[:, 2]  # R^T (P - t)
+        z = pc[:, 2]
+        if not np.all(z > 0):
+            return None
+        x, y = pc[:, 0] / z, pc[:, 1] / z
+        fx, fy, cx, cy, k1, k2, p1, p2 = (self.intr[self.view, i] for i in range(8))
+        r2 = x * x + y * y
+        g = 1.0 + r2 * (k1 + k2 * r2)
+        xd = x * g + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * g + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        e = np.stack([fx * xd + cx - self.uv[:, 0], fy * yd + cy - self.uv[:, 1]], axis=1) / self.sigma
+        if not jacobians:
+            return e
+        dg = 2.0 * (k1 + 2.0 * k2 * r2)  # d g / d(x or y), divided by the coordinate
+        d00 = g + x * x * dg + 2.0 * p1 * y + 6.0 * p2 * x
+        d01 = x * y * dg + 2.0 * p1 * x + 2.0 * p2 * y
+        d11 = g + y * y * dg + 6.0 * p1 * y + 2.0 * p2 * x
+        s = 1.0 / self.sigma
+        a00, a01, a10, a11 = s * fx * d00, s * fx * d01, s * fy * d01, s * fy * d11  # d pixel / d (x, y)
+        iz = 1.0 / z
+        # d pixel / d pc = A [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+        jpc = np.empty((len(z), 2, 3))
+        jpc[:, 0, 0], jpc[:, 0, 1], jpc[:, 0, 2] = a00 * iz, a01 * iz, -(a00 * x + a01 * y) * iz
+        jpc[:, 1, 0], jpc[:, 1, 1], jpc[:, 1, 2] = a10 * iz, a11 * iz, -(a10 * x + a11 * y) * iz
+        # d pc / d P = R^T: jl[a, j] = sum_k jpc[a, k] R[j, k]
+        jl = jpc[:, :, 0, None] * Rm[:, None, :, 0] + jpc[:, :, 1, None] * Rm[:, None, :, 1] \
+            + jpc[:, :, 2, None] * Rm[:, None, :, 2]
+        jp = None
+        if self.pose_keys is not None:  # d pc / d w = [pc]x, d pc / d v = -I
+            jp = np.empty((len(z), 2, 6))
+            px_, py_, pz_ = pc[:, 0, None], pc[:, 1, None], pc[:, 2, None]
+            jp[:, :, 0] = jpc[:, :, 1] * pz_ - jpc[:, :, 2] * py_
+            jp[:, :, 1] = jpc[:, :, 2] * px_ - jpc[:, :, 0] * pz_
+            jp[:, :, 2] = jpc[:, :, 0] * py_ - jpc[:, :, 1] * px_
+            jp[:, :, 3:] = -jpc
+        return e, jl, jp
+
+    def error(self, state) -> float:
+        e = self._residuals(state, False)
+        if e is None:
+            return float("inf")
+        other = float(self.graph.error(state[0])) if self.graph.size() else 0.0
+        return 0.5 * float(np.sum(e * e)) + other
+
+    def system(self, state) -> _System:
+        out = self._residuals(state, True)
+        if out is None:
+            raise NotReducible("a landmark behind a camera at the linearisation point")
+        e, jl, jp = out
+        n, n_c, lm = self.n_landmarks, self.n_c, self.landmark
+        V = np.zeros((n, 3, 3))  # noqa: N806
+        for a in range(3):
+            for b in range(a, 3):
+                V[:, a, b] = V[:, b, a] = np.bincount(lm, weights=jl[:, 0, a] * jl[:, 0, b] + jl[:, 1, a] * jl[:, 1, b],
+                                                      minlength=n)
+        gl = -(jl[:, 0] * e[:, 0:1] + jl[:, 1] * e[:, 1:2])
+        g_l = np.stack([np.bincount(lm, weights=gl[:, k], minlength=n) for k in range(3)], axis=1)
+        H = np.zeros((n_c, n_c))  # noqa: N806
+        g_c = np.zeros(n_c)
+        W = np.zeros((n, 3, n_c))  # noqa: N806
+        if jp is not None:
+            for v, obs in enumerate(self.by_view):
+                c = slice(int(self.col0[v]), int(self.col0[v]) + 6)
+                jv = jp[obs].reshape(-1, 6)
+                H[c, c] += jv.T @ jv
+                g_c[c] -= jv.T @ e[obs].ravel()
+            wl = jl[:, 0, :, None] * jp[:, 0, None, :] + jl[:, 1, :, None] * jp[:, 1, None, :]  # (M, 3, 6)
+            W.reshape(-1)[self.w_index] = wl.reshape(-1)
+        if self.graph.size():
+            t = self.graph.linearize(state[0]).sparseJacobian_()
+            rows, cols, vals = t[0].astype(np.int64) - 1, t[1].astype(np.int64) - 1, t[2]
+            m = int(rows.max()) + 1
+            A = np.zeros((m, n_c + 1))  # noqa: N806
+            np.add.at(A, (rows, cols), vals)
+            H += A[:, :n_c].T @ A[:, :n_c]
+            g_c += A[:, :n_c].T @ A[:, n_c]
+        return _System(V.reshape(-1, 3, 3), W, g_l, H, g_c, np.zeros(0, dtype=np.int64),
+                       np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+
+    def retract(self, state, dl: np.ndarray, dc: np.ndarray):
+        values, points = state
+        if self.n_c:
+            vv = gtsam.VectorValues()
+            for k, o, d in zip(self.layout.keys.tolist(), self.layout.offsets.tolist(), self.layout.dims.tolist(),
+                               strict=True):
+                vv.insert(k, dc[int(self.layout.col_cam[o]):int(self.layout.col_cam[o]) + d])
+            values = values.retract(vv)
+        return values, points + dl
