@@ -426,9 +426,14 @@ class ProjectionProblem:
         self.n_c = self.layout.n_camera if self.layout is not None else 0
         self.pose_keys = pose_keys
         self.fixed = fixed_poses
-        pair = self.landmark * self.n_views + self.view
-        if len(np.unique(pair)) != len(pair):
+        seen = np.zeros((self.n_landmarks, self.n_views), dtype=np.int64)
+        np.add.at(seen, (self.landmark, self.view), 1)
+        if np.any(seen > 1):
             raise NotReducible("a landmark observed twice by one view")
+        self.obs_intr = [np.ascontiguousarray(self.intr[self.view, i]) for i in range(8)]
+        if fixed_poses is not None:
+            self.fixed_rm = fixed_poses[self.view, :3, :3]
+            self.fixed_t = fixed_poses[self.view, :3, 3]
         if pose_keys is not None:
             self.col0 = np.array([camera_block(self.layout, k).start for k in pose_keys], dtype=np.int64)
             self.by_view = [np.nonzero(self.view == v)[0] for v in range(self.n_views)]
@@ -442,16 +447,18 @@ class ProjectionProblem:
 
     def _residuals(self, state, jacobians: bool):
         values, points = state
-        poses = self._poses(values)
-        R, t = poses[:, :3, :3], poses[:, :3, 3]  # noqa: N806
-        Rm = R[self.view]  # noqa: N806
-        d = points[self.landmark] - t[self.view]
+        if self.pose_keys is None:
+            Rm, tm = self.fixed_rm, self.fixed_t  # noqa: N806
+        else:
+            poses = self._poses(values)
+            Rm, tm = poses[self.view, :3, :3], poses[self.view, :3, 3]  # noqa: N806
+        d = points[self.landmark] - tm
         pc = d[:, 0:1] * Rm[:, 0] + d[:, 1:2] * Rm[:, 1] + d[:, 2:3] * Rm[:, 2]  # R^T (P - t)
         z = pc[:, 2]
         if not np.all(z > 0):
             return None
         x, y = pc[:, 0] / z, pc[:, 1] / z
-        fx, fy, cx, cy, k1, k2, p1, p2 = (self.intr[self.view, i] for i in range(8))
+        fx, fy, cx, cy, k1, k2, p1, p2 = self.obs_intr
         r2 = x * x + y * y
         g = 1.0 + r2 * (k1 + k2 * r2)
         xd = x * g + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)

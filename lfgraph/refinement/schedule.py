@@ -35,7 +35,12 @@ from lfgraph.refinement.tracks import (
     pooled_filter,
     track_coverage,
 )
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.triangulate import (
+    normalized_coordinates,
+    reprojection_errors,
+    triangulate_dlt,
+    worst_error_filter,
+)
 
 FIRST_PASS_SIGMA_PX = 1.0  # the measurement sigma of the pass that estimates it
 MIN_MEASUREMENT_SIGMA_PX = 0.05  # floor of the estimated sigma: KLT errors are not independent below this
@@ -109,11 +114,14 @@ def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config
     reports = []
     last_free = None
     last: tuple = (None, pixels[:, :0], valid[:, :0], np.zeros((0, 3)), frozenset(held_views))
+    norm, norm_intrinsics = None, None  # undistorted observations, recomputed only when a stage moves intrinsics
     for name in config.stages:
         t0 = time.perf_counter()
+        if norm_intrinsics != calib.intrinsics:
+            norm, norm_intrinsics = normalized_coordinates(calib, pixels, valid), calib.intrinsics
         # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
         # linear system singular and LM give up at once — guard cheirality before building the graph
-        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep])
+        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep], norm[:, keep])
         front = in_front(calib, points, valid[:, keep])
         idx = np.nonzero(keep)[0]
         keep[idx[~front]] = False

@@ -8,7 +8,19 @@ from lfgraph.calibration import Calibration
 from lfgraph.camera import project_world
 
 
-def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(V, N, 2) undistorted normalised coordinates of the valid observations (NaN elsewhere): what
+    `triangulate_dlt` computes first, to reuse while the intrinsics stay the same."""
+    out = np.full(pixels.shape, np.nan)
+    for i in range(valid.shape[0]):
+        m = valid[i] & np.all(np.isfinite(pixels[i]), axis=-1)
+        if m.any():
+            out[i, m] = calib.intrinsics[i].undistort(pixels[i][m])
+    return out
+
+
+def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
+                    normalized: np.ndarray | None = None) -> np.ndarray:
     """Linear N-view triangulation in normalised coordinates (undistorted), one batched SVD for all tracks.
 
     Each view i contributes ``x P_i3 - P_i1`` and ``y P_i3 - P_i2`` with ``P_i = [R | t]`` its ``view_T_ref``;
@@ -18,19 +30,20 @@ def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -
         calib: cameras.
         pixels: (V, N, 2) observations in original pixels.
         valid: (V, N) which exist.
+        normalized: the `normalized_coordinates` of these observations with these intrinsics (None: computed).
 
     Returns:
         (N, 3) points in the reference frame; NaN for tracks seen by fewer than two views.
     """
     n_views, n = valid.shape
     A = np.zeros((n, 2 * n_views, 4))  # noqa: N806
+    if normalized is None:
+        normalized = normalized_coordinates(calib, pixels, valid)
     for i in range(n_views):
-        m = valid[i] & np.all(np.isfinite(pixels[i]), axis=-1)
+        xy = normalized[i]
+        m = valid[i] & np.all(np.isfinite(xy), axis=-1)
         if not m.any():
             continue
-        xy = np.full((n, 2), np.nan)
-        xy[m] = calib.intrinsics[i].undistort(pixels[i][m])
-        m &= np.all(np.isfinite(xy), axis=-1)
         P = calib.view_T_ref(i)[:3]  # noqa: N806
         rows_x = xy[:, 0:1] * P[2][None] - P[0][None]
         rows_y = xy[:, 1:2] * P[2][None] - P[1][None]
