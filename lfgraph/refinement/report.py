@@ -39,6 +39,8 @@ class RefinementReport:
     seconds: float
     seconds_matching: float = 0.0
     seconds_adjustment: float = 0.0
+    cpu_seconds_matching: float = 0.0  # process CPU time (time.process_time) of the same two parts
+    cpu_seconds_adjustment: float = 0.0
     accepted: bool = True
     coverage: float = 1.0
     warnings: tuple[str, ...] = ()

@@ -265,6 +265,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     stop = "frames exhausted"
     used = pool_fitted = heard_iterations = 0
     t_match = t_adjust = 0.0
+    c_match = c_adjust = 0.0  # CPU seconds (time.process_time) of the same
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
@@ -275,7 +276,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
             # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             px_pool, ok_pool = np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1)
             if config.max_landmarks is not None and px_pool.shape[1] > config.max_landmarks:
                 pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
@@ -286,13 +287,15 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
             heard_iterations += sum(st.iterations for st in pass_fit.stages)
             pool_fitted = used
             t_adjust += time.perf_counter() - t0
+            c_adjust += time.process_time() - c0
         obs.frame(f, images)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         tracks = track_chain(images, calib.grid, config.match)
         # tracks are judged with the MAP fit of the frames so far, itself centred on the input and started from it:
         # one frame's poor fit never carries into the next
         kept, c = collect_tracks(current, tracks, config.triangulation_filter)
         t_match += time.perf_counter() - t0
+        c_match += time.process_time() - c0
         counts.append(c)
         pts = triangulate_dlt(current, kept.points_px, kept.valid)
         rms_now = _rms(reprojection_errors(current, pts, kept.points_px, kept.valid))
@@ -328,9 +331,10 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         pixels, valid, frame_of = pixels[:, pick], valid[:, pick], frame_of[pick]
     warnings = []
     coverage = track_coverage(calib, pixels, valid)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of)
     t_adjust += time.perf_counter() - t0
+    c_adjust += time.process_time() - c0
     fit = result.fit
     kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
     before = _rms(reprojection_errors(calib, triangulate_dlt(calib, kept_px, kept_valid), kept_px, kept_valid))
@@ -364,8 +368,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         obs.log(f"warning: {w}")
     total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
     report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
-                              time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
-                              tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
+                              time.perf_counter() - t_start, t_match, t_adjust, c_match, c_adjust, result.accepted,
+                              coverage, tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
                               result.heldout_after_px, result.sigma_px, tuple(dropped))
     out = result.calib
     metrics = {**dict(out.metrics or {}), **report.metrics()}
