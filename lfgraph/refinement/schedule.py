@@ -194,14 +194,20 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, con
 
 def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
              observer: Observer | None = None, held_views: frozenset[int] = frozenset(),
-             sigma_px: float | None = None, priors: ViewPriors | None = None) -> FitResult:
+             sigma_px: float | None = None, priors: ViewPriors | None = None,
+             sigma_estimate: float | None = None) -> FitResult:
     """`fit_tracks` with the config's priors centred on ``calib`` and, when neither ``sigma_px`` nor the config
-    gives a measurement sigma, one estimated from the residuals of a first pass (floored). ``priors`` replaces
-    the config's (e.g. with some groups held)."""
+    gives a measurement sigma, one estimated from the residuals of a first pass (floored) — or, when given,
+    ``sigma_estimate``: the sigma the residuals of an earlier fit of the frames so far supported (`fit_sigma`), which
+    spares that first pass frame after frame. ``priors`` replaces the config's (e.g. with some groups held)."""
     config = config or RefineConfig()
     if priors is None and config.priors:
         priors = view_priors(calib, config.drift)
     sigma_px = sigma_px or config.measurement_sigma_px
+    if sigma_px is None and sigma_estimate is not None and np.isfinite(sigma_estimate):
+        resolve(observer).log(f"measurement sigma from the fit of the previous frames: {sigma_estimate:.4f} px per "
+                              f"coordinate")
+        sigma_px = sigma_estimate
     if sigma_px is not None:
         return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
                           sigma_px=sigma_px)
@@ -266,6 +272,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     used = pool_fitted = heard_iterations = 0
     t_match = t_adjust = 0.0
     c_match = c_adjust = 0.0  # CPU seconds (time.process_time) of the same
+    sigma_estimate: float | None = None
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
@@ -282,7 +289,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
                 pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
                                                                    replace=False))
                 px_pool, ok_pool = px_pool[:, pick], ok_pool[:, pick]
-            pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs)
+            pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs, sigma_estimate=sigma_estimate)
+            sigma_estimate = fit_sigma(pass_fit)  # the next pass's sigma: no sigma-estimating pass of its own
             current = pass_fit.calib
             heard_iterations += sum(st.iterations for st in pass_fit.stages)
             pool_fitted = used
@@ -332,7 +340,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     warnings = []
     coverage = track_coverage(calib, pixels, valid)
     t0, c0 = time.perf_counter(), time.process_time()
-    result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of)
+    result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of, sigma_estimate)
     t_adjust += time.perf_counter() - t0
     c_adjust += time.process_time() - c0
     fit = result.fit
