@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import project_world
 
 
 def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -62,14 +61,32 @@ def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
 
 def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.ndarray,
                         valid: np.ndarray) -> np.ndarray:
-    """(V, N) Euclidean reprojection error of each observation (NaN where not observed)."""
+    """(V, N) Euclidean reprojection error of each observation (NaN where not observed); all views at once (the
+    model of `lfgraph.camera.Intrinsics.project`)."""
     out = np.full(valid.shape, np.nan)
     ok = np.all(np.isfinite(points_ref), axis=1)
-    for i in range(calib.num_views):
-        m = valid[i] & ok
-        if m.any():
-            proj = project_world(calib.intrinsics[i], calib.view_T_ref(i), points_ref[m])
-            out[i, m] = np.linalg.norm(proj - pixels[i, m], axis=1)
+    if not ok.any() or valid.shape[0] == 0:
+        return out
+    pts = np.asarray(points_ref, dtype=np.float64)[ok]
+    poses = np.asarray(calib.ref_T_view, dtype=np.float64)
+    rt = np.swapaxes(poses[:, :3, :3], 1, 2)  # view_T_ref: R^T, -R^T t
+    t = -np.einsum("vij,vj->vi", rt, poses[:, :3, 3])
+    pc = np.matmul(pts[None], np.swapaxes(rt, 1, 2)) + t[:, None, :]  # (V, n, 3)
+    k = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2] for i in calib.intrinsics])[:, :, None]
+    z = pc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zz = np.where(z > 0, z, np.nan)
+        x, y = pc[..., 0] / zz, pc[..., 1] / zz
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k[:, 4] + k[:, 5] * r2)
+    xd = x * radial + 2.0 * k[:, 6] * x * y + k[:, 7] * (r2 + 2.0 * x * x)
+    yd = y * radial + k[:, 6] * (r2 + 2.0 * y * y) + 2.0 * k[:, 7] * x * y
+    px = pixels[:, ok]
+    err = np.hypot(k[:, 0] * xd + k[:, 2] - px[..., 0], k[:, 1] * yd + k[:, 3] - px[..., 1])
+    sub = out[:, ok]
+    m = valid[:, ok]
+    sub[m] = err[m]
+    out[:, ok] = sub
     return out
 
 
