@@ -426,19 +426,28 @@ class ProjectionProblem:
         self.n_c = self.layout.n_camera if self.layout is not None else 0
         self.pose_keys = pose_keys
         self.fixed = fixed_poses
-        seen = np.zeros((self.n_landmarks, self.n_views), dtype=np.int64)
-        np.add.at(seen, (self.landmark, self.view), 1)
-        if np.any(seen > 1):
-            raise NotReducible("a landmark observed twice by one view")
+        pair = self.view * max(self.n_landmarks, 1) + self.landmark
+        if pair.size and not np.all(pair[1:] > pair[:-1]):  # e.g. np.nonzero of a (V, N) mask: sorted by view
+            order = np.argsort(pair, kind="stable")
+            self.view, self.landmark, self.uv = self.view[order], self.landmark[order], self.uv[order]
+            pair = pair[order]
+            if np.any(pair[1:] == pair[:-1]):
+                raise NotReducible("a landmark observed twice by one view")
         self.obs_intr = [np.ascontiguousarray(self.intr[self.view, i]) for i in range(8)]
         if fixed_poses is not None:
             self.fixed_rm = fixed_poses[self.view, :3, :3]
             self.fixed_t = fixed_poses[self.view, :3, 3]
         if pose_keys is not None:
             self.col0 = np.array([camera_block(self.layout, k).start for k in pose_keys], dtype=np.int64)
-            self.by_view = [np.nonzero(self.view == v)[0] for v in range(self.n_views)]
-            self.w_index = (((self.landmark * 3)[:, None, None] + np.arange(3)[None, :, None]) * self.n_c
-                            + (self.col0[self.view][:, None, None] + np.arange(6)[None, None, :])).reshape(-1)
+            bounds = np.searchsorted(self.view, np.arange(self.n_views + 1))
+            self.by_view = [slice(int(bounds[v]), int(bounds[v + 1])) for v in range(self.n_views)]
+            # every landmark in every view and the poses in view order: W is a transpose of the per-observation
+            # blocks; otherwise a scatter
+            self.dense = len(self.view) == self.n_views * self.n_landmarks \
+                and np.array_equal(self.col0, 6 * np.arange(self.n_views)) and self.n_c == 6 * self.n_views
+            if not self.dense:
+                self.w_index = (((self.landmark * 3)[:, None, None] + np.arange(3)[None, :, None]) * self.n_c
+                                + (self.col0[self.view][:, None, None] + np.arange(6)[None, None, :])).reshape(-1)
 
     def _poses(self, values: gtsam.Values) -> np.ndarray:
         if self.pose_keys is None:
@@ -520,7 +529,10 @@ class ProjectionProblem:
                 H[c, c] += jv.T @ jv
                 g_c[c] -= jv.T @ e[obs].ravel()
             wl = jl[:, 0, :, None] * jp[:, 0, None, :] + jl[:, 1, :, None] * jp[:, 1, None, :]  # (M, 3, 6)
-            W.reshape(-1)[self.w_index] = wl.reshape(-1)
+            if self.dense:
+                W = np.ascontiguousarray(wl.reshape(self.n_views, n, 3, 6).transpose(1, 2, 0, 3)).reshape(n, 3, n_c)  # noqa: N806
+            else:
+                W.reshape(-1)[self.w_index] = wl.reshape(-1)
         if self.graph.size():
             t = self.graph.linearize(state[0]).sparseJacobian_()
             rows, cols, vals = t[0].astype(np.int64) - 1, t[1].astype(np.int64) - 1, t[2]
