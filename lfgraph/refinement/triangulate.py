@@ -5,17 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.camera import undistort_views
 
 
 def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(V, N, 2) undistorted normalised coordinates of the valid observations (NaN elsewhere): what
     `triangulate_dlt` computes first, to reuse while the intrinsics stay the same."""
-    out = np.full(pixels.shape, np.nan)
-    for i in range(valid.shape[0]):
-        m = valid[i] & np.all(np.isfinite(pixels[i]), axis=-1)
-        if m.any():
-            out[i, m] = calib.intrinsics[i].undistort(pixels[i][m])
-    return out
+    return undistort_views(calib.intrinsics, np.where(valid[..., None], pixels, np.nan))
 
 
 def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
