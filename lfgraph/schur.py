@@ -434,6 +434,8 @@ class ProjectionProblem:
             if np.any(pair[1:] == pair[:-1]):
                 raise NotReducible("a landmark observed twice by one view")
         self.obs_intr = [np.ascontiguousarray(self.intr[self.view, i]) for i in range(8)]
+        # every landmark seen by every view (observations in view-major order): per-view matrix products
+        self.full = len(self.view) == self.n_views * self.n_landmarks
         if fixed_poses is not None:
             self.fixed_rm = fixed_poses[self.view, :3, :3]
             self.fixed_t = fixed_poses[self.view, :3, 3]
@@ -456,13 +458,15 @@ class ProjectionProblem:
 
     def _residuals(self, state, jacobians: bool):
         values, points = state
-        if self.pose_keys is None:
-            Rm, tm = self.fixed_rm, self.fixed_t  # noqa: N806
+        poses = self._poses(values)
+        if self.full:
+            R, Rm = poses[:, :3, :3], None  # noqa: N806
+            pc = np.matmul(points[None] - poses[:, None, :3, 3], R).reshape(-1, 3)  # R^T (P - t), view by view
         else:
-            poses = self._poses(values)
-            Rm, tm = poses[self.view, :3, :3], poses[self.view, :3, 3]  # noqa: N806
-        d = points[self.landmark] - tm
-        pc = d[:, 0:1] * Rm[:, 0] + d[:, 1:2] * Rm[:, 1] + d[:, 2:3] * Rm[:, 2]  # R^T (P - t)
+            Rm, tm = (self.fixed_rm, self.fixed_t) if self.pose_keys is None \
+                else (poses[self.view, :3, :3], poses[self.view, :3, 3])  # noqa: N806
+            d = points[self.landmark] - tm
+            pc = d[:, 0:1] * Rm[:, 0] + d[:, 1:2] * Rm[:, 1] + d[:, 2:3] * Rm[:, 2]  # R^T (P - t)
         z = pc[:, 2]
         if not np.all(z > 0):
             return None
@@ -487,8 +491,11 @@ class ProjectionProblem:
         jpc[:, 0, 0], jpc[:, 0, 1], jpc[:, 0, 2] = a00 * iz, a01 * iz, -(a00 * x + a01 * y) * iz
         jpc[:, 1, 0], jpc[:, 1, 1], jpc[:, 1, 2] = a10 * iz, a11 * iz, -(a10 * x + a11 * y) * iz
         # d pc / d P = R^T: jl[a, j] = sum_k jpc[a, k] R[j, k]
-        jl = jpc[:, :, 0, None] * Rm[:, None, :, 0] + jpc[:, :, 1, None] * Rm[:, None, :, 1] \
-            + jpc[:, :, 2, None] * Rm[:, None, :, 2]
+        if self.full:
+            jl = np.matmul(jpc.reshape(self.n_views, -1, 3), np.swapaxes(R, 1, 2)).reshape(-1, 2, 3)
+        else:
+            jl = jpc[:, :, 0, None] * Rm[:, None, :, 0] + jpc[:, :, 1, None] * Rm[:, None, :, 1] \
+                + jpc[:, :, 2, None] * Rm[:, None, :, 2]
         jp = None
         if self.pose_keys is not None:  # d pc / d w = [pc]x, d pc / d v = -I
             jp = np.empty((len(z), 2, 6))
@@ -512,13 +519,18 @@ class ProjectionProblem:
             raise NotReducible("a landmark behind a camera at the linearisation point")
         e, jl, jp = out
         n, n_c, lm = self.n_landmarks, self.n_c, self.landmark
-        V = np.zeros((n, 3, 3))  # noqa: N806
-        for a in range(3):
-            for b in range(a, 3):
-                V[:, a, b] = V[:, b, a] = np.bincount(lm, weights=jl[:, 0, a] * jl[:, 0, b] + jl[:, 1, a] * jl[:, 1, b],
-                                                      minlength=n)
-        gl = -(jl[:, 0] * e[:, 0:1] + jl[:, 1] * e[:, 1:2])
-        g_l = np.stack([np.bincount(lm, weights=gl[:, k], minlength=n) for k in range(3)], axis=1)
+        if self.full:  # per landmark, its 2V rows: V = J^T J and g = -J^T e in one batched product
+            jt = np.ascontiguousarray(jl.reshape(self.n_views, n, 2, 3).transpose(1, 3, 0, 2)).reshape(n, 3, -1)
+            V = np.matmul(jt, np.swapaxes(jt, 1, 2))  # noqa: N806
+            g_l = -np.matmul(jt, e.reshape(self.n_views, n, 2).transpose(1, 0, 2).reshape(n, -1, 1))[..., 0]
+        else:
+            V = np.zeros((n, 3, 3))  # noqa: N806
+            for a in range(3):
+                for b in range(a, 3):
+                    V[:, a, b] = V[:, b, a] = np.bincount(
+                        lm, weights=jl[:, 0, a] * jl[:, 0, b] + jl[:, 1, a] * jl[:, 1, b], minlength=n)
+            gl = -(jl[:, 0] * e[:, 0:1] + jl[:, 1] * e[:, 1:2])
+            g_l = np.stack([np.bincount(lm, weights=gl[:, k], minlength=n) for k in range(3)], axis=1)
         H = np.zeros((n_c, n_c))  # noqa: N806
         g_c = np.zeros(n_c)
         W = np.zeros((n, 3, n_c))  # noqa: N806
