@@ -376,9 +376,10 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         obs.log(f"warning: {w}")
     total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
     report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
-                              time.perf_counter() - t_start, t_match, t_adjust, c_match, c_adjust, result.accepted,
-                              coverage, tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
-                              result.heldout_after_px, result.sigma_px, tuple(dropped))
+                              time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
+                              tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
+                              result.heldout_after_px, result.sigma_px, tuple(dropped), cpu_seconds_matching=c_match,
+                              cpu_seconds_adjustment=c_adjust)
     out = result.calib
     metrics = {**dict(out.metrics or {}), **report.metrics()}
     return out.replace(metrics=metrics, rectification=None), report
