@@ -109,18 +109,14 @@ def schur_layout(values: gtsam.Values, landmark_char: str) -> SchurLayout:
 
 @dataclass
 class _System:
-    """The normal equations in Schur form (undamped): per-landmark V (N,3,3), W (N,3,C), g_l (N,3); H_cc (C,C),
-    g_c (C,); and the Jacobian triplets to evaluate the linear model."""
+    """The normal equations J^T J d = -J^T e in Schur form (undamped): per landmark V (N,3,3), W (N,3,C) and g_l
+    (N,3); the cameras' H (C,C) and g_c (C,)."""
 
     V: np.ndarray  # noqa: N815
     W: np.ndarray  # noqa: N815
     g_l: np.ndarray
     H: np.ndarray  # noqa: N815
     g_c: np.ndarray
-    rows: np.ndarray
-    cols: np.ndarray
-    vals: np.ndarray
-    b: np.ndarray
 
 
 class NotReducible(ValueError):
@@ -190,7 +186,7 @@ def _system(lin: gtsam.GaussianFactorGraph, layout: SchurLayout) -> _System:
                     prod = al_h[:, a:a + 1] * ag_h
                     for j, col in enumerate(cg):
                         W[:, a, col] += np.bincount(lm_h, weights=prod[:, j], minlength=n_lm)
-    return _System(V, W, g_l, H, g_c, rows, cols, vals, b)
+    return _System(V, W, g_l, H, g_c)
 
 
 def _inv3(V: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -551,8 +547,7 @@ class ProjectionProblem:
             np.add.at(A, (rows, cols), vals)
             H += A[:, :n_c].T @ A[:, :n_c]
             g_c += A[:, :n_c].T @ A[:, n_c]
-        return _System(V.reshape(-1, 3, 3), W, g_l, H, g_c, np.zeros(0, dtype=np.int64),
-                       np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+        return _System(V.reshape(-1, 3, 3), W, g_l, H, g_c)
 
     def retract(self, state, dl: np.ndarray, dc: np.ndarray):
         values, points = state
