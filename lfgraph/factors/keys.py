@@ -9,6 +9,7 @@ _CALIB = "k"  # Cal3DS2 of view v
 _BOARD_POSE = "b"  # board_T_ref of frame f (the reference view's pose in that frame's board)
 _BOARD_CORNER = "c"  # board corner j (board frame), shared by all frames
 _LANDMARK = "l"  # scene landmark j (reference frame)
+LANDMARK_CHAR = _LANDMARK  # for solvers that eliminate landmarks (`lfgraph.schur`)
 
 
 def view_pose_key(view: int) -> int:

@@ -288,14 +288,16 @@ def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
 
 
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
-           coverage: float, frames: int, frame_of: np.ndarray | None = None) -> Assessment:
+           coverage: float, frames: int, frame_of: np.ndarray | None = None,
+           sigma_estimate: float | None = None) -> Assessment:
     """MAP fit, posterior, fold refits (held-out tracks and the jackknife), significance, verdicts (see the
-    module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames."""
+    module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames.
+    ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
     from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.refinement.schedule import fit_auto
 
     obs = observer
-    fit = fit_auto(calib, pixels, valid, config, obs)
+    fit = fit_auto(calib, pixels, valid, config, obs, sigma_estimate=sigma_estimate)
     post = posterior(calib, fit, config)
     n, ref = calib.num_views, calib.grid.reference
     rays = infinity_rays(calib)

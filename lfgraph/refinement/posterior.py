@@ -9,13 +9,14 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.geometry import rotation_from_rotvec, to_pose3
 from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
-from lfgraph.refinement.stages import stage_graph
+from lfgraph.refinement.stages import stage_graph, stage_problem
+from lfgraph.schur import NotReducible, camera_block, marginal_covariance, problem_covariance
 
 TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
@@ -58,15 +59,35 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
     if priors is None and config.priors:
         priors = view_priors(calib, config.drift)
     model = measurement_noise(config.noise, fit.sigma_px)
-    graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
-                                config.scale_sigma_mm, fit.held, priors)
     intr_free = fit.last_stage in (Stage.INTRINSICS, Stage.ALL)
     idx = [0, 1, 3, 4]
     try:
         with gtsam_quiet():
-            marginals = gtsam.Marginals(graph, values)
+            bulk = stage_problem(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                                 config.scale_sigma_mm, fit.held, priors)
+            if bulk is not None:  # the projections in bulk, as the fit ran them
+                cov, layout = problem_covariance(*bulk), bulk[0].layout
+            else:
+                graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                                            config.scale_sigma_mm, fit.held, priors)
+                cov, layout = marginal_covariance(graph, values, LANDMARK_CHAR)
+    except (NotReducible, np.linalg.LinAlgError):  # a user hook's factor on two landmarks, or numerically
+        cov, layout = None, None  # indeterminate: GTSAM's own marginals decide
+    try:
+        with gtsam_quiet():
+            if cov is None:
+                graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                                            config.scale_sigma_mm, fit.held, priors)
+                marginals = gtsam.Marginals(graph, values)
             for v in range(n):
-                if intr_free:
+                if cov is not None:
+                    p, k = camera_block(layout, view_pose_key(v)), None
+                    pose_cov[v] = cov[p, p]
+                    if intr_free:
+                        k = camera_block(layout, calib_key(v))
+                        intr_cov[v] = cov[k, k][np.ix_(idx, idx)]
+                        cross[v] = cov[p, k][:, idx]
+                elif intr_free:
                     keys = gtsam.KeyVector([view_pose_key(v), calib_key(v)])
                     joint = marginals.jointMarginalCovariance(keys)
                     pose_cov[v] = joint.at(view_pose_key(v), view_pose_key(v))

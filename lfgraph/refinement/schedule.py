@@ -35,7 +35,12 @@ from lfgraph.refinement.tracks import (
     pooled_filter,
     track_coverage,
 )
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.triangulate import (
+    normalized_coordinates,
+    reprojection_errors,
+    triangulate_dlt,
+    worst_error_filter,
+)
 
 FIRST_PASS_SIGMA_PX = 1.0  # the measurement sigma of the pass that estimates it
 MIN_MEASUREMENT_SIGMA_PX = 0.05  # floor of the estimated sigma: KLT errors are not independent below this
@@ -109,11 +114,14 @@ def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config
     reports = []
     last_free = None
     last: tuple = (None, pixels[:, :0], valid[:, :0], np.zeros((0, 3)), frozenset(held_views))
+    norm, norm_intrinsics = None, None  # undistorted observations, recomputed only when a stage moves intrinsics
     for name in config.stages:
         t0 = time.perf_counter()
+        if norm_intrinsics != calib.intrinsics:
+            norm, norm_intrinsics = normalized_coordinates(calib, pixels, valid), calib.intrinsics
         # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
         # linear system singular and LM give up at once — guard cheirality before building the graph
-        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep])
+        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep], norm[:, keep])
         front = in_front(calib, points, valid[:, keep])
         idx = np.nonzero(keep)[0]
         keep[idx[~front]] = False
@@ -186,14 +194,20 @@ def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, con
 
 def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
              observer: Observer | None = None, held_views: frozenset[int] = frozenset(),
-             sigma_px: float | None = None, priors: ViewPriors | None = None) -> FitResult:
+             sigma_px: float | None = None, priors: ViewPriors | None = None,
+             sigma_estimate: float | None = None) -> FitResult:
     """`fit_tracks` with the config's priors centred on ``calib`` and, when neither ``sigma_px`` nor the config
-    gives a measurement sigma, one estimated from the residuals of a first pass (floored). ``priors`` replaces
-    the config's (e.g. with some groups held)."""
+    gives a measurement sigma, one estimated from the residuals of a first pass (floored) — or, when given,
+    ``sigma_estimate``: the sigma the residuals of an earlier fit of the frames so far supported (`fit_sigma`), which
+    spares that first pass frame after frame. ``priors`` replaces the config's (e.g. with some groups held)."""
     config = config or RefineConfig()
     if priors is None and config.priors:
         priors = view_priors(calib, config.drift)
     sigma_px = sigma_px or config.measurement_sigma_px
+    if sigma_px is None and sigma_estimate is not None and np.isfinite(sigma_estimate):
+        resolve(observer).log(f"measurement sigma from the fit of the previous frames: {sigma_estimate:.4f} px per "
+                              f"coordinate")
+        sigma_px = sigma_estimate
     if sigma_px is not None:
         return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
                           sigma_px=sigma_px)
@@ -257,6 +271,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     stop = "frames exhausted"
     used = pool_fitted = heard_iterations = 0
     t_match = t_adjust = 0.0
+    c_match = c_adjust = 0.0  # CPU seconds (time.process_time) of the same
+    sigma_estimate: float | None = None
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
@@ -267,24 +283,27 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
             # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             px_pool, ok_pool = np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1)
             if config.max_landmarks is not None and px_pool.shape[1] > config.max_landmarks:
                 pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
                                                                    replace=False))
                 px_pool, ok_pool = px_pool[:, pick], ok_pool[:, pick]
-            pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs)
+            pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs, sigma_estimate=sigma_estimate)
+            sigma_estimate = fit_sigma(pass_fit)  # the next pass's sigma: no sigma-estimating pass of its own
             current = pass_fit.calib
             heard_iterations += sum(st.iterations for st in pass_fit.stages)
             pool_fitted = used
             t_adjust += time.perf_counter() - t0
+            c_adjust += time.process_time() - c0
         obs.frame(f, images)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         tracks = track_chain(images, calib.grid, config.match)
         # tracks are judged with the MAP fit of the frames so far, itself centred on the input and started from it:
         # one frame's poor fit never carries into the next
         kept, c = collect_tracks(current, tracks, config.triangulation_filter)
         t_match += time.perf_counter() - t0
+        c_match += time.process_time() - c0
         counts.append(c)
         pts = triangulate_dlt(current, kept.points_px, kept.valid)
         rms_now = _rms(reprojection_errors(current, pts, kept.points_px, kept.valid))
@@ -320,9 +339,10 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         pixels, valid, frame_of = pixels[:, pick], valid[:, pick], frame_of[pick]
     warnings = []
     coverage = track_coverage(calib, pixels, valid)
-    t0 = time.perf_counter()
-    result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of)
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of, sigma_estimate)
     t_adjust += time.perf_counter() - t0
+    c_adjust += time.process_time() - c0
     fit = result.fit
     kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
     before = _rms(reprojection_errors(calib, triangulate_dlt(calib, kept_px, kept_valid), kept_px, kept_valid))
@@ -358,7 +378,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
                               time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
                               tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
-                              result.heldout_after_px, result.sigma_px, tuple(dropped))
+                              result.heldout_after_px, result.sigma_px, tuple(dropped), cpu_seconds_matching=c_match,
+                              cpu_seconds_adjustment=c_adjust)
     out = result.calib
     metrics = {**dict(out.metrics or {}), **report.metrics()}
     return out.replace(metrics=metrics, rectification=None), report

@@ -15,6 +15,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors import scene_graph
 from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
+from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.factors.values import (
     insert_intrinsics,
@@ -24,9 +25,14 @@ from lfgraph.factors.values import (
     read_landmarks,
     read_view_poses,
 )
-from lfgraph.optimize import IterationCallback, OptimizerSettings, optimize
+from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
+from lfgraph.schur import NotReducible, ProjectionProblem, optimize_problem
+
+STAGE_RELATIVE_TOL = 1e-7  # LM stops when an iteration lowers the cost by less than this fraction. GTSAM's 1e-10
+# costs one more iteration per stage whose cost decrease is ~1e-11 relative (measured on paper-5x5: a parameter step
+# of ~0.002 posterior sigma); the accuracy in benchmarks/refine.py is the same to the printed digits
 
 
 def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
@@ -44,13 +50,16 @@ def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
 def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
                 model: gtsam.noiseModel.Base, scale_sigma_mm: float | None = None,
                 held_views: frozenset[int] = frozenset(),
-                priors: ViewPriors | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+                priors: ViewPriors | None = None,
+                projections: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The graph and initial values of one free-variable stage (``intrinsics``, ``poses`` or ``all``) at ``calib``
-    and ``points``: what `run_stage` optimises, and what the posterior marginals are taken from."""
+    and ``points``: what `run_stage` optimises, and what the posterior marginals are taken from. ``projections``
+    False: only the camera variables and their priors and gauges (`stage_problem` evaluates the projections)."""
     stage = Stage(stage)
     n_views = calib.num_views
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    insert_landmarks(values, points)
+    if projections:
+        insert_landmarks(values, points)
     poses_free = stage in (Stage.POSES, Stage.ALL)
     intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
     insert_view_poses(values, calib.ref_T_view)
@@ -66,9 +75,37 @@ def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.
         graph.push_back(scene_graph.intrinsics_priors(calib, held_views, None if priors is None else priors.centre,
                                                       None if priors is None else priors.intrinsics_sigmas))
         graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
-    else:
+    elif projections:
         graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
     return graph, values
+
+
+def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+                  model: gtsam.noiseModel.Base, scale_sigma_mm: float | None = None,
+                  held_views: frozenset[int] = frozenset(),
+                  priors: ViewPriors | None = None) -> tuple[ProjectionProblem, tuple] | None:
+    """The ``points`` or ``poses`` stage as a `lfgraph.schur.ProjectionProblem` (the projections in bulk, the
+    priors and gauges as GTSAM factors) and its initial state, or None where GTSAM's factors are needed: a robust
+    kernel or a user noise model, free intrinsics, a landmark behind a camera."""
+    stage = Stage(stage)
+    if stage not in (Stage.POINTS, Stage.POSES) or not isinstance(model, gtsam.noiseModel.Isotropic):
+        return None
+    vs, js = np.nonzero(valid)
+    intr = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2] for i in calib.intrinsics])
+    try:
+        if stage == Stage.POINTS:
+            values = gtsam.Values()
+            problem = ProjectionProblem(gtsam.NonlinearFactorGraph(), values, vs, js, pixels[vs, js], model.sigma(),
+                                        intr, len(points), fixed_poses=np.asarray(calib.ref_T_view))
+        else:
+            graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views,
+                                        priors, projections=False)
+            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model.sigma(), intr, len(points),
+                                        pose_keys=[view_pose_key(v) for v in range(calib.num_views)])
+    except NotReducible:
+        return None
+    state = (values, np.asarray(points, dtype=np.float64))
+    return (problem, state) if np.isfinite(problem.error(state)) else None
 
 
 def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
@@ -95,18 +132,30 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     n_views = calib.num_views
     poses_free = stage in (Stage.POSES, Stage.ALL)
     intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
-    if stage == Stage.POINTS:
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        insert_landmarks(values, points)
-        graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
+    bulk = None if hooks else stage_problem(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views,
+                                            priors)
+    if bulk is not None:  # the projections in bulk (no user hook needs the GTSAM graph)
+        with gtsam_quiet():
+            res = optimize_problem(*bulk, max_iterations=max_iterations, callback=callback,
+                                   relative_error_tol=STAGE_RELATIVE_TOL)
+        result_values, new_points = res.values
+        iterations = res.iterations
     else:
-        graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views, priors)
-    run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
-    result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback)
-    new_points = read_landmarks(result.values, len(points)) if len(points) else points
+        if stage == Stage.POINTS:
+            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            insert_landmarks(values, points)
+            graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
+        else:
+            graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views,
+                                        priors)
+        run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
+        result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback,
+                          eliminate=LANDMARK_CHAR)
+        result_values, iterations = result.values, result.iterations
+        new_points = read_landmarks(result_values, len(points)) if len(points) else points
     if stage == Stage.POINTS:
-        return calib, new_points, result.iterations
-    poses = read_view_poses(result.values, n_views)
+        return calib, new_points, iterations
+    poses = read_view_poses(result_values, n_views)
     ref = calib.grid.reference
     poses = np.linalg.inv(poses[ref])[None] @ poses  # exactly relative to the reference again
     poses[ref] = np.eye(4)
@@ -114,5 +163,5 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
         scale = baseline_scale((calib if priors is None else priors.centre).ref_T_view, poses)
         poses[:, :3, 3] *= scale
         new_points = new_points * scale
-    intr = read_intrinsics(result.values, n_views, keep=calib.intrinsics) if intr_free else calib.intrinsics
-    return calib.replace(intrinsics=intr, ref_T_view=poses), new_points, result.iterations
+    intr = read_intrinsics(result_values, n_views, keep=calib.intrinsics) if intr_free else calib.intrinsics
+    return calib.replace(intrinsics=intr, ref_T_view=poses), new_points, iterations

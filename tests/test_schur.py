@@ -1,0 +1,102 @@
+"""The Schur-complement Levenberg–Marquardt (lfgraph.schur) against GTSAM's own optimiser and marginals, and the
+bulk projections of the points/poses stages against GTSAM's factors."""
+
+import gtsam
+import numpy as np
+
+from lfgraph.camera import project_world, undistort_views
+from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
+from lfgraph.factors.noise import RobustKernel, measurement_noise
+from lfgraph.optimize import OptimizerSettings, optimize
+from lfgraph.refinement import Stage
+from lfgraph.refinement.config import DriftModel
+from lfgraph.refinement.priors import view_priors
+from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
+from lfgraph.refinement.triangulate import triangulate_dlt
+from lfgraph.schur import camera_block, marginal_covariance, problem_covariance
+
+SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same LM, different linear solver)
+SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals
+STAGE_TOL_OFFSET = 1e-6  # rad and m: the bulk stage stops at STAGE_RELATIVE_TOL, GTSAM's path at 1e-10
+SAME_UNDISTORT = 1e-14  # normalised units: one Newton loop for all views vs one per view
+
+
+def scene(seed=0, n=150):
+    rig = make_rig(RigConfig(rows=3, cols=3, pitch_m=0.05, image_size_px=(512, 512), focal_px=600.0),
+                   np.random.default_rng(seed))
+    truth = shake_rig(rig, ShakeConfig(rot_deg=0.5, trans_mm=2.0), np.random.default_rng(seed + 1))
+    rng = np.random.default_rng(seed + 2)
+    depth = rng.uniform(1.5, 5.0, n)
+    pts = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)) * depth[:, None], depth])
+    pix = np.stack([project_world(truth.intrinsics[v], truth.view_T_ref(v), pts) for v in range(9)])
+    pix += 0.05 * rng.standard_normal(pix.shape)
+    valid = np.ones(pix.shape[:2], dtype=bool)
+    valid[rng.integers(0, 9, 40), rng.integers(0, n, 40)] = False  # not every landmark in every view
+    valid[rig.grid.reference] = True
+    return rig, pix, valid
+
+
+def test_schur_lm_reaches_gtsams_minimum_and_marginals():
+    rig, pix, valid = scene()
+    points = triangulate_dlt(rig, pix, valid)
+    model = measurement_noise(RobustKernel("none"), 0.05)
+    priors = view_priors(rig, DriftModel())
+    graph, values = stage_graph(Stage.POSES, rig, pix, valid, points, model, priors=priors)
+    ours = optimize(graph, values, OptimizerSettings(), eliminate=LANDMARK_CHAR)
+    theirs = optimize(graph, values, OptimizerSettings())
+    assert abs(ours.final_error - theirs.final_error) <= 1e-9 * theirs.final_error
+    for v in range(rig.num_views):
+        d = ours.values.atPose3(view_pose_key(v)).localCoordinates(theirs.values.atPose3(view_pose_key(v)))
+        assert np.max(np.abs(d)) < SAME_SOLUTION
+    cov, layout = marginal_covariance(graph, theirs.values, LANDMARK_CHAR)
+    marginals = gtsam.Marginals(graph, theirs.values)
+    for v in (1, 5, 8):
+        block = camera_block(layout, view_pose_key(v))
+        expected = marginals.marginalCovariance(view_pose_key(v))
+        assert np.max(np.abs(cov[block, block] - expected)) < SAME_COVARIANCE * np.max(np.abs(expected))
+
+
+def test_bulk_projections_match_gtsam_factors():
+    rig, pix, valid = scene(seed=5)
+    points = triangulate_dlt(rig, pix, valid)
+    noise = RobustKernel("none")
+    priors = view_priors(rig, DriftModel())
+
+    def no_op(ctx):  # a hook makes run_stage build GTSAM's factors
+        pass
+
+    for stage in (Stage.POINTS, Stage.POSES):
+        bulk_calib, bulk_pts, _ = run_stage(stage, rig, pix, valid, points, noise, 0.05, priors=priors)
+        graph_calib, graph_pts, _ = run_stage(stage, rig, pix, valid, points, noise, 0.05, priors=priors,
+                                              hooks=(no_op,))
+        np.testing.assert_allclose(bulk_calib.ref_T_view, graph_calib.ref_T_view, atol=STAGE_TOL_OFFSET)
+        np.testing.assert_allclose(bulk_pts, graph_pts, atol=STAGE_TOL_OFFSET * 10)
+    # and its posterior is GTSAM's
+    model = measurement_noise(noise, 0.05)
+    problem, state = stage_problem(Stage.POSES, rig, pix, valid, points, model, priors=priors)
+    cov = problem_covariance(problem, state)
+    graph, values = stage_graph(Stage.POSES, rig, pix, valid, points, model, priors=priors)
+    marginals = gtsam.Marginals(graph, values)
+    block = camera_block(problem.layout, view_pose_key(4))
+    expected = marginals.marginalCovariance(view_pose_key(4))
+    assert np.max(np.abs(cov[block, block] - expected)) < SAME_COVARIANCE * np.max(np.abs(expected))
+
+
+def test_robust_kernels_keep_gtsams_factors():
+    rig, pix, valid = scene(seed=7)
+    points = triangulate_dlt(rig, pix, valid)
+    model = measurement_noise(RobustKernel.parse("huber:1.345"), 0.05)
+    assert stage_problem(Stage.POSES, rig, pix, valid, points, model) is None
+    calib, _, iterations = run_stage(Stage.POSES, rig, pix, valid, points, RobustKernel.parse("huber:1.345"), 0.05)
+    assert iterations > 0 and np.all(np.isfinite(calib.ref_T_view))
+
+
+def test_undistort_views_matches_the_method():
+    rig, pix, valid = scene(seed=9)
+    pix = np.where(valid[..., None], pix, np.nan)
+    out = undistort_views(rig.intrinsics, pix)
+    for v in range(rig.num_views):
+        m = valid[v]
+        np.testing.assert_allclose(out[v, m], rig.intrinsics[v].undistort(pix[v, m]), atol=SAME_UNDISTORT)
+        assert np.all(np.isnan(out[v, ~m]))
