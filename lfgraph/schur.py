@@ -18,16 +18,15 @@ caller then falls back to GTSAM's own optimiser.
 
 from __future__ import annotations
 
-import ctypes
-import glob
-import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import lru_cache
 
 import gtsam
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 LAMBDA_INITIAL = 1e-5  # GTSAM's LevenbergMarquardtParams defaults
 LAMBDA_FACTOR = 10.0
@@ -35,35 +34,19 @@ LAMBDA_UPPER = 1e5
 MIN_MODEL_FIDELITY = 1e-3
 
 
-def _openblas() -> ctypes.CDLL | None:
-    """numpy's bundled OpenBLAS (already loaded), to run the small dense products on one thread."""
-    libs = glob.glob(os.path.join(os.path.dirname(np.__file__) + ".libs", "libscipy_openblas*.so*"))
-    for lib in libs:
-        try:
-            handle = ctypes.CDLL(lib)
-            handle.scipy_openblas_get_num_threads64_.restype = ctypes.c_int
-            return handle
-        except (OSError, AttributeError):
-            continue
-    return None
-
-
-_BLAS = _openblas()
+@lru_cache(maxsize=1)
+def _blas_controller() -> ThreadpoolController:
+    """threadpoolctl's view of the BLAS libraries loaded in this process (scanned once)."""
+    return ThreadpoolController()
 
 
 @contextmanager
 def one_blas_thread() -> Iterator[None]:
-    """OpenBLAS on one thread: the reduced system is small (C <= a few hundred), and on a shared machine its
-    threads mostly spin (measured: a 286-landmark solve took 87 ms of CPU with 2 threads, 3.5 ms with one)."""
-    if _BLAS is None:
+    """numpy's BLAS on one thread (threadpoolctl): the reduced system is small (C <= a few hundred), and on a shared
+    machine its threads mostly spin (measured: a 286-landmark solve took 87 ms of CPU with 2 threads, 3.5 ms with
+    one). The limit is process-wide while it lasts: BLAS calls of other threads in the meantime run on one thread."""
+    with _blas_controller().limit(limits=1, user_api="blas"):
         yield
-        return
-    before = _BLAS.scipy_openblas_get_num_threads64_()
-    _BLAS.scipy_openblas_set_num_threads64_(1)
-    try:
-        yield
-    finally:
-        _BLAS.scipy_openblas_set_num_threads64_(before)
 
 
 @dataclass(frozen=True)
