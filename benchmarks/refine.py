@@ -1,6 +1,7 @@
 """Auto-refinement on shaken paper-5x5 scenes: accuracy against the shaken truth, the paper's schedule vs lfgraph's
-default, and the time per frame (matching + filters, staged adjustment; wall and process CPU, the CPU figure is the
-one checked against the target since the machine may be shared) with peak memory; then the thin and hostile
+default, and the time per frame (matching + filters, staged adjustment; wall and process CPU — the wall time on an
+idle 2-core machine is the one checked against the target: OpenCV's KLT runs on both cores, so its CPU seconds are
+about twice its wall seconds; the load average is printed beside) with peak memory; then the thin and hostile
 grid of issue 14 (1-2 frames, 2x2 and 3x3 rigs, wide and narrow fields of view, near and far scenes, repetitive
 texture, no shake) and the real OpenCV stereo set, where the rule is: after <= before against the truth.
 
@@ -14,6 +15,7 @@ noise floor (the same kept tracks reprojected with the *true* cameras).
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import time
@@ -279,15 +281,16 @@ def main() -> int:
                     failures.append(f"{rot:g} deg / {trans:g} mm: transfer error {r['transfer']:.3f} px")
                 if floor > TARGET_FLOOR_RATIO:
                     failures.append(f"{rot:g} deg / {trans:g} mm: final RMS {floor:.2f} x the noise floor")
-                if cpu / n > TARGET_FRAME_S:
-                    failures.append(f"{rot:g} deg / {trans:g} mm: refinement {cpu / n:.2f} s CPU per frame "
-                                    f"(target {TARGET_FRAME_S:g} s)")
+                if wall / n > TARGET_FRAME_S:
+                    failures.append(f"{rot:g} deg / {trans:g} mm: refinement {wall / n:.2f} s per frame "
+                                    f"(target {TARGET_FRAME_S:g} s on an idle machine; load {os.getloadavg()[0]:.1f})")
     print(f"paper-5x5, {args.frames} frames per shake level, refined from the original calibration "
           "(errors against the shaken truth, RMS over views)")
     print(format_table(["shake", "schedule", "rot_err_deg", "transfer_px", "pos_err_mm", "final_rms_px",
                         "rms / floor"], rows))
     print(f"time per frame, default schedule (wall and process CPU; the whole refine call, target <= "
-          f"{TARGET_FRAME_S:g} s CPU per frame):")
+          f"{TARGET_FRAME_S:g} s wall per frame on an idle machine; load average now "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores):")
     print(format_table(["shake", "matching+filters_s", "matching_cpu_s", "staged_adjustment_s", "adjustment_cpu_s",
                         "total_s", "total_cpu_s", "target_s", "landmarks"], timing))
     # the hard case: repetitive texture; the refinement must improve or keep the input, and warn
