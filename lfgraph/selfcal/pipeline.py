@@ -27,6 +27,7 @@ from lfgraph.selfcal.solve import (
     run_map_stage,
     zoom_to_prior,
 )
+from lfgraph.selfcal.retrack import retrack
 from lfgraph.selfcal.tracks import MIN_TRACKS, PooledTracks, measure_coverage, pool_tracks
 
 NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
@@ -135,6 +136,17 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
                 raise SelfCalibrationError("these frames cannot determine the calibration: " + "; ".join(problems))
     if not stages:
         raise SelfCalibrationError("no stage frees any parameter")
+    retracked = 0
+    if config.retrack and tracks.patches is not None:
+        # the calibration so far knows how each view scales, turns and bends the reference window: track again
+        # from the reference view with the window warped accordingly (translation-only KLT is biased by it)
+        pixels, valid, done = retrack(tracks.pixels, tracks.valid, tracks.patches, calib, points)
+        retracked = int(done.sum())
+        tracks = PooledTracks(pixels, valid, tracks.frame, tracks.frames_seen, tracks.frames_used, tracks.patches)
+        keep = drop_outliers(calib, tracks.pixels, tracks.valid, points)[0] & (valid.sum(axis=0) >= 2)
+        tracks, points = tracks.subset(keep), points[keep]
+        say.log(f"self-calibration: {retracked} observations re-tracked with the calibrated local maps, "
+                f"{tracks.num_tracks} tracks kept")
     # final stage: plain least squares at the measured noise, so that the marginals are the posterior. The noise
     # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
     # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
@@ -165,7 +177,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
     report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
-                           tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES)
+                           tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES, retracked, tracks)
     metrics = {"source": "self-calibration from scene frames (lfgraph calibrate-scene)", "scale_from": "design pitch",
                "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
                           "focal_px": design.focal_px},
@@ -204,7 +216,7 @@ def calibrate_scene(frames: Iterable[np.ndarray], design: Design, config: SelfCa
     config = config or SelfCalConfig()
     t0 = time.perf_counter()
     tracks = pool_tracks(frames, design.grid, design.image_size_px, config.tracks_per_frame, config.match,
-                         config.max_frames)
+                         config.max_frames, keep_patches=config.retrack)
     seconds = time.perf_counter() - t0
     calib, report = calibrate_tracks(tracks, design, config, observer)
     return calib, SelfCalReport(**{**report.__dict__, "seconds": {"tracking": seconds, **report.seconds}})
