@@ -46,6 +46,8 @@ CORNER_SIGMA_PX = 0.1  # the checkerboard peer's corner noise (a good detector o
 FRAME_COUNTS = (5, 10, 20, 30)
 TARGET_FRAMES = 20  # the issue's target: within TARGET_RATIO of the checkerboard on every parameter at 20 frames
 TARGET_RATIO = 2.0
+GAUGE_PARTS = ("zoom_px", "fx_rest_px", "cx_shift_px", "cx_slope_px", "cx_rest_px", "cy_shift_px", "cy_slope_px",
+               "cy_rest_px")
 METRICS = ("fx_px", "cx_px", "k1", "rot_deg", "pos_mm", "transfer_px")
 
 
@@ -64,6 +66,21 @@ def errors(est: Calibration, truth: Calibration) -> dict[str, float]:
             "rot_deg": rms(e.rotation_deg),
             "pos_mm": 1e3 * float(np.sqrt(np.mean(np.sum((scale * c_est - c_true) ** 2, axis=1)))),
             "transfer_px": rms(transfer_error_at_infinity(est, truth))}
+
+
+def gauge_parts(est: Calibration, truth: Calibration) -> dict[str, float]:
+    """How much of the errors the near-gauges carry: the common fx error (zoom) and the RMS fx error without it; the
+    common cx shift, the cx slope per grid column (the hidden principal-point gauge) and the RMS cx error without
+    both (likewise for cy along rows)."""
+    e = evaluate_calibration(est, truth).intrinsics
+    off = np.array([truth.grid.offset(v) for v in range(truth.num_views)], dtype=float)
+    out = {"zoom_px": float(np.mean(e[:, 0])), "fx_rest_px": float(np.sqrt(np.mean((e[:, 0] - e[:, 0].mean()) ** 2)))}
+    for name, col, axis in (("cx", 2, 1), ("cy", 3, 0)):
+        a = np.column_stack([np.ones(len(off)), off[:, axis]])
+        coef, *_ = np.linalg.lstsq(a, e[:, col], rcond=None)
+        out[f"{name}_shift_px"], out[f"{name}_slope_px"] = float(coef[0]), float(coef[1])
+        out[f"{name}_rest_px"] = float(np.sqrt(np.mean((e[:, col] - a @ coef) ** 2)))
+    return out
 
 
 def honesty(est: Calibration, truth: Calibration, report) -> dict[str, float]:
@@ -152,7 +169,7 @@ def main() -> int:
     config = SelfCalConfig(tracks_per_frame=args.tracks_per_frame, retrack=not args.no_retrack)
     if args.one_stage:
         config = dataclasses.replace(config, stages=(config.stages[-1],))
-    rows, failures, z_rows = [], [], []
+    rows, failures, z_rows, g_rows = [], [], [], []
     for rig in args.rigs:
         truth = data.truth_rig(rig)
         design = design_of(rig)
@@ -174,6 +191,8 @@ def main() -> int:
             mine = errors(est, truth)
             zs = honesty(est, truth, report)
             z_rows.append([rig, frames, *(f"{zs[k]:.2f}" for k in ("fx", "cx", "k1", "rot", "pos"))])
+            g = gauge_parts(est, truth)
+            g_rows.append([rig, frames, *(f"{g[k]:.3g}" for k in GAUGE_PARTS)])
             board = {m: float("nan") for m in METRICS} if args.no_peer else checkerboard(rig, truth, frames)
             rows.append([rig, frames, f"self-cal ({report.verdict})"] + [f"{mine[m]:.4g}" for m in METRICS]
                         + [f"{report.noise_px:.3f} / {track_noise(truth, tracks):.3f} / "
@@ -194,6 +213,9 @@ def main() -> int:
     print("honesty of the self-calibration's posterior sigmas: RMS over views of error / sigma (1 = honest; rotation "
           "and position unscaled, so their scale error enters)")
     print(format_table(["rig", "frames", "fx", "cx", "k1", "rot", "pos"], z_rows))
+    print("the self-calibration's errors split into the near-gauges (common zoom; common principal-point shift and "
+          "slope per grid step) and the rest, px")
+    print(format_table(["rig", "frames", *GAUGE_PARTS], g_rows))
     print("targets missed: " + ("; ".join(failures) if failures else "none"))
     return 1 if failures else 0
 

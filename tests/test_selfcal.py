@@ -265,7 +265,7 @@ def test_retrack_with_the_true_geometry_removes_the_window_scale_bias(rendered):
             row = np.clip(np.rint(p[:, 1]).astype(int), 0, truth.image_size_px[1] - 1)
             seen = np.abs(depth[v][row, col] - zv) < 0.01 * zv  # not occluded
             exact[v, mine[seen]] = p[seen]
-    pixels, valid, done = retrack(tracks.pixels, tracks.valid, tracks.patches, truth, points)
+    pixels, valid, done, _ = retrack(tracks.pixels, tracks.valid, tracks.patches, truth, points)
     others = np.arange(truth.num_views) != ref
     before = np.linalg.norm(tracks.pixels - exact, axis=2)[others]
     after = np.linalg.norm(pixels - exact, axis=2)[others]

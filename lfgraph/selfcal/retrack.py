@@ -161,7 +161,8 @@ def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: n
             origins ``origin`` (N, 2); start_px: (N, 2) start; maps: (N, 2, 2) local maps A.
 
     Returns:
-        (N, 2) positions and (N,) whether each converged inside its patch within `SEARCH_PX` of the start.
+        (N, 2) positions, (N,) whether each converged inside its patch within `SEARCH_PX` of the start, and (N,)
+        the window's weighted RMS difference after the fit relative to the window's contrast (0 = a perfect match).
     """
     n, q = target.shape[:2]
     w, d = _weights()
@@ -189,7 +190,8 @@ def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: n
         if np.max(np.abs(step), initial=0.0) < STEP_TOL_PX:
             break
     ok &= inside & np.all(np.abs(p - start_px) <= SEARCH_PX, axis=1) & np.all(np.isfinite(p), axis=1)
-    return p, ok
+    mismatch = np.sqrt(np.sum(w * e**2, axis=(1, 2))) / np.maximum(t_sd, 1e-12)
+    return p, ok, mismatch
 
 
 def retrack(pixels: np.ndarray, valid: np.ndarray, patches: Patches, calib: Calibration,
@@ -198,24 +200,26 @@ def retrack(pixels: np.ndarray, valid: np.ndarray, patches: Patches, calib: Cali
     map at its landmark ``points_ref`` (N, 3), started at ``pixels`` (V, N, 2).
 
     Returns:
-        new pixels, new valid (a view where the fit failed loses the observation) and (V, N) where the position
-        was re-tracked (patches at the image border keep their first positions).
+        new pixels, new valid (a view where the fit failed loses the observation), (V, N) where the position
+        was re-tracked (patches at the image border keep their first positions) and (V, N) the windows' mismatch
+        after the fit (`affine_track`; NaN where not re-tracked).
     """
     ref = calib.grid.reference
     maps = local_maps(calib, points_ref)
     template, gx, gy = _template(patches, pixels[ref])
     out, ok_all = np.array(pixels, dtype=np.float64), np.array(valid)
     done = np.zeros_like(valid)
+    mismatch = np.full(valid.shape, np.nan)
     for v in range(calib.num_views):
         if v == ref:
             continue
         todo = np.nonzero(patches.inside[v] & valid[v] & np.all(np.isfinite(maps[v]), axis=(1, 2)))[0]
         if not len(todo):
             continue
-        p, ok = affine_track(template[todo], gx[todo], gy[todo], patches.views[v, todo], patches.origin[v, todo],
-                             pixels[v, todo], maps[v, todo])
+        p, ok, mismatch[v, todo] = affine_track(template[todo], gx[todo], gy[todo], patches.views[v, todo],
+                                                patches.origin[v, todo], pixels[v, todo], maps[v, todo])
         out[v, todo[ok]] = p[ok]
         ok_all[v, todo[~ok]] = False
         done[v, todo[ok]] = True
     out[~ok_all] = np.nan
-    return out, ok_all, done
+    return out, ok_all, done, mismatch
