@@ -40,6 +40,7 @@ from lfgraph.selfcal import (  # noqa: E402
     calibrate_tracks,
     pool_tracks,
 )  # noqa: E402
+from lfgraph.selfcal.defaults import TRACKS_PER_FRAME  # noqa: E402
 from lfgraph.selfcal.retrack import Patches  # noqa: E402
 
 CORNER_SIGMA_PX = 0.1  # the checkerboard peer's corner noise (a good detector on sharp images)
@@ -158,7 +159,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rigs", nargs="+", default=["paper-4x4", "paper-5x5"], choices=("paper-4x4", "paper-5x5"))
     parser.add_argument("--frames", nargs="+", type=int, default=list(FRAME_COUNTS))
-    parser.add_argument("--tracks-per-frame", type=int, default=150)
+    parser.add_argument("--tracks-per-frame", type=int, default=TRACKS_PER_FRAME)
     parser.add_argument("--cache", type=Path, default=data.CACHE)
     parser.add_argument("--one-stage", action="store_true",
                         help="free everything at once from the design values (to measure what the stages buy)")
