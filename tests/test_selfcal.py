@@ -188,6 +188,7 @@ def test_calibrate_scene_from_rendered_frames_then_rectify(rendered):
     est, report = calibrate_scene(frames, SMALL_DESIGN)
     start, err = errors(SMALL_DESIGN.calibration(), truth), errors(est, truth)
     assert report.coverage.frames == 6 and report.coverage.depth_ratio > 2
+    assert report.retracked > 0 and report.tracks is not None  # the final stage saw the re-tracked observations
     # a 2x2 array of 30 mm pitch sees the hidden principal-point gauge weakly (~2 px per step, see report.modes)
     assert err["transfer"] < start["transfer"] / 5
     assert err["rot"] < start["rot"] / 10
