@@ -108,9 +108,9 @@ def design_of(rig: str) -> Design:
     return Design(cfg.rows, cfg.cols, cfg.pitch_m * 1e3, cfg.focal_px, cfg.image_size_px, cfg.reference)
 
 
-def tracks_for(rig: str, frames: int, config: SelfCalConfig, cache: Path) -> PooledTracks:
+def tracks_for(rig: str, frames: int, config: SelfCalConfig, cache: Path, seed: int = 0) -> PooledTracks:
     """Pooled tracks of the first ``frames`` rendered frames (tracked once, cached as npz)."""
-    root = data.render(rig, frames, cache=cache)
+    root = data.render(rig, frames, seed, cache=cache)
     path = root / f"tracks_{frames}_{config.tracks_per_frame}_klt{config.match.klt_levels}_patches.npz"
     if path.exists():
         z = np.load(path)
@@ -161,6 +161,7 @@ def main() -> int:
     parser.add_argument("--frames", nargs="+", type=int, default=list(FRAME_COUNTS))
     parser.add_argument("--tracks-per-frame", type=int, default=TRACKS_PER_FRAME)
     parser.add_argument("--cache", type=Path, default=data.CACHE)
+    parser.add_argument("--seed", type=int, default=0, help="the rig and its scenes (and the peer's boards)")
     parser.add_argument("--one-stage", action="store_true",
                         help="free everything at once from the design values (to measure what the stages buy)")
     parser.add_argument("--no-peer", action="store_true", help="skip the checkerboard calibration")
@@ -172,9 +173,9 @@ def main() -> int:
         config = dataclasses.replace(config, stages=(config.stages[-1],))
     rows, failures, z_rows, g_rows = [], [], [], []
     for rig in args.rigs:
-        truth = data.truth_rig(rig)
+        truth = data.truth_rig(rig, args.seed)
         design = design_of(rig)
-        all_tracks = tracks_for(rig, max(args.frames), config, args.cache)
+        all_tracks = tracks_for(rig, max(args.frames), config, args.cache, args.seed)
         start = errors(design.calibration(), truth)
         rows.append([rig, "-", "design values"] + [f"{start[m]:.4g}" for m in METRICS] + ["-", "-"])
         for frames in sorted(args.frames):
@@ -194,7 +195,7 @@ def main() -> int:
             z_rows.append([rig, frames, *(f"{zs[k]:.2f}" for k in ("fx", "cx", "k1", "rot", "pos"))])
             g = gauge_parts(est, truth)
             g_rows.append([rig, frames, *(f"{g[k]:.3g}" for k in GAUGE_PARTS)])
-            board = {m: float("nan") for m in METRICS} if args.no_peer else checkerboard(rig, truth, frames)
+            board = {m: float("nan") for m in METRICS} if args.no_peer else checkerboard(rig, truth, frames, args.seed)
             rows.append([rig, frames, f"self-cal ({report.verdict})"] + [f"{mine[m]:.4g}" for m in METRICS]
                         + [f"{report.noise_px:.3f} / {track_noise(truth, tracks):.3f} / "
                            f"{track_noise(truth, report.tracks):.3f}", f"{seconds:.0f}"])
