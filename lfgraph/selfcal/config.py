@@ -130,6 +130,9 @@ class SelfCalConfig:
         match: feature tracking options (`lfgraph.refinement.matching.MatchSettings`); every view must see a track.
         graph_hooks: user functions called with a `lfgraph.factors.GraphContext` (kind ``"selfcal"``) before each
             stage's graph is optimised.
+        retrack: before the final stage, track every feature again from the reference view with the window warped
+            by the local map the staged calibration gives (`lfgraph.selfcal.retrack`; needs the patches that
+            `pool_tracks` keeps).
     """
 
     focal_tolerance: float = FOCAL_TOLERANCE
@@ -147,6 +150,7 @@ class SelfCalConfig:
     max_iterations: int = 50
     match: MatchSettings = field(default_factory=lambda: SELFCAL_MATCH)
     graph_hooks: tuple[Callable, ...] = ()
+    retrack: bool = True
 
     def __post_init__(self) -> None:
         for name in ("focal_tolerance", "principal_tolerance_px", "k1_tolerance", "k2_tolerance",

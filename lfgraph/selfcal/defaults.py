@@ -8,4 +8,6 @@ K1_TOLERANCE = 0.2
 K2_TOLERANCE = 0.1
 ROTATION_TOLERANCE_DEG = 2.0
 POSITION_TOLERANCE_MM = 1.0
-TRACKS_PER_FRAME = 150  # tracks kept per frame, spread over the image
+# tracks kept per frame, spread over the image. Measured on paper-4x4 with 20 frames (re-tracked): 150 -> 300 moved
+# the transfer error at infinity 0.29 -> 0.14 px and cx 0.17 -> 0.12 px, at ~3x the graph's time
+TRACKS_PER_FRAME = 300

@@ -9,7 +9,7 @@ import numpy as np
 
 from lfgraph.grid import ViewGrid
 from lfgraph.selfcal.solve import Posterior
-from lfgraph.selfcal.tracks import Coverage
+from lfgraph.selfcal.tracks import Coverage, PooledTracks
 
 PRIOR_LIMITED = 0.5  # a mode whose posterior sigma is over half its prior sigma was set by the design, not frames
 CAL_DIM = 9  # Cal3DS2 tangent size: fx fy s cx cy k1 k2 p1 p2
@@ -110,7 +110,8 @@ class SelfCalReport:
         coverage: what the frames cover; stages: what ran; noise_px: tracking noise measured from the residuals
             (per coordinate); rms_px: final reprojection RMS; posterior: per-parameter sigmas; modes: the weakly
             seen combinations; distortion_estimated: False when tracks did not reach the corners (held at design);
-            warnings; seconds: wall time of tracking and of the graph.
+            warnings; seconds: wall time of tracking and of the graph; retracked: observations re-tracked with the
+            calibrated local maps (`lfgraph.selfcal.retrack`); tracks: the tracks of the final fit.
     """
 
     coverage: Coverage
@@ -123,6 +124,8 @@ class SelfCalReport:
     warnings: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
     gauges: tuple[str, ...] = GAUGES
+    retracked: int = 0
+    tracks: PooledTracks | None = field(default=None, repr=False)
 
     @property
     def from_prior(self) -> list[Mode]:
@@ -141,7 +144,7 @@ class SelfCalReport:
                 "coverage": self.coverage.as_dict(), "stages": [s.as_dict() for s in self.stages],
                 "noise_px": self.noise_px, "rms_px": self.rms_px, "distortion_estimated": self.distortion_estimated,
                 "modes": [m.as_dict() for m in self.modes], "posterior_sigmas": self.posterior.as_dict(),
-                "warnings": list(self.warnings), "seconds": dict(self.seconds)}
+                "warnings": list(self.warnings), "seconds": dict(self.seconds), "retracked": self.retracked}
 
     def text(self) -> str:
         """A readable summary for the CLI."""
@@ -153,7 +156,9 @@ class SelfCalReport:
                  "stages:"]
         for s in self.stages:
             lines.append(f"  {'+'.join(s.free):<45} {s.tracks:>6} tracks {s.iterations:>3} it  rms {s.rms_px:.3f} px")
-        lines.append(f"tracking noise {self.noise_px:.3f} px (from the residuals); final rms {self.rms_px:.3f} px")
+        lines.append(f"tracking noise {self.noise_px:.3f} px (from the residuals); final rms {self.rms_px:.3f} px"
+                     + (f"; {self.retracked} observations re-tracked with the calibrated local maps"
+                        if self.retracked else ""))
         p = self.posterior.intrinsics
         lines.append("posterior 1-sigma, median (max) over views: " + ", ".join(
             f"{name} {np.median(p[:, i]):.3g} ({np.max(p[:, i]):.3g})"

@@ -11,6 +11,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
 from lfgraph.refinement.matching import MatchSettings, track_chain
+from lfgraph.selfcal.retrack import Patches, cut_patches
 
 SPREAD_CELLS = 8  # tracks are thinned per cell of an 8x8 grid of the reference image
 REGIONS = 3  # coverage is reported per cell of a 3x3 grid of every image (corners, edges, centre)
@@ -31,6 +32,7 @@ class PooledTracks:
     Attributes:
         pixels: (V, N, 2) positions (NaN where not seen); valid: (V, N); frame: (N,) the frame of each track.
         frames_seen: frames read; frames_used: frames that gave tracks.
+        patches: image patches around every track for re-tracking with the calibrated geometry (None: not kept).
     """
 
     pixels: np.ndarray
@@ -38,6 +40,7 @@ class PooledTracks:
     frame: np.ndarray
     frames_seen: int
     frames_used: int
+    patches: Patches | None = None
 
     @property
     def num_tracks(self) -> int:
@@ -45,7 +48,8 @@ class PooledTracks:
 
     def subset(self, keep: np.ndarray) -> PooledTracks:
         return PooledTracks(self.pixels[:, keep], self.valid[:, keep], self.frame[keep], self.frames_seen,
-                            int(len(np.unique(self.frame[keep]))))
+                            int(len(np.unique(self.frame[keep]))),
+                            None if self.patches is None else self.patches.subset(keep))
 
 
 def spread(points_px: np.ndarray, image_size_px: tuple[int, int], limit: int, rng: np.random.Generator,
@@ -70,14 +74,16 @@ def spread(points_px: np.ndarray, image_size_px: tuple[int, int], limit: int, rn
 
 
 def pool_tracks(frames: Iterable[np.ndarray], grid: ViewGrid, image_size_px: tuple[int, int], per_frame: int,
-                match: MatchSettings, max_frames: int | None = None, seed: int = 0) -> PooledTracks:
-    """Track every frame through the grid and keep at most ``per_frame`` tracks of each, spread over the image.
+                match: MatchSettings, max_frames: int | None = None, seed: int = 0,
+                keep_patches: bool = True) -> PooledTracks:
+    """Track every frame through the grid and keep at most ``per_frame`` tracks of each, spread over the image
+    (with the image patches around them when ``keep_patches``, for `lfgraph.selfcal.retrack`).
 
     Raises:
         ValueError: a frame with the wrong number of views or image size.
     """
     rng = np.random.default_rng(seed)
-    chunks, valids, owner = [], [], []
+    chunks, valids, owner, patches = [], [], [], []
     seen = used = 0
     w, h = image_size_px
     for f, images in enumerate(frames):
@@ -94,12 +100,14 @@ def pool_tracks(frames: Iterable[np.ndarray], grid: ViewGrid, image_size_px: tup
         chunks.append(tracks.points_px[:, keep])
         valids.append(tracks.valid[:, keep])
         owner.append(np.full(len(keep), f))
+        if keep_patches:
+            patches.append(cut_patches(images, chunks[-1], valids[-1], grid.reference))
         used += 1
     if not chunks:
         return PooledTracks(np.zeros((grid.num_views, 0, 2)), np.zeros((grid.num_views, 0), dtype=bool),
                             np.zeros(0, dtype=int), seen, 0)
     return PooledTracks(np.concatenate(chunks, axis=1), np.concatenate(valids, axis=1), np.concatenate(owner),
-                        seen, used)
+                        seen, used, Patches.concatenate(patches) if keep_patches else None)
 
 
 @dataclass(frozen=True)
