@@ -90,6 +90,28 @@ def schur_layout(values: gtsam.Values, landmark_char: str) -> SchurLayout:
                        col_cam)
 
 
+def sparse_jacobian(lin: gtsam.GaussianFactorGraph, layout: SchurLayout) -> tuple[np.ndarray, ...]:
+    """(rows, cols, vals, b-row mask) of ``lin``'s whitened Jacobian with its columns in ``layout``'s order.
+
+    `sparseJacobian_` numbers the columns over the keys the graph's factors touch (sorted), not over every key of the
+    values: a variable no factor of ``lin`` touches (e.g. a view without a prior) has no columns there. Its last
+    column is the right-hand side b, returned as ``is_b`` (column index ``layout.n``)."""
+    rows, cols, vals = (np.asarray(a) for a in lin.sparseJacobian_())
+    rows, cols = rows.astype(np.int64) - 1, cols.astype(np.int64) - 1
+    keys = np.array(sorted(lin.keys()), dtype=np.uint64)
+    where = np.searchsorted(layout.keys, keys)
+    if np.any(where >= len(layout.keys)) or np.any(layout.keys[np.minimum(where, len(layout.keys) - 1)] != keys):
+        raise NotReducible("the graph has a key the values do not")
+    dims = layout.dims[where]
+    n_graph = int(dims.sum())
+    col_map = np.concatenate([np.arange(o, o + d) for o, d in zip(layout.offsets[where], dims, strict=True)]
+                             + [np.array([layout.n])]).astype(np.int64)
+    if cols.size and cols.max() > n_graph:
+        raise NotReducible("the graph's Jacobian has more columns than its keys")
+    cols = col_map[cols]
+    return rows, cols, vals, cols == layout.n
+
+
 @dataclass
 class _System:
     """The normal equations J^T J d = -J^T e in Schur form (undamped): per landmark V (N,3,3), W (N,3,C) and g_l
@@ -107,12 +129,8 @@ class NotReducible(ValueError):
 
 
 def _system(lin: gtsam.GaussianFactorGraph, layout: SchurLayout) -> _System:
-    t = lin.sparseJacobian_()
-    rows = t[0].astype(np.int64) - 1
-    cols = t[1].astype(np.int64) - 1
-    vals = t[2]
+    rows, cols, vals, is_b = sparse_jacobian(lin, layout)
     m = int(rows.max()) + 1 if rows.size else 0
-    is_b = cols == layout.n
     b = np.zeros(m)
     b[rows[is_b]] = vals[is_b]
     rows, cols, vals = rows[~is_b], cols[~is_b], vals[~is_b]
@@ -413,7 +431,7 @@ class ProjectionProblem:
                 raise NotReducible("a landmark observed twice by one view")
         self.obs_intr = [np.ascontiguousarray(self.intr[self.view, i]) for i in range(8)]
         # every landmark seen by every view (observations in view-major order): per-view matrix products
-        self.full = len(self.view) == self.n_views * self.n_landmarks
+        self.full = self.n_landmarks > 0 and len(self.view) == self.n_views * self.n_landmarks
         if fixed_poses is not None:
             self.fixed_rm = fixed_poses[self.view, :3, :3]
             self.fixed_t = fixed_poses[self.view, :3, 3]
@@ -523,8 +541,7 @@ class ProjectionProblem:
             else:
                 W.reshape(-1)[self.w_index] = wl.reshape(-1)
         if self.graph.size():
-            t = self.graph.linearize(state[0]).sparseJacobian_()
-            rows, cols, vals = t[0].astype(np.int64) - 1, t[1].astype(np.int64) - 1, t[2]
+            rows, cols, vals, _ = sparse_jacobian(self.graph.linearize(state[0]), self.layout)
             m = int(rows.max()) + 1
             A = np.zeros((m, n_c + 1))  # noqa: N806
             np.add.at(A, (rows, cols), vals)

@@ -149,7 +149,8 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
             graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views,
                                         priors)
         run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
-        result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations), callback,
+        result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations,
+                                                           relative_error_tol=STAGE_RELATIVE_TOL), callback,
                           eliminate=LANDMARK_CHAR)
         result_values, iterations = result.values, result.iterations
         new_points = read_landmarks(result_values, len(points)) if len(points) else points
