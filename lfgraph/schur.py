@@ -18,6 +18,7 @@ caller then falls back to GTSAM's own optimiser.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -40,13 +41,30 @@ def _blas_controller() -> ThreadpoolController:
     return ThreadpoolController()
 
 
+_BLAS_LOCK = threading.Lock()
+_blas_users = 0
+_blas_limit = None
+
+
 @contextmanager
 def one_blas_thread() -> Iterator[None]:
     """numpy's BLAS on one thread (threadpoolctl): the reduced system is small (C <= a few hundred), and on a shared
     machine its threads mostly spin (measured: a 286-landmark solve took 87 ms of CPU with 2 threads, 3.5 ms with
-    one). The limit is process-wide while it lasts: BLAS calls of other threads in the meantime run on one thread."""
-    with _blas_controller().limit(limits=1, user_api="blas"):
+    one). The limit is process-wide: counted across threads, set by the first solve to start and restored by the last
+    to finish; BLAS calls of other threads in the meantime run on one thread."""
+    global _blas_users, _blas_limit
+    with _BLAS_LOCK:
+        if _blas_users == 0:
+            _blas_limit = _blas_controller().limit(limits=1, user_api="blas")
+        _blas_users += 1
+    try:
         yield
+    finally:
+        with _BLAS_LOCK:
+            _blas_users -= 1
+            if _blas_users == 0 and _blas_limit is not None:
+                _blas_limit.restore_original_limits()
+                _blas_limit = None
 
 
 @dataclass(frozen=True)

@@ -145,3 +145,4 @@ def test_undistort_views_matches_the_method():
         m = valid[v]
         np.testing.assert_allclose(out[v, m], rig.intrinsics[v].undistort(pix[v, m]), atol=SAME_UNDISTORT)
         assert np.all(np.isnan(out[v, ~m]))
+

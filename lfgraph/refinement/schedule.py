@@ -43,6 +43,8 @@ from lfgraph.refinement.triangulate import (
 )
 
 FIRST_PASS_SIGMA_PX = 1.0  # the measurement sigma of the pass that estimates it
+SIGMA_CARRY_RATIO = 1.15  # a sigma carried from the previous frames is kept while the fit's own residuals support
+# one within this factor of it (measured frame to frame on paper-5x5: within 1.08); otherwise the pass is refitted
 MIN_MEASUREMENT_SIGMA_PX = 0.05  # floor of the estimated sigma: KLT errors are not independent below this
 CLEAN_FACTOR = 3.0  # the clean stage: worst residual > 3x the median track's ...
 CLEAN_FLOOR_PX = 0.3  # ... and > 0.3 px (the prototype's threshold)
@@ -205,9 +207,17 @@ def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: 
         priors = view_priors(calib, config.drift)
     sigma_px = sigma_px or config.measurement_sigma_px
     if sigma_px is None and sigma_estimate is not None and np.isfinite(sigma_estimate):
-        resolve(observer).log(f"measurement sigma from the fit of the previous frames: {sigma_estimate:.4f} px per "
-                              f"coordinate")
-        sigma_px = sigma_estimate
+        fit = fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
+                         sigma_px=sigma_estimate)
+        measured = fit_sigma(fit)
+        # the sigma must be the one these tracks support: refit when they disagree with the earlier frames'
+        if not np.isfinite(measured) or abs(np.log(measured / sigma_estimate)) <= np.log(SIGMA_CARRY_RATIO):
+            resolve(observer).log(f"measurement sigma {sigma_estimate:.4f} px per coordinate (from the previous "
+                                  f"frames; these tracks support {measured:.4f})")
+            return fit
+        resolve(observer).log(f"measurement sigma {measured:.4f} px per coordinate (these tracks; the previous "
+                              f"frames supported {sigma_estimate:.4f}): refitted")
+        sigma_px = measured
     if sigma_px is not None:
         return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
                           sigma_px=sigma_px)
