@@ -48,8 +48,11 @@ class RefinementReport:
     heldout_after_px: float = float("nan")  # ... and with refits that did not see them
     sigma_px: float = float("nan")  # the measurement sigma the posterior uses (px per coordinate)
     frames_dropped: tuple[int, ...] = ()  # frames whose tracks were mostly mismatches
-    cpu_seconds_matching: float = 0.0  # process CPU time (time.process_time) of matching + filters ...
-    cpu_seconds_adjustment: float = 0.0  # ... and of the adjustment (seconds_* are wall time)
+    # CPU seconds of matching + filters (the process's CPU less the adjustment's) and of the adjustment; seconds_* are
+    # wall time, and as a frame's tracking runs in a worker thread while the frames before it are refitted,
+    # seconds_matching + seconds_adjustment can exceed seconds
+    cpu_seconds_matching: float = 0.0
+    cpu_seconds_adjustment: float = 0.0
 
     def verdict_counts(self) -> dict[str, int]:
         out: dict[str, int] = {}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ from lfgraph.geometry import rotation_angle_deg
 from lfgraph.observer import Observer, StageEnd, resolve
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig, Stage
-from lfgraph.refinement.matching import track_chain
+from lfgraph.refinement.matching import Tracks, track_chain
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.report import RefinementReport, StageReport
 from lfgraph.refinement.stages import run_stage
@@ -232,6 +233,13 @@ def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: 
     return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views, sigma_px=sigma)
 
 
+def _timed_track_chain(images: np.ndarray, grid, settings) -> tuple[Tracks, float]:
+    """`track_chain` and its wall seconds (it runs in `refine`'s worker thread)."""
+    t0 = time.perf_counter()
+    tracks = track_chain(images, grid, settings)
+    return tracks, time.perf_counter() - t0
+
+
 def fit_sigma(fit: FitResult) -> float:
     """The measurement sigma the fit's residuals support (px per coordinate, floored)."""
     if fit.last_stage is None or fit.valid.shape[1] == 0:
@@ -270,6 +278,18 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     """
     config = config or RefineConfig()
     obs = resolve(observer)
+    # A frame's KLT does not depend on the calibration: it runs in a worker thread (OpenCV releases the GIL) while
+    # the frames so far are refitted, and only judging its tracks waits for that fit. Results are unchanged.
+    klt = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lfgraph-klt")
+    try:
+        return _refine_frames(calib, frames, config, obs, klt)
+    finally:
+        klt.shutdown(wait=True, cancel_futures=True)
+
+
+def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig, obs: Observer,
+                   klt: ThreadPoolExecutor) -> tuple[Calibration, RefinementReport]:
+    """`refine`'s body: the frame loop (``klt`` runs each frame's chain tracking) and the assessment."""
     w, h = calib.image_size_px
     t_start = time.perf_counter()
     pool_px: list[np.ndarray] = []
@@ -280,8 +300,9 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     current = calib
     stop = "frames exhausted"
     used = pool_fitted = heard_iterations = 0
-    t_match = t_adjust = 0.0
-    c_match = c_adjust = 0.0  # CPU seconds (time.process_time) of the same
+    t_match = t_adjust = 0.0  # wall seconds: matching + filters (its tracking as timed in the worker), adjustment
+    c_adjust = 0.0  # CPU seconds of the adjustment (this thread's: the solver runs on one thread)
+    c_start = time.process_time()
     sigma_estimate: float | None = None
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
@@ -290,10 +311,11 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         if images.shape[0] != calib.num_views or images.shape[1:3] != (h, w):
             raise ValueError(f"frame {f} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but the "
                              f"calibration is a {calib.grid} grid of {w}x{h} px views")
+        tracking = klt.submit(_timed_track_chain, images, calib.grid, config.match)
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
             # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
-            t0, c0 = time.perf_counter(), time.process_time()
+            t0, c0 = time.perf_counter(), time.thread_time()
             px_pool, ok_pool = np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1)
             if config.max_landmarks is not None and px_pool.shape[1] > config.max_landmarks:
                 pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
@@ -305,15 +327,14 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
             heard_iterations += sum(st.iterations for st in pass_fit.stages)
             pool_fitted = used
             t_adjust += time.perf_counter() - t0
-            c_adjust += time.process_time() - c0
+            c_adjust += time.thread_time() - c0
         obs.frame(f, images)
-        t0, c0 = time.perf_counter(), time.process_time()
-        tracks = track_chain(images, calib.grid, config.match)
+        tracks, t_tracking = tracking.result()  # waits only for the tracking the refit above did not hide
+        t0 = time.perf_counter()
         # tracks are judged with the MAP fit of the frames so far, itself centred on the input and started from it:
         # one frame's poor fit never carries into the next
         kept, c = collect_tracks(current, tracks, config.triangulation_filter)
-        t_match += time.perf_counter() - t0
-        c_match += time.process_time() - c0
+        t_match += t_tracking + time.perf_counter() - t0
         counts.append(c)
         pts = triangulate_dlt(current, kept.points_px, kept.valid)
         rms_now = _rms(reprojection_errors(current, pts, kept.points_px, kept.valid))
@@ -349,10 +370,11 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         pixels, valid, frame_of = pixels[:, pick], valid[:, pick], frame_of[pick]
     warnings = []
     coverage = track_coverage(calib, pixels, valid)
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0 = time.perf_counter(), time.thread_time()
     result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of, sigma_estimate)
     t_adjust += time.perf_counter() - t0
-    c_adjust += time.process_time() - c0
+    c_adjust += time.thread_time() - c0
+    c_match = time.process_time() - c_start - c_adjust  # the rest: tracking (OpenCV's threads too) and filters
     fit = result.fit
     kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
     before = _rms(reprojection_errors(calib, triangulate_dlt(calib, kept_px, kept_valid), kept_px, kept_valid))
