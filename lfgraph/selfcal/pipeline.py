@@ -147,7 +147,9 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         pixels, valid, done, mismatch = retrack(tracks.pixels, tracks.valid, tracks.patches, calib, points)
         retracked = int(done.sum())
         # a window that still differs from the reference's after the warp (a depth edge, a slanted surface, little
-        # contrast) tracks badly: keep the re-tracked observations that match about as well as the typical one
+        # contrast) tracks badly: keep the re-tracked observations that match about as well as the typical one.
+        # Observations not re-tracked (windows within reach of the image border, failed fits) are dropped too: their
+        # chain positions carry the scale bias the re-tracking removes (this also thins the image's outer ~12 px)
         ref_view = np.arange(grid.num_views)[:, None] == grid.reference
         limit = MISMATCH_FACTOR * float(np.median(mismatch[done])) if retracked else np.inf
         valid = valid & (ref_view | (done & (mismatch <= limit)))
