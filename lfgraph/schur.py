@@ -33,6 +33,7 @@ LAMBDA_INITIAL = 1e-5  # GTSAM's LevenbergMarquardtParams defaults
 LAMBDA_FACTOR = 10.0
 LAMBDA_UPPER = 1e5
 MIN_MODEL_FIDELITY = 1e-3
+TINY_LINEAR_CHANGE = 1e-20  # a predicted cost decrease below this is treated as none (fidelity by the sign alone)
 
 
 @lru_cache(maxsize=1)
@@ -349,7 +350,8 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
                     cand = problem.retract(state, dl, dc)
                     cand_error = problem.error(cand)
                     change = error - cand_error
-                    fidelity = change / linear_change if linear_change > 1e-20 else (1.0 if change >= 0 else -1.0)
+                    tiny = linear_change <= TINY_LINEAR_CHANGE
+                    fidelity = (1.0 if change >= 0 else -1.0) if tiny else change / linear_change
                     if np.isfinite(cand_error) and fidelity > MIN_MODEL_FIDELITY:
                         new_state, new_error, accepted = cand, cand_error, True
                         lam = lam / LAMBDA_FACTOR

@@ -71,7 +71,7 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
                 graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
                                             config.scale_sigma_mm, fit.held, priors)
                 cov, layout = marginal_covariance(graph, values, LANDMARK_CHAR)
-    except (NotReducible, np.linalg.LinAlgError):  # a user hook's factor on two landmarks, or numerically
+    except (NotReducible, np.linalg.LinAlgError):  # a structure the reduction does not handle, or numerically
         cov, layout = None, None  # indeterminate: GTSAM's own marginals decide
     try:
         with gtsam_quiet():

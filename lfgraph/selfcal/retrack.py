@@ -152,7 +152,7 @@ def _weights() -> tuple[np.ndarray, np.ndarray]:
 
 
 def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: np.ndarray, origin: np.ndarray,
-                 start_px: np.ndarray, maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                 start_px: np.ndarray, maps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Translation Lucas–Kanade with the window warped by a fixed local map (inverse compositional, bias and gain
     compensated): the position p with target(p + A d) ~ template(d) for d over the window.
 
@@ -195,7 +195,7 @@ def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: n
 
 
 def retrack(pixels: np.ndarray, valid: np.ndarray, patches: Patches, calib: Calibration,
-            points_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            points_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Re-track every track from the reference view into every view with the window warped by ``calib``'s local
     map at its landmark ``points_ref`` (N, 3), started at ``pixels`` (V, N, 2).
 
