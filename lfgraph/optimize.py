@@ -120,8 +120,7 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
         except RuntimeError as exc:
             raise RuntimeError(f"optimisation failed: {exc}") from exc
         else:
-            return OptimizationResult(res.values, res.initial_error, res.final_error, res.iterations,
-                                      res.converged, time.perf_counter() - start, res.error_history)
+            return res
     try:
         with gtsam_quiet():
             optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)

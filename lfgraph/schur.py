@@ -29,6 +29,8 @@ import gtsam
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from lfgraph.optimize import OptimizationResult
+
 LAMBDA_INITIAL = 1e-5  # GTSAM's LevenbergMarquardtParams defaults
 LAMBDA_FACTOR = 10.0
 LAMBDA_UPPER = 1e5
@@ -264,17 +266,6 @@ def _vector_values(layout: SchurLayout, delta: np.ndarray) -> gtsam.VectorValues
     return vv
 
 
-@dataclass(frozen=True)
-class SchurResult:
-    values: gtsam.Values
-    initial_error: float
-    final_error: float
-    iterations: int
-    converged: bool
-    seconds: float
-    error_history: tuple[float, ...]
-
-
 class GraphProblem:
     """A GTSAM graph whose landmarks (keys of ``landmark_char``, 3-D) are eliminated; state: `gtsam.Values`."""
 
@@ -304,7 +295,7 @@ def _linear_change(s: _System, dl: np.ndarray, dc: np.ndarray) -> float:
 
 def optimize_schur(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, landmark_char: str,
                    max_iterations: int = 100, relative_error_tol: float = 1e-10, absolute_error_tol: float = 1e-12,
-                   error_tol: float = 0.0, callback=None) -> SchurResult:
+                   error_tol: float = 0.0, callback=None) -> OptimizationResult:
     """Levenberg–Marquardt as GTSAM runs it, the linear solves by the Schur complement on landmarks.
 
     Raises:
@@ -315,15 +306,15 @@ def optimize_schur(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, lan
 
 
 def optimize_problem(problem, state, max_iterations: int = 100, relative_error_tol: float = 1e-10,
-                     absolute_error_tol: float = 1e-12, error_tol: float = 0.0, callback=None) -> SchurResult:
+                     absolute_error_tol: float = 1e-12, error_tol: float = 0.0, callback=None) -> OptimizationResult:
     """The Levenberg–Marquardt loop over a problem (``error``, ``system``, ``retract``); ``values`` of the result
-    is the final state."""
+    is the final state (a `ProjectionProblem`'s: (values, points))."""
     with one_blas_thread():
         return _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol, callback)
 
 
 def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol,
-              callback) -> SchurResult:
+              callback) -> OptimizationResult:
     start = time.perf_counter()
     error = problem.error(state)
     initial_error = error
@@ -372,8 +363,8 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
                 or error <= error_tol:
             converged = True
             break
-    return SchurResult(state, initial_error, error, iterations, converged or iterations < max_iterations,
-                       time.perf_counter() - start, tuple(history))
+    return OptimizationResult(state, initial_error, error, iterations, converged or iterations < max_iterations,
+                              time.perf_counter() - start, tuple(history))
 
 
 def marginal_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
