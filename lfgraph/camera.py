@@ -32,6 +32,24 @@ def _as_points(points: np.ndarray, dims: tuple[int, ...], name: str) -> np.ndarr
     return arr
 
 
+def distort_xy(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2) -> tuple[np.ndarray, np.ndarray]:
+    """The Cal3DS2 / OpenCV distortion of normalised coordinates (arrays broadcast: one lens or a lens per row)."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+
+
+def distortion_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d xd/dx, d xd/dy = d yd/dx, d yd/dy) of `distort_xy` (the map's Jacobian is symmetric)."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    dradial = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(x or y) divided by the coordinate
+    return (radial + x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x,
+            x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y,
+            radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x)
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """One view's intrinsics: focal lengths and principal point in pixels, Brown k1, k2, p1, p2 (no skew, no k3)."""
@@ -118,12 +136,7 @@ class Intrinsics:
             (N, 2) distorted normalised coordinates.
         """
         xy = _as_points(xy, (2,), "xy")
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
-        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
-        return np.stack([xd, yd], axis=1)
+        return np.stack(distort_xy(xy[:, 0], xy[:, 1], self.k1, self.k2, self.p1, self.p2), axis=1)
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Project camera-frame points or normalised coordinates to pixels.
@@ -153,38 +166,7 @@ class Intrinsics:
         whose solution lies on the folded branch, give NaN rather than a wrong answer.
         """
         px = _as_points(pixels, (2,), "pixels")
-        target = np.stack([(px[:, 0] - self.cx) / self.fx, (px[:, 1] - self.cy) / self.fy], axis=1)
-        xy = target.copy()
-        k1, k2, p1, p2 = self.k1, self.k2, self.p1, self.p2
-        if k1 == k2 == p1 == p2 == 0.0:
-            return xy
-        for _ in range(UNDISTORT_MAX_ITERATIONS):
-            x, y = xy[:, 0], xy[:, 1]
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + k2 * r2)
-            dradial = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(x or y) divided by the coordinate
-            fx_ = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - target[:, 0]
-            fy_ = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - target[:, 1]
-            j00 = radial + x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-            j01 = x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-            j10 = j01
-            j11 = radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j00 * j11 - j01 * j10
-            dx = (j11 * fx_ - j01 * fy_) / det
-            dy = (-j10 * fx_ + j00 * fy_) / det
-            xy[:, 0] -= dx
-            xy[:, 1] -= dy
-            if np.nanmax(np.abs(np.concatenate([dx, dy])), initial=0.0) < UNDISTORT_TOLERANCE:
-                break
-        # Keep only true inverses on the unfolded branch: residual ~0 and a positive Jacobian determinant.
-        with np.errstate(invalid="ignore", over="ignore"):
-            residual = np.max(np.abs(self.distort(xy) - target), axis=1)
-            x, y = xy[:, 0], xy[:, 1]
-            r2 = x * x + y * y
-            radial_derivative = 1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2)  # d(r radial)/dr, > 0 before the fold
-            bad = ~(residual < UNDISTORT_RESIDUAL_LIMIT) | ~(radial_derivative > 0)
-        xy[bad] = np.nan
-        return xy
+        return undistort_views((self,), px[None])[0]
 
     def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
         """(N, 2) distorted pixels -> (N, 2) pixels of the same camera without distortion."""
@@ -210,7 +192,7 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
     NaN pixels stay NaN. Same model, iteration and validity rule as the method; the loop runs until the largest step
     of all views is below the tolerance, so values agree with the method to round-off."""
     px = np.asarray(pixels, dtype=np.float64)
-    k = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2] for i in intrinsics]).reshape(-1, 8, 1)
+    k = np.array([i.as_vector() for i in intrinsics]).reshape(-1, 8, 1)
     fx, fy, cx, cy, k1, k2, p1, p2 = (k[:, i] for i in range(8))
     target = np.stack([(px[..., 0] - cx) / fx, (px[..., 1] - cy) / fy], axis=-1)
     xy = target.copy()
@@ -219,14 +201,9 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
         return xy
     for _ in range(UNDISTORT_MAX_ITERATIONS):
         x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + k2 * r2)
-        dradial = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(x or y) divided by the coordinate
-        fx_ = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - target[..., 0]
-        fy_ = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - target[..., 1]
-        j00 = radial + x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-        j01 = x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-        j11 = radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
+        j00, j01, j11 = distortion_jacobian(x, y, k1, k2, p1, p2)
+        fx_, fy_ = xd - target[..., 0], yd - target[..., 1]
         det = j00 * j11 - j01 * j01
         dx = (j11 * fx_ - j01 * fy_) / det
         dy = (-j01 * fx_ + j00 * fy_) / det
@@ -235,14 +212,12 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
         xy[..., 1] -= dy
         if np.nanmax(np.abs(np.concatenate([dx.ravel(), dy.ravel()])), initial=0.0) < UNDISTORT_TOLERANCE:
             break
-    # as the method: keep only true inverses on the unfolded branch
+    # keep only true inverses on the unfolded branch: residual ~0 and d(r radial)/dr > 0 (before the fold)
     with np.errstate(invalid="ignore", over="ignore"):
         x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + k2 * r2)
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
         residual = np.maximum(np.abs(xd - target[..., 0]), np.abs(yd - target[..., 1]))
+        r2 = x * x + y * y
         radial_derivative = 1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2)
         bad = (~(residual < UNDISTORT_RESIDUAL_LIMIT) | ~(radial_derivative > 0)) & distorted[:, None]
     xy[bad] = np.nan

@@ -29,6 +29,7 @@ import gtsam
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from lfgraph.camera import distort_xy, distortion_jacobian
 from lfgraph.optimize import OptimizationResult
 
 LAMBDA_INITIAL = 1e-5  # GTSAM's LevenbergMarquardtParams defaults
@@ -479,17 +480,11 @@ class ProjectionProblem:
             return None
         x, y = pc[:, 0] / z, pc[:, 1] / z
         fx, fy, cx, cy, k1, k2, p1, p2 = self.obs_intr
-        r2 = x * x + y * y
-        g = 1.0 + r2 * (k1 + k2 * r2)
-        xd = x * g + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * g + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
         e = np.stack([fx * xd + cx - self.uv[:, 0], fy * yd + cy - self.uv[:, 1]], axis=1) / self.sigma
         if not jacobians:
             return e
-        dg = 2.0 * (k1 + 2.0 * k2 * r2)  # d g / d(x or y), divided by the coordinate
-        d00 = g + x * x * dg + 2.0 * p1 * y + 6.0 * p2 * x
-        d01 = x * y * dg + 2.0 * p1 * x + 2.0 * p2 * y
-        d11 = g + y * y * dg + 6.0 * p1 * y + 2.0 * p2 * x
+        d00, d01, d11 = distortion_jacobian(x, y, k1, k2, p1, p2)
         s = 1.0 / self.sigma
         a00, a01, a10, a11 = s * fx * d00, s * fx * d01, s * fy * d01, s * fy * d11  # d pixel / d (x, y)
         iz = 1.0 / z
@@ -562,10 +557,6 @@ class ProjectionProblem:
 
     def retract(self, state, dl: np.ndarray, dc: np.ndarray):
         values, points = state
-        if self.n_c:
-            vv = gtsam.VectorValues()
-            for k, o, d in zip(self.layout.keys.tolist(), self.layout.offsets.tolist(), self.layout.dims.tolist(),
-                               strict=True):
-                vv.insert(k, dc[int(self.layout.col_cam[o]):int(self.layout.col_cam[o]) + d])
-            values = values.retract(vv)
+        if self.n_c:  # no landmark keys in this layout: its columns are the camera columns
+            values = values.retract(_vector_values(self.layout, dc))
         return values, points + dl

@@ -91,7 +91,7 @@ def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: n
     if stage not in (Stage.POINTS, Stage.POSES) or not isinstance(model, gtsam.noiseModel.Isotropic):
         return None
     vs, js = np.nonzero(valid)
-    intr = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2] for i in calib.intrinsics])
+    intr = np.array([i.as_vector() for i in calib.intrinsics])
     try:
         if stage == Stage.POINTS:
             values = gtsam.Values()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import undistort_views
+from lfgraph.camera import distort_xy, undistort_views
 
 
 def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -68,15 +68,12 @@ def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.n
     rt = np.swapaxes(poses[:, :3, :3], 1, 2)  # view_T_ref: R^T, -R^T t
     t = -np.einsum("vij,vj->vi", rt, poses[:, :3, 3])
     pc = np.matmul(pts[None], np.swapaxes(rt, 1, 2)) + t[:, None, :]  # (V, n, 3)
-    k = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2] for i in calib.intrinsics])[:, :, None]
+    k = np.array([i.as_vector() for i in calib.intrinsics])[:, :, None]
     z = pc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         zz = np.where(z > 0, z, np.nan)
         x, y = pc[..., 0] / zz, pc[..., 1] / zz
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k[:, 4] + k[:, 5] * r2)
-    xd = x * radial + 2.0 * k[:, 6] * x * y + k[:, 7] * (r2 + 2.0 * x * x)
-    yd = y * radial + k[:, 6] * (r2 + 2.0 * y * y) + 2.0 * k[:, 7] * x * y
+    xd, yd = distort_xy(x, y, k[:, 4], k[:, 5], k[:, 6], k[:, 7])
     px = pixels[:, ok]
     err = np.hypot(k[:, 0] * xd + k[:, 2] - px[..., 0], k[:, 1] * yd + k[:, 3] - px[..., 1])
     sub = out[:, ok]
