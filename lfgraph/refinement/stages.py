@@ -28,7 +28,8 @@ from lfgraph.factors.values import (
 from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
-from lfgraph.schur import NotReducible, ProjectionProblem, optimize_problem
+from lfgraph.refinement.projections import ProjectionProblem
+from lfgraph.schur import NotReducible, optimize_problem
 
 STAGE_RELATIVE_TOL = 1e-7  # LM stops when an iteration lowers the cost by less than this fraction. GTSAM's 1e-10
 # costs one more iteration per stage whose cost decrease is ~1e-11 relative (measured on paper-5x5: a parameter step
@@ -84,7 +85,7 @@ def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: n
                   model: gtsam.noiseModel.Base, scale_sigma_mm: float | None = None,
                   held_views: frozenset[int] = frozenset(),
                   priors: ViewPriors | None = None) -> tuple[ProjectionProblem, tuple] | None:
-    """The ``points`` or ``poses`` stage as a `lfgraph.schur.ProjectionProblem` (the projections in bulk, the
+    """The ``points`` or ``poses`` stage as a `ProjectionProblem` (`refinement.projections`: projections in bulk, the
     priors and gauges as GTSAM factors) and its initial state, or None where GTSAM's factors are needed: a robust
     kernel or a user noise model, free intrinsics, a landmark behind a camera."""
     stage = Stage(stage)
