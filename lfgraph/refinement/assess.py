@@ -2,7 +2,7 @@
 view's change per parameter group, and a per-view verdict (OK, DRIFTED, UNCERTAIN).
 
 The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`:
-1. the MAP fit over all tracks (`lfgraph.refinement.schedule.fit_auto`) and its marginals (`posterior`);
+1. the MAP fit over all tracks (`lfgraph.refinement.fit.fit_auto`) and its marginals (`posterior`);
 2. refits on folds (whole frames when there are several, else random thirds of the tracks): their held-out RMS
    against the input's, and their scatter, which widens the marginals where those are too small (`inflate`);
 3. per view and group (pan/tilt, roll, position, intrinsics when freed) a chi-square test of the change against the
@@ -32,7 +32,7 @@ from lfgraph.refinement.posterior import (
     predicted_transfer_px,
 )
 from lfgraph.refinement.priors import ViewPriors, input_sigmas, view_priors
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
+from lfgraph.refinement.triangulate import finite_rms, reprojection_errors, triangulate_dlt
 
 OK, DRIFTED, UNCERTAIN, REFERENCE = "OK", "DRIFTED", "UNCERTAIN", "REFERENCE"
 FOLD_SEED = 14
@@ -146,7 +146,7 @@ def data_needs(calib: Calibration, points: np.ndarray, valid: np.ndarray, v: int
     return tuple(needs)
 
 
-def heldout_rms(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def heldoutfinite_rms(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(V, N) reprojection errors of tracks triangulated with ``calib`` (not refitted: they test it)."""
     return reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid)
 
@@ -194,7 +194,7 @@ class Assessment:
 
     ``heldout_before_px`` / ``heldout_after_px``: RMS reprojection of the held-out folds' tracks with the input and
     with the refits that did not see them (NaN when no change was tested); ``significant``: views whose change was
-    significant; ``fit``: the full MAP fit (`lfgraph.refinement.schedule.FitResult`)."""
+    significant; ``fit``: the full MAP fit (`lfgraph.refinement.fit.FitResult`)."""
 
     calib: Calibration
     verdicts: tuple[ViewVerdict, ...]
@@ -204,11 +204,6 @@ class Assessment:
     sigma_px: float
     fit: object
     posterior: Posterior | None
-
-
-def _rms(e: np.ndarray) -> float:
-    e = e[np.isfinite(e)]
-    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
 
 
 def _change_vector(before: Calibration, after: Calibration, v: int) -> np.ndarray:
@@ -294,7 +289,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames.
     ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
     from lfgraph.alignment import transfer_error_at_infinity
-    from lfgraph.refinement.schedule import fit_auto
+    from lfgraph.refinement.fit import fit_auto
 
     obs = observer
     fit = fit_auto(calib, pixels, valid, config, obs, sigma_estimate=sigma_estimate)
@@ -326,8 +321,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             except (RuntimeError, ValueError):
                 continue
             fold_calibs.append(fk.calib)
-            e_before.append(heldout_rms(calib, px[:, test], ok[:, test]))
-            e_after.append(heldout_rms(fk.calib, px[:, test], ok[:, test]))
+            e_before.append(heldoutfinite_rms(calib, px[:, test], ok[:, test]))
+            e_after.append(heldoutfinite_rms(fk.calib, px[:, test], ok[:, test]))
     factors = np.ones((n, 4))
     if post is not None:
         post, factors = inflate(post, calib, fold_calibs)
@@ -368,8 +363,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         candidate = combine(calib, cand_fit.calib, sig_views)
         accepted = True
         if e_before:
-            heldout_before = _rms(np.concatenate(e_before, axis=1))
-            heldout_after = _rms(np.concatenate(e_after, axis=1))
+            heldout_before = finite_rms(np.concatenate(e_before, axis=1))
+            heldout_after = finite_rms(np.concatenate(e_after, axis=1))
             accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
             obs.log(f"held-out tracks ({len(e_before)} folds): RMS {heldout_before:.4f} px with the input, "
                     f"{heldout_after:.4f} px with refits that did not see them: "

@@ -83,6 +83,12 @@ def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.n
     return out
 
 
+def finite_rms(errors: np.ndarray) -> float:
+    """RMS of the finite entries (NaN where there are none): residual arrays hold NaN where a view does not see."""
+    e = errors[np.isfinite(errors)]
+    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+
 def median_filter(errors: np.ndarray, reference: int) -> np.ndarray:
     """The paper's triangulation filter: keep tracks whose reference-view error is <= the median."""
     ref = errors[reference]
