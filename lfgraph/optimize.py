@@ -23,12 +23,15 @@ class OptimizerSettings:
         relative_error_tol: stop when the relative decrease of the error falls below this.
         absolute_error_tol: stop when the absolute decrease falls below this.
         error_tol: stop when the error itself falls below this.
+        landmark_iterations: with ``eliminate``: after every step re-solve the landmarks with the cameras held, this
+            many Gauss–Newton iterations (`lfgraph.schur.GraphProblem`; 0 = plain Levenberg–Marquardt).
     """
 
     max_iterations: int = 100
     relative_error_tol: float = 1e-10
     absolute_error_tol: float = 1e-12
     error_tol: float = 0.0
+    landmark_iterations: int = 0
 
 
 @dataclass(frozen=True)
@@ -114,7 +117,8 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
         try:
             with gtsam_quiet():
                 res = optimize_schur(graph, initial, eliminate, settings.max_iterations, settings.relative_error_tol,
-                                     settings.absolute_error_tol, settings.error_tol, callback)
+                                     settings.absolute_error_tol, settings.error_tol, callback,
+                                     settings.landmark_iterations)
         except NotReducible:
             pass
         except RuntimeError as exc:

@@ -27,6 +27,10 @@ STEP_TOL_PX = 1e-3  # ... or until every step is below this
 MIN_DET = 1e-6  # a window whose weighted structure tensor (normalised) has a smaller determinant has no 2-D texture
 JACOBIAN_STEP_PX = 0.5  # central differences of the local map
 SHRT_MAX = 32767  # OpenCV's remap: images below this many rows and columns
+# near the image border the window is cut to the pixels inside the image (in the reference view and, at the start
+# position, in the target view, SEARCH_PX + 1 px in); a window keeping less than this share of its Gaussian weight is
+# not re-tracked
+MIN_WINDOW_SHARE = 0.4
 
 
 def _target_radius() -> int:
@@ -40,9 +44,10 @@ class Patches:
     Attributes:
         ref: (N, S, S) uint8 around each track's reference position (S = 2 (R + 1) + 1; R = `WINDOW_RADIUS_PX`).
         ref_origin: (N, 2) pixel (x, y) of ``ref[:, 0, 0]``.
-        views: (V, N, Q, Q) uint8 around each view's tracked position (zeros where not seen).
+        views: (V, N, Q, Q) uint8 around each view's tracked position (zeros where not seen; beyond the image
+            border the edge pixels are repeated, and the re-tracking window leaves them out).
         origin: (V, N, 2) pixel (x, y) of ``views[:, :, 0, 0]``.
-        inside: (V, N) the patch lies inside the image (patches at the border are not re-tracked).
+        inside: (V, N) both patches lie wholly inside the image (reported; border tracks are re-tracked too).
     """
 
     ref: np.ndarray
@@ -144,6 +149,7 @@ def _template(patches: Patches, ref_px: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _weights() -> tuple[np.ndarray, np.ndarray]:
+    """The window's Gaussian weights (k, k), summing to 1, and its pixel offsets (k, k, 2) as (dx, dy)."""
     r = WINDOW_RADIUS_PX
     d = np.arange(-r, r + 1, dtype=np.float64)
     dy, dx = np.meshgrid(d, d, indexing="ij")
@@ -151,21 +157,51 @@ def _weights() -> tuple[np.ndarray, np.ndarray]:
     return w / w.sum(), np.stack([dx, dy], axis=-1)
 
 
+def _within(px: np.ndarray, image_size_px: tuple[int, int], margin: float) -> np.ndarray:
+    """Whether pixel positions (..., 2) lie at least ``margin`` px inside the image."""
+    w, h = image_size_px
+    return ((px[..., 0] >= margin) & (px[..., 0] <= w - 1 - margin) & (px[..., 1] >= margin)
+            & (px[..., 1] <= h - 1 - margin))
+
+
+def window_weights(ref_px: np.ndarray, start_px: np.ndarray, maps: np.ndarray,
+                   image_size_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, k, k) Gaussian window weights without the pixels outside the image, and (N,) the share of the Gaussian
+    weight kept.
+
+    A window pixel d is kept when the reference window's pixel and its gradient's neighbours (``ref_px`` + d +- 1)
+    lie inside the image, and when the warped pixel ``start_px`` + A d lies `SEARCH_PX` + 1 px inside (the fit moves
+    at most `SEARCH_PX`; bilinear sampling reads one more pixel).
+    """
+    w, d = _weights()
+    ref = ref_px[:, None, None, :] + d[None]
+    keep = _within(ref, image_size_px, 1.0)
+    warped = start_px[:, None, None, :] + np.einsum("nij,abj->nabi", maps, d)
+    keep &= _within(warped, image_size_px, SEARCH_PX + 1.0)
+    weights = w[None] * keep
+    return weights, weights.sum(axis=(1, 2))
+
+
 def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: np.ndarray, origin: np.ndarray,
-                 start_px: np.ndarray, maps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 start_px: np.ndarray, maps: np.ndarray,
+                 weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Translation Lucas–Kanade with the window warped by a fixed local map (inverse compositional, bias and gain
     compensated): the position p with target(p + A d) ~ template(d) for d over the window.
 
     Args:
         template, gx, gy: (N, k, k) reference window and its gradients; target: (N, Q, Q) patches with pixel
             origins ``origin`` (N, 2); start_px: (N, 2) start; maps: (N, 2, 2) local maps A.
+        weights: (N, k, k) window weights (`window_weights`; default the whole Gaussian window).
 
     Returns:
         (N, 2) positions, (N,) whether each converged inside its patch within `SEARCH_PX` of the start, and (N,)
         the window's weighted RMS difference after the fit relative to the window's contrast (0 = a perfect match).
     """
     n, q = target.shape[:2]
-    w, d = _weights()
+    gauss, d = _weights()
+    w = np.broadcast_to(gauss, template.shape) if weights is None else weights
+    w = w / np.maximum(w.sum(axis=(1, 2), keepdims=True), 1e-12)
+    used = w > 0
     tm = template - np.sum(w * template, axis=(1, 2), keepdims=True)
     t_sd = np.sqrt(np.sum(w * tm**2, axis=(1, 2)))
     hxx, hxy, hyy = (np.sum(w * a * b, axis=(1, 2)) for a, b in ((gx, gx), (gx, gy), (gy, gy)))
@@ -177,7 +213,7 @@ def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: n
     inside = np.ones(n, dtype=bool)
     for _ in range(ITERATIONS):
         local = p[:, None, None, :] + offsets - origin[:, None, None, :]
-        inside &= np.all((local >= 0) & (local <= q - 1), axis=(1, 2, 3))
+        inside &= np.all(((local >= 0) & (local <= q - 1)) | ~used[..., None], axis=(1, 2, 3))
         img = _sample(target, local[..., 0], local[..., 1]).astype(np.float64)
         im = img - np.sum(w * img, axis=(1, 2), keepdims=True)
         i_sd = np.sqrt(np.sum(w * im**2, axis=(1, 2)))
@@ -201,8 +237,8 @@ def retrack(pixels: np.ndarray, valid: np.ndarray, patches: Patches, calib: Cali
 
     Returns:
         new pixels, new valid (a view where the fit failed loses the observation), (V, N) where the position
-        was re-tracked (patches at the image border keep their first positions) and (V, N) the windows' mismatch
-        after the fit (`affine_track`; NaN where not re-tracked).
+        was re-tracked (windows keeping less than `MIN_WINDOW_SHARE` inside the image keep their first positions)
+        and (V, N) the windows' mismatch after the fit (`affine_track`; NaN where not re-tracked).
     """
     ref = calib.grid.reference
     maps = local_maps(calib, points_ref)
@@ -210,14 +246,18 @@ def retrack(pixels: np.ndarray, valid: np.ndarray, patches: Patches, calib: Cali
     out, ok_all = np.array(pixels, dtype=np.float64), np.array(valid)
     done = np.zeros_like(valid)
     mismatch = np.full(valid.shape, np.nan)
+    seen = valid & np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(pixels[ref]), axis=1)[None]
     for v in range(calib.num_views):
         if v == ref:
             continue
-        todo = np.nonzero(patches.inside[v] & valid[v] & np.all(np.isfinite(maps[v]), axis=(1, 2)))[0]
+        todo = np.nonzero(seen[v] & np.all(np.isfinite(maps[v]), axis=(1, 2)))[0]
+        weights, share = window_weights(pixels[ref, todo], pixels[v, todo], maps[v, todo], calib.image_size_px)
+        whole = share >= MIN_WINDOW_SHARE
+        todo, weights = todo[whole], weights[whole]
         if not len(todo):
             continue
         p, ok, mismatch[v, todo] = affine_track(template[todo], gx[todo], gy[todo], patches.views[v, todo],
-                                                patches.origin[v, todo], pixels[v, todo], maps[v, todo])
+                                                patches.origin[v, todo], pixels[v, todo], maps[v, todo], weights)
         out[v, todo[ok]] = p[ok]
         ok_all[v, todo[~ok]] = False
         done[v, todo[ok]] = True
