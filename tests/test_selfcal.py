@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -336,18 +335,18 @@ PLAIN_LM_MIN_ITERATIONS = 100  # measured: plain LM's final stage took 150 + 105
 
 
 def test_embedded_point_iterations_walk_the_valleys_that_plain_lm_crawls(monkeypatch):
-    import lfgraph.selfcal.solve as solve
+    import lfgraph.selfcal.pipeline as pipeline
 
     truth = make_rig(NARROW, np.random.default_rng(7))
     tracks = synthetic_tracks(truth, 6, 80, 0.06, np.random.default_rng(8), depth_m=(0.5, 2.8))
     config = SelfCalConfig(retrack=False)
     embedded, report = calibrate_tracks(tracks, NARROW_DESIGN, config)
-    monkeypatch.setattr(solve, "LANDMARK_ITERATIONS", 0)
+    monkeypatch.setattr(pipeline, "LANDMARK_ITERATIONS", 0)
     plain, plain_report = calibrate_tracks(tracks, NARROW_DESIGN, config)
     final = len(config.stages)
     assert sum(s.iterations for s in plain_report.stages[final:]) >= PLAIN_LM_MIN_ITERATIONS
     assert sum(s.iterations for s in report.stages[final:]) * 5 < PLAIN_LM_MIN_ITERATIONS
-    # the embedded run stopped at the minimum: plain LM, given all the iterations it wants from there, stays
+    # the embedded run stopped at the minimum: GTSAM's LM, given all the iterations it wants from there, stays
     from lfgraph.factors.noise import RobustKernel
     from lfgraph.refinement.triangulate import triangulate_dlt
     from lfgraph.selfcal.solve import measurement, run_map_stage

@@ -19,6 +19,7 @@ from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, mod
 from lfgraph.selfcal.retrack import retrack
 from lfgraph.selfcal.solve import (
     FINAL_RELATIVE_TOL,
+    LANDMARK_ITERATIONS,
     STAGE_RELATIVE_TOL,
     drop_outliers,
     initial_landmarks,
@@ -172,7 +173,8 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         calib, points, graph, values, iters = run_map_stage(
             calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
             measurement(RobustKernel("none"), noise), FINAL_ITERATIONS_FACTOR * config.max_iterations,
-            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False)
+            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False,
+            landmark_iterations=LANDMARK_ITERATIONS)
         tracks, points = _clean(calib, tracks, points, design)
         errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
         stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
