@@ -131,15 +131,38 @@ def test_refuses_texture_in_half_the_image(truth):
         calibrate_tracks(tracks, DESIGN)
 
 
-def test_holds_distortion_when_tracks_miss_the_corners(truth):
-    def centre(uv):
+def test_holds_distortion_when_tracks_miss_the_corners(truth, monkeypatch):
+    import lfgraph.selfcal.tracks as selfcal_tracks
+    from lfgraph.selfcal.defaults import K1_TOLERANCE, K2_TOLERANCE
+
+    def centre(uv):  # reaching ~55 % of the half diagonal (200 px)
         return np.hypot(uv[:, 0] - 160, uv[:, 1] - 120) < 110
 
+    # k1 needs tracks out to 65 % here (a narrower disc would leave too few image regions covered: refused)
+    monkeypatch.setattr(selfcal_tracks, "K1_RADIUS", 0.65)
     est, report = calibrate_tracks(synthetic_tracks(truth, 6, 60, 0.05, np.random.default_rng(7), region=centre),
                                    DESIGN)
     assert not report.distortion_estimated and report.verdict == "prior-limited"
     assert any("distortion held" in w for w in report.warnings)
     assert all(abs(i.k1 - DESIGN.k1) < 1e-5 and abs(i.k2 - DESIGN.k2) < 1e-5 for i in est.intrinsics)
+    # held at the design, they are as uncertain as the design says
+    assert np.allclose(report.posterior.intrinsics[:, 4], K1_TOLERANCE)
+    assert np.allclose(report.posterior.intrinsics[:, 5], K2_TOLERANCE)
+
+
+def test_estimates_k1_alone_when_tracks_reach_half_way_to_the_corners(truth):
+    from lfgraph.selfcal.defaults import K2_TOLERANCE
+
+    def centre(uv):  # reaching ~55 % of the half diagonal
+        return np.hypot(uv[:, 0] - 160, uv[:, 1] - 120) < 110
+
+    est, report = calibrate_tracks(synthetic_tracks(truth, 6, 60, 0.05, np.random.default_rng(7), region=centre),
+                                   DESIGN)
+    assert report.distortion_estimated and any("k2 held" in w for w in report.warnings)
+    assert all(abs(i.k2 - DESIGN.k2) < 1e-5 for i in est.intrinsics)
+    assert np.allclose(report.posterior.intrinsics[:, 5], K2_TOLERANCE)
+    k1_error = np.abs([e.k1 - t.k1 for e, t in zip(est.intrinsics, truth.intrinsics, strict=True)])
+    assert np.all(k1_error < 4 * report.posterior.intrinsics[:, 4])  # estimated, with an honest sigma
 
 
 def test_design_and_config_are_validated():

@@ -28,7 +28,7 @@ from lfgraph.geometry import to_pose3
 from lfgraph.grid import ViewGrid
 
 # parameter groups a stage may free, and their Cal3DS2 tangent indices (fx fy s cx cy k1 k2 p1 p2)
-INTRINSIC_GROUPS = {"focal": (0, 1), "principal": (3, 4), "distortion": (5, 6)}
+INTRINSIC_GROUPS = {"focal": (0, 1), "principal": (3, 4), "distortion": (5, 6), "k1": (5,)}
 POSE_GROUPS = ("rotation", "position")
 GROUPS = ("rotation", "position", *INTRINSIC_GROUPS)
 

@@ -102,7 +102,8 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     stages: list[StageResult] = []
     warnings: list[str] = []
-    distortion = True
+    distortion = True  # k1 estimated (k2 too unless `k2_held`)
+    k2_held = False
     coverage = None
     for k, groups in enumerate(config.stages):
         free = frozenset(groups)
@@ -110,12 +111,14 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
             if coverage is None:
                 coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
             if not coverage.distortion_covered:
-                free = free - {"distortion"}
-                if distortion:
-                    warnings.append(f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: distortion "
-                                    f"held at the design values (k1 {design.k1:g}, k2 {design.k2:g}); add frames "
-                                    "with texture in the image corners")
-                distortion = False
+                # tracks short of the corners: k1 alone when they reach half way out, else neither
+                free = free - {"distortion"} | ({"k1"} if coverage.k1_covered else set())
+                if distortion and not k2_held:
+                    held = (f"k2 held at the design value ({design.k2:g})" if coverage.k1_covered else
+                            f"distortion held at the design values (k1 {design.k1:g}, k2 {design.k2:g})")
+                    warnings.append(f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: {held}; add "
+                                    "frames with texture in the image corners")
+                distortion, k2_held = coverage.k1_covered, True
         if not free:
             continue
         # the kernel's scale follows the stage's own residuals: early stages see pixels of model error
@@ -166,7 +169,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
     free = frozenset(stages[-1].free)
-    if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
+    if "focal" in free and free & {"distortion", "k1"}:  # the zoom is an exact gauge with the distortion following
         calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
     for _ in range(FINAL_PASSES):
         used_noise = noise  # the graph's noise, which the marginals scale with
@@ -184,6 +187,11 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
     post = posterior(graph, values, grid.num_views)
+    # a parameter held at its design value is as uncertain as the design says, not as the graph's pin
+    if k2_held:
+        post.intrinsics[:, 5] = sigmas.k2
+    if not distortion:
+        post.intrinsics[:, 4] = sigmas.k1
     with gtsam_quiet():
         joint = gtsam.Marginals(graph, values).jointMarginalCovariance(
             [calib_key(v) for v in range(grid.num_views)]).fullMatrix()
