@@ -17,8 +17,9 @@ CAL_DIM = 9  # Cal3DS2 tangent size: fx fy s cx cy k1 k2 p1 p2
 GAUGES = (
     "pose: the reference view is the rig frame (identity pose)",
     "scale: from the design pitch (position priors at the nominal grid) - scene frames carry no scale",
-    "hidden principal-point gauge and common zoom: fixed by the design priors of the principal points and focal "
-    "lengths, helped only by distortion and the views' small rotations; their posterior sigmas are in 'modes'",
+    "hidden principal-point gauge: seen through distortion, with the principal points' design priors; common zoom: "
+    "seen only through the views' small rotations, so set largely by the design focal length (absolute focal length "
+    "and metric depth); both modes' posterior sigmas are in 'modes'",
 )
 
 
