@@ -221,18 +221,20 @@ def _system(lin: gtsam.GaussianFactorGraph, layout: SchurLayout) -> ReducedSyste
     return ReducedSystem(V, W, g_l, H, g_c)
 
 
-def _inv3(V: np.ndarray) -> np.ndarray:  # noqa: N803
-    """Batched inverse of symmetric positive-definite 3x3 blocks (closed form; raises LinAlgError if not SPD)."""
+def _inv3(V: np.ndarray, strict: bool = True) -> np.ndarray:  # noqa: N803
+    """Batched inverse of symmetric positive-definite 3x3 blocks (closed form); a block that is not SPD raises
+    LinAlgError, or with ``strict=False`` gets a zero inverse (its landmark does not move)."""
     a, b, c = V[:, 0, 0], V[:, 0, 1], V[:, 0, 2]
     d, e, f = V[:, 1, 1], V[:, 1, 2], V[:, 2, 2]
     m1 = a * d - b * b
     c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
     det = a * c00 + b * c01 + c * c02
-    if not (np.all(a > 0) and np.all(m1 > 0) and np.all(det > 0)):
+    spd = (a > 0) & (m1 > 0) & (det > 0)
+    if strict and not np.all(spd):
         raise np.linalg.LinAlgError("a landmark block is not positive definite")
     c11, c12, c22 = a * f - c * c, b * c - a * e, m1
     inv = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=1).reshape(-1, 3, 3)
-    return inv / det[:, None, None]
+    return np.where(spd[:, None, None], inv / np.where(spd, det, 1.0)[:, None, None], 0.0)
 
 
 def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +286,9 @@ class GraphProblem:
     Fitzgibbon, CVPR 2017). A step of the cameras along a valley that every landmark must follow nonlinearly (a
     common zoom moves every depth, the hidden principal-point gauge every inverse depth) then keeps its full length:
     measured on a 4x4 self-calibration, 4-7 iterations to the minimum where plain Levenberg–Marquardt took 150 and
-    more, each ~0.96 of the last's decrease.
+    more, each ~0.96 of the last's decrease. A landmark iteration that raises the graph's error is undone (and ends
+    the iterations), so the step LM judges is never worse than its plain one; a landmark whose block is not positive
+    definite stays where the step put it.
     """
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, landmark_char: str,
@@ -301,14 +305,18 @@ class GraphProblem:
 
     def retract(self, state: gtsam.Values, dl: np.ndarray, dc: np.ndarray) -> gtsam.Values:
         state = state.retract(vector_values(self.layout, _full_step(self.layout, dl, dc)))
+        if not self.landmark_iterations or not self.layout.n_landmarks:
+            return state
         no_camera_step = np.zeros(self.layout.n_camera)
+        error = self.error(state)
         for _ in range(self.landmark_iterations):
             V, g_l = _landmark_blocks(self.graph.linearize(state), self.layout)[-2:]  # noqa: N806
-            try:
-                step = np.matmul(_inv3(V), g_l[..., None])[..., 0]
-            except np.linalg.LinAlgError:  # a landmark without depth: leave the landmarks where the step put them
+            step = np.matmul(_inv3(V, strict=False), g_l[..., None])[..., 0]
+            moved = state.retract(vector_values(self.layout, _full_step(self.layout, step, no_camera_step)))
+            moved_error = self.error(moved)
+            if not moved_error <= error:  # Gauss–Newton overshot (or NaN): keep the landmarks as they were
                 break
-            state = state.retract(vector_values(self.layout, _full_step(self.layout, step, no_camera_step)))
+            state, error = moved, moved_error
         return state
 
 

@@ -146,3 +146,17 @@ def test_undistort_views_matches_the_method():
         np.testing.assert_allclose(out[v, m], rig.intrinsics[v].undistort(pix[v, m]), atol=SAME_UNDISTORT)
         assert np.all(np.isnan(out[v, ~m]))
 
+
+
+def test_embedded_point_iterations_reach_the_same_minimum_from_a_landmark_far_off():
+    rig, pix, valid = scene()
+    points = triangulate_dlt(rig, pix, valid)
+    points[0] *= 20.0  # 20x its depth: the first Gauss–Newton re-solve of it overshoots and must be undone
+    model = measurement_noise(RobustKernel("none"), 0.05)
+    graph, values = stage_graph(Stage.POSES, rig, pix, valid, points, model, priors=view_priors(rig, DriftModel()))
+    plain = optimize(graph, values, OptimizerSettings(), eliminate=LANDMARK_CHAR)
+    embedded = optimize(graph, values, OptimizerSettings(landmark_iterations=2), eliminate=LANDMARK_CHAR)
+    assert abs(embedded.final_error - plain.final_error) <= 1e-9 * plain.final_error
+    for v in range(rig.num_views):
+        d = embedded.values.atPose3(view_pose_key(v)).localCoordinates(plain.values.atPose3(view_pose_key(v)))
+        assert np.max(np.abs(d)) < SAME_SOLUTION
