@@ -102,8 +102,8 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     stages: list[StageResult] = []
     warnings: list[str] = []
-    distortion = True  # k1 estimated (k2 too unless `k2_held`)
-    k2_held = False
+    distortion = True  # tracks reach the corners: the stages estimate k1 and k2
+    held_warned = False
     coverage = None
     for k, groups in enumerate(config.stages):
         free = frozenset(groups)
@@ -111,14 +111,15 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
             if coverage is None:
                 coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
             if not coverage.distortion_covered:
-                # tracks short of the corners: k1 alone when they reach half way out, else neither
+                # tracks short of the corners: the stages estimate k1 alone when they reach half way out, else
+                # neither; the final stage frees both, pulled to the design with its tolerances
                 free = free - {"distortion"} | ({"k1"} if coverage.k1_covered else set())
-                if distortion and not k2_held:
-                    held = (f"k2 held at the design value ({design.k2:g})" if coverage.k1_covered else
-                            f"distortion held at the design values (k1 {design.k1:g}, k2 {design.k2:g})")
-                    warnings.append(f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: {held}; add "
-                                    "frames with texture in the image corners")
-                distortion, k2_held = coverage.k1_covered, True
+                if not held_warned:
+                    held = "k2" if coverage.k1_covered else "k1 and k2"
+                    warnings.append(f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: {held} set "
+                                    f"largely by the design values (k1 {design.k1:g}, k2 {design.k2:g}) and their "
+                                    "tolerances (see the sigmas); add frames with texture in the image corners")
+                distortion, held_warned = False, True
         if not free:
             continue
         # the kernel's scale follows the stage's own residuals: early stages see pixels of model error
@@ -152,8 +153,8 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         retracked = int(done.sum())
         # a window that still differs from the reference's after the warp (a depth edge, a slanted surface, little
         # contrast) tracks badly: keep the re-tracked observations that match about as well as the typical one.
-        # Observations not re-tracked (windows within reach of the image border, failed fits) are dropped too: their
-        # chain positions carry the scale bias the re-tracking removes (this also thins the image's outer ~12 px)
+        # Observations not re-tracked (windows keeping under `MIN_WINDOW_SHARE` inside the image, ~2 px from its
+        # border; failed fits) are dropped too: their chain positions carry the scale bias the re-tracking removes
         ref_view = np.arange(grid.num_views)[:, None] == grid.reference
         limit = MISMATCH_FACTOR * float(np.median(mismatch[done])) if retracked else np.inf
         valid = valid & (ref_view | (done & (mismatch <= limit)))
@@ -169,7 +170,11 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
     free = frozenset(stages[-1].free)
-    if "focal" in free and free & {"distortion", "k1"}:  # the zoom is an exact gauge with the distortion following
+    if any("distortion" in st for st in config.stages):
+        # distortion the stages held (tracks short of the corners) is free here, pulled to the design values with
+        # their tolerances: its uncertainty then enters every posterior sigma instead of a pin's 1e-6
+        free = free - {"k1"} | {"distortion"}
+    if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
         calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
     for _ in range(FINAL_PASSES):
         used_noise = noise  # the graph's noise, which the marginals scale with
@@ -187,15 +192,10 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
     post = posterior(graph, values, grid.num_views)
-    # a parameter held at its design value is as uncertain as the design says, not as the graph's pin
-    if k2_held:
-        post.intrinsics[:, 5] = sigmas.k2
-    if not distortion:
-        post.intrinsics[:, 4] = sigmas.k1
     with gtsam_quiet():
         joint = gtsam.Marginals(graph, values).jointMarginalCovariance(
             [calib_key(v) for v in range(grid.num_views)]).fullMatrix()
-    mode_list: list[Mode] = modes(np.asarray(joint), sigmas.intrinsic_sigmas(), grid, distortion)
+    mode_list: list[Mode] = modes(np.asarray(joint), sigmas.intrinsic_sigmas(), grid, "distortion" in free)
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
     report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,

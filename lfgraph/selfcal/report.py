@@ -110,7 +110,8 @@ class SelfCalReport:
     Attributes:
         coverage: what the frames cover; stages: what ran; noise_px: tracking noise measured from the residuals
             (per coordinate); rms_px: final reprojection RMS; posterior: per-parameter sigmas; modes: the weakly
-            seen combinations; distortion_estimated: False when tracks did not reach the corners (held at design);
+            seen combinations; distortion_estimated: False when tracks did not reach the corners (the stages held
+            k2, or k1 and k2, at the design; the final stage's estimate rests largely on the design tolerances);
             warnings; seconds: wall time of tracking and of the graph; retracked: observations re-tracked with the
             calibrated local maps (`lfgraph.selfcal.retrack`); tracks: the tracks of the final fit.
     """

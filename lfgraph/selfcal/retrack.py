@@ -227,7 +227,7 @@ def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: n
             break
     ok &= inside & np.all(np.abs(p - start_px) <= SEARCH_PX, axis=1) & np.all(np.isfinite(p), axis=1)
     mismatch = np.sqrt(np.sum(w * e**2, axis=(1, 2))) / np.maximum(t_sd, 1e-12)
-    return p, ok, mismatch
+    return p, ok, np.where(used.any(axis=(1, 2)), mismatch, np.nan)
 
 
 def retrack(pixels: np.ndarray, valid: np.ndarray, patches: Patches, calib: Calibration,
