@@ -285,7 +285,7 @@ class GraphProblem:
     Gauss–Newton iterations of their own 3x3 blocks ("embedded point iterations", variable projection: Hong, Zach and
     Fitzgibbon, CVPR 2017). A step of the cameras along a valley that every landmark must follow nonlinearly (a
     common zoom moves every depth, the hidden principal-point gauge every inverse depth) then keeps its full length:
-    measured on a 4x4 self-calibration, 4-7 iterations to the minimum where plain Levenberg–Marquardt took 150 and
+    measured on a 4x4 self-calibration, 4-8 iterations to the minimum where plain Levenberg–Marquardt took 150 and
     more, each ~0.96 of the last's decrease. A landmark iteration that raises the graph's error is undone (and ends
     the iterations), so the step LM judges is never worse than its plain one; a landmark whose block is not positive
     definite stays where the step put it.

@@ -34,8 +34,9 @@ FINAL_RELATIVE_TOL = 1e-9  # the final stage converges fully (the marginals are 
 # after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.schur`'s
 # embedded point iterations). The common zoom and the hidden principal-point gauge are long curved valleys that move
 # every landmark: plain LM crawled along them (each step ~0.96 of the last's decrease) and stopped at its 150-iteration
-# cap 3.4 sigma from the minimum (4x4 rig, exact tracks: principal-point slope 0.72 px per grid step, at the
-# minimum 0.05); with 2 landmark iterations per step it reached the minimum in 4 steps
+# cap (paper-4x4 rig, 10 frames of exact tracks: principal-point slope 0.72 px per grid step and zoom 1.52 px, at the
+# minimum -0.05 px/step, posterior sigma 0.17, and 0.03 px); with 2 landmark iterations per step it reached the
+# minimum in 4 steps from there, 5 + 3 from the staged start
 LANDMARK_ITERATIONS = 2
 # Cal3DS2 tangent order -> the parameters lfgraph reports
 SIGMA_FIELDS = (("fx_px", 0), ("fy_px", 1), ("cx_px", 3), ("cy_px", 4), ("k1", 5), ("k2", 6))
