@@ -195,7 +195,8 @@ def affine_track(template: np.ndarray, gx: np.ndarray, gy: np.ndarray, target: n
 
     Returns:
         (N, 2) positions, (N,) whether each converged inside its patch within `SEARCH_PX` of the start, and (N,)
-        the window's weighted RMS difference after the fit relative to the window's contrast (0 = a perfect match).
+        the window's weighted RMS difference after the fit relative to the window's contrast (0 = a perfect match;
+        NaN for a window without weight).
     """
     n, q = target.shape[:2]
     gauss, d = _weights()

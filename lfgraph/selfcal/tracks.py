@@ -23,9 +23,10 @@ MIN_REGIONS = 7  # of 9: fewer covered regions leave focal lengths and principal
 MIN_DEPTH_RATIO = 1.3  # far / near (5th-95th percentile of depths): below it rotation and position trade freely
 CORNER_RADIUS = 0.7  # tracks must reach this fraction of the half diagonal for distortion to be estimated ...
 MIN_CORNER_TRACKS = 10  # ... with at least this many observations beyond it per view (on average over views)
-# tracks reaching only this far still estimate k1 (k2 held at the design). Measured on paper-5x5 (20 frames, tracks to
-# 68 % of the half diagonal): k1 and k2 held at the design's 0 against the true k1 = -0.1 left cx 7.5 px and rotation
-# 0.8 deg off, with sigmas 17-37x too small
+# tracks reaching only this far still let the stages estimate k1 (k2 held at the design until the final stage, which
+# frees both with their design tolerances). A judgement, not tuned; what it replaced was measured on paper-5x5 (20
+# frames, tracks to 68 % of the half diagonal): k1 and k2 held at the design's 0 to the end, against the true
+# k1 = -0.1, left cx 7.5 px and rotation 0.8 deg off, with sigmas 17-37x too small
 K1_RADIUS = 0.5
 
 
