@@ -380,3 +380,31 @@ def test_embedded_point_iterations_walk_the_valleys_that_plain_lm_crawls(monkeyp
                              measurement(RobustKernel("none"), report.noise_px), 1000, 1e-13, hold_gauges=False)[0]
     a, b = (np.array([i.as_vector()[:4] for i in c.intrinsics]) for c in (embedded, polished))
     assert np.max(np.abs(a - b)) < SAME_MINIMUM_PX
+
+
+SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals
+
+
+def test_posterior_is_gtsams_marginals():
+    import gtsam
+
+    from lfgraph.factors.keys import calib_key, view_pose_key
+    from lfgraph.factors.noise import RobustKernel
+    from lfgraph.refinement.triangulate import triangulate_dlt
+    from lfgraph.selfcal.solve import measurement, posterior, run_map_stage
+
+    truth = make_rig(RIG, np.random.default_rng(3))
+    tracks = synthetic_tracks(truth, 4, 60, 0.05, np.random.default_rng(4))
+    points = triangulate_dlt(truth, tracks.pixels, tracks.valid)
+    free = frozenset(SelfCalConfig().stages[-1])
+    *_, graph, values, _ = run_map_stage(truth, DESIGN.calibration(), tracks.pixels, tracks.valid, points, free,
+                                         SelfCalConfig().sigmas(DESIGN), measurement(RobustKernel("none"), 0.05), 20,
+                                         hold_gauges=False)
+    post, joint = posterior(graph, values, truth.num_views)
+    marginals = gtsam.Marginals(graph, values)
+    expected = marginals.jointMarginalCovariance([calib_key(v) for v in range(truth.num_views)]).fullMatrix()
+    assert np.max(np.abs(joint - expected)) < SAME_COVARIANCE * np.max(np.abs(expected))
+    for v in range(truth.num_views):
+        pose_sigma = np.sqrt(np.diag(marginals.marginalCovariance(view_pose_key(v))))
+        np.testing.assert_allclose(post.rotation_deg[v], np.degrees(pose_sigma[:3]), rtol=SAME_COVARIANCE, atol=1e-12)
+        np.testing.assert_allclose(post.position_mm[v], 1e3 * pose_sigma[3:], rtol=SAME_COVARIANCE, atol=1e-12)

@@ -9,10 +9,8 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.factors.keys import calib_key
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.observer import Observer, resolve
-from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.tracks import in_front
 from lfgraph.selfcal.config import Design, SelfCalConfig
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
@@ -191,11 +189,8 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
             break
         noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
-    post = posterior(graph, values, grid.num_views)
-    with gtsam_quiet():
-        joint = gtsam.Marginals(graph, values).jointMarginalCovariance(
-            [calib_key(v) for v in range(grid.num_views)]).fullMatrix()
-    mode_list: list[Mode] = modes(np.asarray(joint), sigmas.intrinsic_sigmas(), grid, "distortion" in free)
+    post, joint = posterior(graph, values, grid.num_views)
+    mode_list: list[Mode] = modes(joint, sigmas.intrinsic_sigmas(), grid, "distortion" in free)
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
     report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,

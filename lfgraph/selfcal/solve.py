@@ -160,23 +160,42 @@ class Posterior:
                           for v in range(len(self.intrinsics))]}
 
 
-def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, num_views: int) -> Posterior:
-    """Marginal sigmas of every view's Cal3DS2 and pose at the optimum.
+def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+              num_views: int) -> tuple[Posterior, np.ndarray]:
+    """Marginal sigmas of every view's Cal3DS2 and pose at the optimum, and the (9V, 9V) joint covariance of every
+    view's Cal3DS2 (views in order, Cal3DS2 tangent order).
+
+    The covariances are the inverse of the reduced camera system (`lfgraph.schur.marginal_covariance`: the same
+    numbers as GTSAM's `Marginals`, which on paper-4x4 with 20 frames held ~3 GB for its two passes over 6000
+    landmarks); a graph the Schur complement cannot reduce goes through `Marginals`.
 
     Raises:
         RuntimeError: the system is indeterminate (a parameter without information).
     """
+    from lfgraph.schur import NotReducible, camera_block, marginal_covariance
+
+    cal_keys = [calib_key(v) for v in range(num_views)]
+    pose_keys = [view_pose_key(v) for v in range(num_views)]
     try:
-        with gtsam_quiet():
-            marginals = gtsam.Marginals(graph, values)
-            cal = np.array([np.sqrt(np.diag(marginals.marginalCovariance(calib_key(v))))
-                            for v in range(num_views)])
-            pose = np.array([np.sqrt(np.diag(marginals.marginalCovariance(view_pose_key(v))))
-                             for v in range(num_views)])
-    except RuntimeError as exc:
+        cov, layout = marginal_covariance(graph, values, LANDMARK_CHAR)
+        cal_idx = np.concatenate([np.arange(b.start, b.stop) for b in (camera_block(layout, k) for k in cal_keys)])
+        joint = cov[np.ix_(cal_idx, cal_idx)]
+        pose_var = np.array([np.diag(cov[camera_block(layout, k), camera_block(layout, k)]) for k in pose_keys])
+    except NotReducible:
+        try:
+            with gtsam_quiet():
+                marginals = gtsam.Marginals(graph, values)
+                joint = marginals.jointMarginalCovariance(cal_keys).fullMatrix()
+                pose_var = np.array([np.diag(marginals.marginalCovariance(k)) for k in pose_keys])
+        except RuntimeError as exc:
+            raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
+    except np.linalg.LinAlgError as exc:
         raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
+    joint = np.asarray(joint)
+    cal = np.sqrt(np.diag(joint)).reshape(num_views, -1)
+    pose = np.sqrt(pose_var)
     intr = cal[:, [i for _, i in SIGMA_FIELDS]]
-    return Posterior(intr, np.degrees(pose[:, :3]), 1e3 * pose[:, 3:])
+    return Posterior(intr, np.degrees(pose[:, :3]), 1e3 * pose[:, 3:]), joint
 
 
 def measurement(noise: Noise, sigma_px: float) -> gtsam.noiseModel.Base:
