@@ -30,10 +30,6 @@ from lfgraph.refinement.triangulate import (
     worst_error_filter,
 )
 
-COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells
-CHAIN_WARN = 0.05  # warn when fewer than 5 % of detected features can be followed through the whole grid
-MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive tracking and the filters
-
 FIRST_PASS_SIGMA_PX = 1.0  # the measurement sigma of the pass that estimates it
 SIGMA_CARRY_RATIO = 1.15  # a sigma carried from the previous frames is kept while the fit's own residuals support
 # one within this factor of it (measured frame to frame on paper-5x5: within 1.08); otherwise the pass is refitted
