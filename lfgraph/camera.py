@@ -174,6 +174,14 @@ class Intrinsics:
         return np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], axis=1)
 
 
+def in_image(px: np.ndarray, image_size_px: tuple[int, int], margin_px: float = 0.0) -> np.ndarray:
+    """Whether pixel positions (..., 2) lie at least ``margin_px`` inside an image of (width, height) (NaN: no)."""
+    w, h = image_size_px
+    with np.errstate(invalid="ignore"):
+        return ((px[..., 0] >= margin_px) & (px[..., 0] <= w - 1 - margin_px)
+                & (px[..., 1] >= margin_px) & (px[..., 1] <= h - 1 - margin_px))
+
+
 def transform_points(a_T_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:  # noqa: N803
     """Map (N, 3) points from frame b to frame a with a (4, 4) transform ``a_T_b``."""
     pts = _as_points(points_b, (3,), "points_b")

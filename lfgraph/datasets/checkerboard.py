@@ -15,7 +15,7 @@ import numpy as np
 
 from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics, transform_points
+from lfgraph.camera import Intrinsics, in_image, transform_points
 from lfgraph.datasets.board_render import ViewRays, render_checkerboard_view
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
@@ -140,13 +140,6 @@ def _outline_points(board: BoardSpec) -> np.ndarray:
     return np.concatenate([corners[i] + t * (corners[(i + 1) % 4] - corners[i]) for i in range(4)])
 
 
-def _inside(px: np.ndarray, size: tuple[int, int], margin: float) -> np.ndarray:
-    w, h = size
-    with np.errstate(invalid="ignore"):
-        return ((px[..., 0] >= margin) & (px[..., 0] <= w - 1 - margin)
-                & (px[..., 1] >= margin) & (px[..., 1] <= h - 1 - margin))
-
-
 def _board_faces_view(view_T_board: np.ndarray) -> bool:  # noqa: N803
     # The board's +z points into the board; the camera sees the printed side when that axis points away from it.
     return float(view_T_board[:3, 2] @ view_T_board[:3, 3]) > 0
@@ -158,7 +151,7 @@ def board_visible_in_view(intrinsics: Intrinsics, image_size_px: tuple[int, int]
     if not _board_faces_view(view_T_board):
         return False
     px = intrinsics.project(transform_points(view_T_board, _outline_points(board)))
-    return bool(np.all(_inside(px, image_size_px, margin_px)))
+    return bool(np.all(in_image(px, image_size_px, margin_px)))
 
 
 def make_board_poses(calib: Calibration, config: CheckerboardConfig, rng: np.random.Generator) -> np.ndarray:
@@ -228,7 +221,7 @@ def make_checkerboard_truth(calib: Calibration, config: CheckerboardConfig, rng:
                 corners[v, f] = calib.intrinsics[v].project(transform_points(view_T_board, obj))
                 visible[v, f] = board_visible_in_view(calib.intrinsics[v], calib.image_size_px, view_T_board, board,
                                                       config.margin_px)
-    valid = _inside(corners, calib.image_size_px, 0.0)
+    valid = in_image(corners, calib.image_size_px)
     return CheckerboardTruth(board, poses, corners, valid, visible)
 
 

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.camera import in_image
 
 WINDOW_RADIUS_PX = 7  # half side of the re-tracking window (15 x 15 px) ...
 WINDOW_SIGMA_PX = 3.5  # ... weighted by a Gaussian of this sigma (fewer pixels across depth edges)
@@ -157,13 +158,6 @@ def _weights() -> tuple[np.ndarray, np.ndarray]:
     return w / w.sum(), np.stack([dx, dy], axis=-1)
 
 
-def _within(px: np.ndarray, image_size_px: tuple[int, int], margin: float) -> np.ndarray:
-    """Whether pixel positions (..., 2) lie at least ``margin`` px inside the image."""
-    w, h = image_size_px
-    return ((px[..., 0] >= margin) & (px[..., 0] <= w - 1 - margin) & (px[..., 1] >= margin)
-            & (px[..., 1] <= h - 1 - margin))
-
-
 def window_weights(ref_px: np.ndarray, start_px: np.ndarray, maps: np.ndarray,
                    image_size_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """(N, k, k) Gaussian window weights without the pixels outside the image, and (N,) the share of the Gaussian
@@ -175,9 +169,9 @@ def window_weights(ref_px: np.ndarray, start_px: np.ndarray, maps: np.ndarray,
     """
     w, d = _weights()
     ref = ref_px[:, None, None, :] + d[None]
-    keep = _within(ref, image_size_px, 1.0)
+    keep = in_image(ref, image_size_px, 1.0)
     warped = start_px[:, None, None, :] + np.einsum("nij,abj->nabi", maps, d)
-    keep &= _within(warped, image_size_px, SEARCH_PX + 1.0)
+    keep &= in_image(warped, image_size_px, SEARCH_PX + 1.0)
     weights = w[None] * keep
     return weights, weights.sum(axis=(1, 2))
 
