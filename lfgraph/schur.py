@@ -296,8 +296,11 @@ class GraphProblem:
         self.graph, self.initial = graph, initial
         self.layout = schur_layout(initial, landmark_char)
         self.landmark_iterations = int(landmark_iterations)
+        self._known: tuple[gtsam.Values, float] | None = None  # the last re-solved state and its error
 
     def error(self, state: gtsam.Values) -> float:
+        if self._known is not None and self._known[0] is state:
+            return self._known[1]
         return float(self.graph.error(state))
 
     def system(self, state: gtsam.Values) -> ReducedSystem:
@@ -317,6 +320,7 @@ class GraphProblem:
             if not moved_error <= error:  # Gauss–Newton overshot (or NaN): keep the landmarks as they were
                 break
             state, error = moved, moved_error
+        self._known = (state, error)  # the LM loop asks for it next
         return state
 
 
