@@ -112,7 +112,8 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
     params.iterationHook = hook
     start = time.perf_counter()
     if eliminate is not None:
-        from lfgraph.schur import NotReducible, optimize_schur
+        from lfgraph.schur import optimize_schur
+        from lfgraph.schur_system import NotReducible
 
         try:
             with gtsam_quiet():

@@ -17,7 +17,8 @@ from lfgraph.refinement.config import DriftModel
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
 from lfgraph.refinement.triangulate import triangulate_dlt
-from lfgraph.schur import camera_block, marginal_covariance, problem_covariance
+from lfgraph.schur import marginal_covariance, problem_covariance
+from lfgraph.schur_system import camera_block
 
 SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same LM, different linear solver)
 SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals

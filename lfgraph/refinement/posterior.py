@@ -16,7 +16,8 @@ from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.stages import stage_graph, stage_problem
-from lfgraph.schur import NotReducible, camera_block, marginal_covariance, problem_covariance
+from lfgraph.schur import marginal_covariance, problem_covariance
+from lfgraph.schur_system import NotReducible, camera_block
 
 TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity

@@ -8,7 +8,14 @@ import gtsam
 import numpy as np
 
 from lfgraph.camera import distort_xy, distortion_jacobian
-from lfgraph.schur import NotReducible, ReducedSystem, camera_block, schur_layout, sparse_jacobian, vector_values
+from lfgraph.schur_system import (
+    NotReducible,
+    ReducedSystem,
+    camera_block,
+    schur_layout,
+    sparse_jacobian,
+    vector_values,
+)
 
 
 class ProjectionProblem:

@@ -29,7 +29,8 @@ from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, 
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
 from lfgraph.refinement.projections import ProjectionProblem
-from lfgraph.schur import NotReducible, optimize_problem
+from lfgraph.schur import optimize_problem
+from lfgraph.schur_system import NotReducible
 
 STAGE_RELATIVE_TOL = 1e-7  # LM stops when an iteration lowers the cost by less than this fraction. GTSAM's 1e-10
 # costs one more iteration per stage whose cost decrease is ~1e-11 relative (measured on paper-5x5: a parameter step

@@ -173,7 +173,8 @@ def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     Raises:
         RuntimeError: the system is indeterminate (a parameter without information).
     """
-    from lfgraph.schur import NotReducible, camera_block, marginal_covariance
+    from lfgraph.schur import marginal_covariance
+    from lfgraph.schur_system import NotReducible, camera_block
 
     cal_keys = [calib_key(v) for v in range(num_views)]
     pose_keys = [view_pose_key(v) for v in range(num_views)]
