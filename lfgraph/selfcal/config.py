@@ -118,7 +118,8 @@ class SelfCalConfig:
             other design tolerances (1 sigma). Together they are the MAP priors; the report says for every
             parameter whether the frames or the prior determined it.
         stages: parameter groups freed by each stage, in order (groups: rotation, position, focal, principal,
-            distortion); distortion is dropped from every stage when the tracks do not reach the image corners.
+            distortion, k1); when the tracks do not reach the image corners the stages free k1 alone (tracks
+            half way out) or no distortion, and the final stage frees both with their design tolerances.
         track_sigma_px: the assumed tracking noise of the early stages; the final stage uses the noise measured
             from the residuals, so the reported sigmas follow the data.
         robust: the measurement kernel of the early stages (the final stage is plain least squares on the tracks
