@@ -1,13 +1,14 @@
 """Fleet scale: check and refine many recordings (one per camera array) on a process pool or a Dask cluster.
 
 A manifest CSV names each recording (columns ``camera``, ``calibration``, ``capture``; paths relative to the
-manifest; optional ``layout``, ``max_frames``, ``max_px``). For each camera the drift check runs first; when it
-finds drift, the refinement runs and, when that improves the calibration, the refined calibration is written next
-to the input as a new version (``NAME.v2.json``, ``NAME.v3.json``, ...; never over the input, atomically). One row
-per camera goes into the results CSV (sorted, rewritten atomically after every camera; a re-run skips cameras
-already in it), with a verdict:
+manifest; optional ``layout``, ``max_frames``, ``max_px``, ``tolerance_px``). For each camera the drift check
+runs first; when it finds drift, the refinement runs and, when that improves the calibration, the refined
+calibration is written next to the input as a new version (``NAME.v2.json``, ``NAME.v3.json``, ...; never over
+the input, atomically). One row per camera goes into the results CSV (sorted, rewritten atomically after every
+camera; a re-run skips cameras already in it), with a verdict:
 
-- ``OK``: the drift check finds no view significantly drifted and the reprojection RMS is <= ``max_px``;
+- ``OK``: the drift check finds no view DRIFTED (a change both significant and above ``tolerance_px`` at infinity,
+  default 0.1 px: the rule of `lfgraph refine` and `lfgraph check`) and the reprojection RMS is <= ``max_px``;
 - ``DRIFTED``: a view drifted (or the RMS is above ``max_px``) and the refinement changed the calibration (views
   confirmed by held-out tracks; the new version's path is in the row);
 - ``UNCERTAIN``: it did not fit, but the refinement could not improve it (too little texture, too few frames):
@@ -39,6 +40,7 @@ RESULT_COLUMNS = ("camera", "verdict", "rms_before_px", "rms_after_px", "max_rot
 VERDICTS = ("OK", "DRIFTED", "UNCERTAIN", "ERROR")
 DEFAULT_MAX_PX = 0.5  # the drift check's threshold, as `lfgraph check --max-px`
 DEFAULT_MAX_FRAMES = 3
+DEFAULT_TOLERANCE_PX = 0.1  # as RefineConfig.tolerance_px: a drift must move the transfer at infinity by more
 MAX_VERSIONS = 10_000  # calibration versions tried before giving up (a folder that is filling up with them)
 
 
@@ -57,6 +59,7 @@ class FleetItem:
     max_frames: int = DEFAULT_MAX_FRAMES
     max_px: float = DEFAULT_MAX_PX
     root: Path = Path(".")  # the manifest's folder: result paths are written relative to it
+    tolerance_px: float = DEFAULT_TOLERANCE_PX
 
 
 def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
@@ -90,13 +93,16 @@ def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
         try:
             max_frames = int(row.get("max_frames") or DEFAULT_MAX_FRAMES)
             max_px = float(row.get("max_px") or DEFAULT_MAX_PX)
+            tolerance_px = float(row.get("tolerance_px") or DEFAULT_TOLERANCE_PX)
         except ValueError as exc:
             raise ManifestError(f"{path}, line {line}: {exc}") from None
         if max_frames < 1 or not (np.isfinite(max_px) and max_px > 0):
             raise ManifestError(f"{path}, line {line}: max_frames must be >= 1 and max_px > 0")
+        if not (np.isfinite(tolerance_px) and tolerance_px >= 0):
+            raise ManifestError(f"{path}, line {line}: tolerance_px must be >= 0, got {tolerance_px:g}")
         base = path.parent
         items.append(FleetItem(camera, base / row["calibration"].strip(), base / row["capture"].strip(),
-                               (row.get("layout") or "auto").strip(), max_frames, max_px, base))
+                               (row.get("layout") or "auto").strip(), max_frames, max_px, base, tolerance_px))
     if not items:
         raise ManifestError(f"{path}: the manifest lists no camera")
     return items
@@ -144,14 +150,14 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
         calib = Calibration.load(item.calibration)
         capture = open_capture(item.capture, calib.grid, item.layout)
         check_compatible(calib, capture.grid, capture.image_size_px, str(item.capture))
-        report = check(calib, capture.frames(item.max_frames))
+        config = RefineConfig(max_frames=item.max_frames, tolerance_px=item.tolerance_px)
+        report = check(calib, capture.frames(item.max_frames), config=config)
         row.update(rms_before_px=report.rms_px, frames=report.frames)
         drifted = [v for v in report.verdicts if v.verdict == "DRIFTED"]
         if not drifted and report.rms_px <= item.max_px:
             row.update(verdict="OK", rms_after_px=report.rms_px, view_changes=_verdicts_json(report.verdicts))
         else:
-            refined, ref_report = refine(calib, capture.frames(item.max_frames),
-                                         RefineConfig(max_frames=item.max_frames))
+            refined, ref_report = refine(calib, capture.frames(item.max_frames), config)
             rot, pos = _changes(calib, refined)
             row.update(rms_after_px=ref_report.rms_after_px if ref_report.accepted else report.rms_px,
                        max_rotation_change_deg=float(rot.max()), max_position_change_mm=float(pos.max()),

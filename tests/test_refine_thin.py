@@ -24,7 +24,7 @@ from lfgraph.refinement.stages import baseline_scale
 
 NOISE_PX = 0.05  # transfer error and RMS comparisons: "not worse" within this
 ROTATION_NOISE_DEG = 0.005  # rotation error comparisons: "not worse" within this
-HELD_RAD = 1e-6  # a held group sits on its input within the hold's own prior sigma (rad)
+ROLL_ONLY_PAN_TILT_RAD = 1e-4  # exact tracks of a roll-only drift: the refitted pan/tilt within 0.006 deg of the truth
 SAVED_EXACT = 1e-12  # a calibration written to JSON and read back
 STEREO_BASELINE_MM = 83.20  # the OpenCV stereo sample's calibrated baseline (calibrate, 25 mm squares)
 BASELINE_TOL_MM = 0.05
@@ -97,7 +97,8 @@ def exact_tracks(truth: Calibration, n: int = 300, seed: int = 3) -> tuple[np.nd
 
 
 def test_a_roll_only_drift_moves_only_the_roll():
-    """Groups whose change is not significant (pan/tilt, here) are held at the input even in a drifted view."""
+    """A pure roll drift: the drifted views are refitted whole (MAP), and their pan/tilt stays where the truth has it
+    (unchanged) — no group absorbs the roll."""
     original = make_rig(RigConfig(rows=2, cols=2, pitch_m=0.05, image_size_px=(480, 480), focal_px=500.0),
                         np.random.default_rng(0))
     truth = shake_rig(original, ShakeConfig(rot_deg=1.0, trans_mm=0.0), np.random.default_rng(1))
@@ -107,7 +108,7 @@ def test_a_roll_only_drift_moves_only_the_roll():
     for v in result.verdicts:
         if v.verdict == DRIFTED:
             d = pose_change(original.ref_T_view[v.view], result.calib.ref_T_view[v.view])
-            assert np.all(np.abs(d[:2]) < HELD_RAD)  # pan/tilt exactly as they were
+            assert np.all(np.abs(d[:2]) < ROLL_ONLY_PAN_TILT_RAD)  # the truth's pan/tilt did not change
     e_after = evaluate_calibration(result.calib, truth).rotation_deg
     assert rms(e_after) < 0.1 * rms(evaluate_calibration(original, truth).rotation_deg)
 
@@ -184,14 +185,19 @@ def test_real_stereo_refine_keeps_the_baseline_and_the_rows(stereo, tmp_path):
     # the tracks (a person holding a repetitive board) cannot show a drift the corners do not: nothing changes
     np.testing.assert_allclose(refined.ref_T_view, calib.ref_T_view, atol=SAVED_EXACT)
     verdicts = refined.metrics["refinement"]["verdicts"]
-    assert [v["verdict"] for v in verdicts] == [REFERENCE, OK]
+    # the board at one depth cannot pin the second view's pan against the board's depth: OK or UNCERTAIN, unchanged
+    assert verdicts[0]["verdict"] == REFERENCE and verdicts[1]["verdict"] in (OK, UNCERTAIN)
+    assert not verdicts[1]["applied"]
 
 
 def test_real_stereo_check_does_not_cry_drift(stereo, capsys):
     src, calib_path = stereo
     assert main(["check", str(calib_path), str(src), "--json", "--depths", "1,2"]) == EXIT_OK
     data = json.loads(capsys.readouterr().out)
-    assert data["verdict"] == "OK" and [v["verdict"] for v in data["views"]] == [REFERENCE, OK]
+    # a board at one depth cannot pin the second view's pan (it trades against the board's depth): that view may be
+    # UNCERTAIN, never DRIFTED (its pan was held by a false gauge before issue 24, which made it look OK)
+    assert data["verdict"] == "OK" and data["views"][0]["verdict"] == REFERENCE
+    assert data["views"][1]["verdict"] in (OK, UNCERTAIN)
     assert data["views"][1]["sigma_rotation_deg"][2] > 0
     depth = data["depth_error_m"]["per_view"]["r00_c01"]
     assert len(depth) == 2 and 0 < depth[0] < depth[1]  # the error grows with range

@@ -155,7 +155,9 @@ def test_embedded_point_iterations_reach_the_same_minimum_from_a_landmark_far_of
     points[0] *= 20.0  # 20x its depth: the first Gauss–Newton re-solve of it overshoots and must be undone
     model = measurement_noise(RobustKernel("none"), 0.05)
     graph, values = stage_graph(Stage.POSES, rig, pix, valid, points, model, priors=view_priors(rig, DriftModel()))
-    plain = optimize(graph, values, OptimizerSettings(), eliminate=LANDMARK_CHAR)
+    # plain LM walks the far landmark back in ~108 iterations since the neighbour's pan is free (issue 24: not a
+    # gauge with the intrinsics held); the embedded iterations in ~80
+    plain = optimize(graph, values, OptimizerSettings(max_iterations=300), eliminate=LANDMARK_CHAR)
     embedded = optimize(graph, values, OptimizerSettings(landmark_iterations=2), eliminate=LANDMARK_CHAR)
     assert abs(embedded.final_error - plain.final_error) <= 1e-9 * plain.final_error
     for v in range(rig.num_views):

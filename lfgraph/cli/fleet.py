@@ -33,7 +33,8 @@ def add_parsers(sub: Any) -> None:
     """Add ``fleet`` to the ``lfgraph`` subparsers."""
     fl = sub.add_parser("fleet", help="check (and on drift refine) many recordings listed in a manifest CSV",
                         description="For each row of MANIFEST.csv (columns camera, calibration, capture; paths "
-                                    "relative to the manifest; optional layout, max_frames, max_px): the drift check, "
+                                    "relative to the manifest; optional layout, max_frames, max_px, tolerance_px): "
+                                    "the drift check, "
                                     "and on drift the refinement, written next to the input as NAME.vN.json. One "
                                     "result row per camera with its verdict (OK, DRIFTED, UNCERTAIN, ERROR); a "
                                     "re-run skips cameras already in the results.")

@@ -124,7 +124,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         depths = [float(x) for x in args.depths.split(",") if x.strip()] if args.depths else []
         if any(not d > 0 for d in depths):
             raise ValueError("depths must be positive")
-        config = RefineConfig(drift=DriftModel.parse(args.drift))
+        config = RefineConfig(drift=DriftModel.parse(args.drift), tolerance_px=args.max_px)
     except ValueError as exc:
         raise UsageError(f"{exc}") from None
     calib = Calibration.load(args.calibration)
@@ -145,10 +145,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     if drifted:
         names = ", ".join(f"{v.name} ({v.transfer_change_px:.2f} px at infinity, {v.change_sigma:.1f} sigma)"
                           for v in drifted)
-        print(f"DRIFT: {names} moved by more than --max-px {args.max_px:g} px; run lfgraph refine (or re-calibrate)")
+        print(f"DRIFT: {names} moved by more than --tolerance-px {args.max_px:g} px; run lfgraph refine "
+              "(or re-calibrate)")
         return EXIT_DRIFT
     uncertain = [v.name for v in report.verdicts if v.verdict == "UNCERTAIN"]
-    print(f"OK: no view drifted by more than --max-px {args.max_px:g} px at infinity"
+    print(f"OK: no view drifted by more than --tolerance-px {args.max_px:g} px at infinity"
           + (f" (UNCERTAIN, the frames cannot tell: {', '.join(uncertain)})" if uncertain else ""))
     return EXIT_OK
 
@@ -171,9 +172,9 @@ def add_parsers(sub: Any) -> None:
                                       "(exit 2 when not)")
     ck.add_argument("calibration", type=Path, help="calibration.json")
     ck.add_argument("input", type=Path, help="capture folder of any textured scene")
-    ck.add_argument("--max-px", type=positive_float, default=0.5,
-                    help="a view fails the check when it DRIFTED (a significant change) by more than this at "
-                         "infinity (px; default 0.5)")
+    ck.add_argument("--tolerance-px", "--max-px", dest="max_px", type=positive_float, default=0.1,
+                    help="a view fails the check when its change is significant and moves its transfer at infinity "
+                         "by more than this (px; default 0.1, as refine's --tolerance-px)")
     ck.add_argument("--depths", default="1,2,5",
                     help="ranges (m, comma list) for the predicted depth error per view (default 1,2,5)")
     ck.add_argument("--drift", default="",

@@ -42,7 +42,7 @@ def _refine(args: argparse.Namespace) -> int:
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
                               target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter,
                               drift=DriftModel.parse(args.drift), priors=not args.free, folds=args.folds,
-                              significance_sigma=args.significance)
+                              significance_sigma=args.significance, tolerance_px=args.tolerance_px)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     check_output_file(args.output, overwritable=[args.calibration], overwrite=args.overwrite)
@@ -110,6 +110,9 @@ def add_parsers(sub: Any) -> None:
                     help="held-out folds (whole frames when there are several; 0: no held-out test; default 3)")
     rf.add_argument("--significance", type=positive_float, default=3.0,
                     help="a view's change must exceed this many posterior sigmas to be applied (default 3)")
+    rf.add_argument("--tolerance-px", type=float, default=0.1,
+                    help="a view is DRIFTED (and changed) only when its change is significant and moves its transfer "
+                         "at infinity by more than this (px, default 0.1; 0: apply every significant change)")
     rf.add_argument("--json", action="store_true", help="print the report (verdicts, sigmas) as JSON")
     rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
     rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")

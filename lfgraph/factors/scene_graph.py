@@ -9,10 +9,12 @@ unchanged, so cx of the reference row's neighbour (cy of its column neighbour in
 whenever principal points are free; (3) with nearly parallel views a common zoom and shift of every view's fx, fy,
 cx, cy is unobservable too, so the reference view's intrinsics are held as its pose is; (4) the same hidden gauge in
 rotations: turning each view by delta * (-c_y, c_x, 0) (body x, y; c its position) while shifting every landmark's
-inverse depth by delta leaves all images unchanged to first order — only perspective's second-order terms see it,
-and those are what model errors (distortion, a repetitive pattern) bend. So the pan (tilt in a single column) of
-the same neighbour view is held at its input whenever poses are free: in a stereo pair the scene cannot tell the
-pan of the second view from the depth of the scene.
+inverse depth by delta leaves all images unchanged to first order. With the intrinsics held this is *not* a gauge:
+a pan moves every image point by (1 + x^2) delta, a principal-point shift by delta, so the data see the pan across
+the field of view, and holding it turned a knocked view's real pan into a pan/tilt ramp across the grid (issue 24).
+Only where the principal points are free does the pan trade exactly (to first order) against the held cx of gauge
+(2); there the pan (tilt in a single column) of that neighbour view is held at its input (`rotation_gauge`).
+Everything else a stage does not pin is weakly determined, not a gauge: the MAP drift priors hold it.
 """
 
 from __future__ import annotations
@@ -86,13 +88,13 @@ def rotation_gauge(calib: Calibration) -> tuple[int, int] | None:
 
 def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int],
                 scale_sigma_mm: float | None, map_centre: np.ndarray | None = None,
-                map_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
+                map_sigmas: np.ndarray | None = None, intrinsics_free: bool = False) -> gtsam.NonlinearFactorGraph:
     """The reference pose (gauge); held views and, when poses are not free, every view; on the free views either
     the MAP drift priors (``map_centre`` (V, 4, 4) ``ref_T_view`` of the input with ``map_sigmas`` (V, 6), see
     `drift_pose_noise`) or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
-    priors the hidden rotation gauge (`rotation_gauge`) is held at the input."""
+    priors and ``intrinsics_free`` the hidden rotation gauge (`rotation_gauge`) is held at the input."""
     graph = gtsam.NonlinearFactorGraph()
-    rgauge = rotation_gauge(calib)
+    rgauge = rotation_gauge(calib) if intrinsics_free else None
     for v in range(calib.num_views):
         pose = to_pose3(calib.ref_T_view[v])
         if v == calib.grid.reference:

@@ -23,7 +23,6 @@ from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import HELD_SIGMA
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.posterior import (
-    NEGLIGIBLE_SIGMA,
     Posterior,
     chi2_sigma,
     infinity_rays,
@@ -100,27 +99,28 @@ GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics":
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
     """Per parameter group (pan/tilt, roll, position, and intrinsics when free): the change's deviate under the
     group's marginal posterior covariance. Groups are tested apart: a clear roll must not carry a pan/tilt that
-    trades against position and that the data do not support."""
-    d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
-    cov = post.pose_cov[v]
-    if post.intrinsics_free:
-        a, b = after.intrinsics[v], before.intrinsics[v]
-        d = np.concatenate([d, [a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy]])
-        full = np.zeros((10, 10))
-        full[:6, :6], full[6:, 6:], full[:6, 6:], full[6:, :6] = cov, post.intr_cov[v], post.cross[v], post.cross[v].T
-        cov = full
+    trades against position and that the data do not support. Directions the graph held by its structure (gauges,
+    holds: `Posterior.held_mask`) are left out, however small or large their sigma."""
+    d = _change_vector(before, after, v)
+    cov = np.zeros((10, 10))
+    cov[:6, :6], cov[6:, 6:], cov[:6, 6:], cov[6:, :6] = (post.pose_cov[v], post.intr_cov[v], post.cross[v],
+                                                          post.cross[v].T)
+    free = ~post.held_mask(v)
     out = {}
     for name, idx in GROUPS.items():
-        idx_a = np.array([i for i in idx if i < len(d)])
+        idx_a = np.array([i for i in idx if free[i]], dtype=int)
         if idx_a.size == 0:
             continue
         c = cov[np.ix_(idx_a, idx_a)]
-        keep = np.sqrt(np.maximum(np.diag(c), 0.0)) > NEGLIGIBLE_SIGMA
-        if not keep.any():
+        dk = d[idx_a]
+        # whiten by the diagonal first: rad, m and px differ by orders of magnitude
+        scale = np.sqrt(np.maximum(np.diag(c), 0.0))
+        if not np.all(scale > 0):
+            out[name] = float("inf") if np.any(np.abs(dk[scale <= 0]) > 0) else 0.0
             continue
-        dk = d[idx_a][keep]
-        d2 = float(dk @ np.linalg.lstsq(c[np.ix_(keep, keep)], dk, rcond=1e-12)[0])
-        out[name] = chi2_sigma(d2, int(keep.sum()))
+        cn, dn = c / np.outer(scale, scale), dk / scale
+        d2 = float(dn @ np.linalg.lstsq(cn, dn, rcond=1e-12)[0])
+        out[name] = chi2_sigma(d2, int(idx_a.size))
     return out
 
 
@@ -228,12 +228,13 @@ def inflate(post: Posterior, calib: Calibration, fold_calibs: list[Calibration])
         d = np.stack([_change_vector(calib, fc, v) for fc in fold_calibs])
         jk = (k - 1) / k * np.sum((d - d.mean(axis=0)) ** 2, axis=0)  # jackknife variances (10,)
         full_var = np.concatenate([np.diag(post.pose_cov[v]), np.diag(post.intr_cov[v])])
+        free = ~post.held_mask(v)
         for gi, idx in enumerate(GROUPS.values()):
-            if gi == 3 and not post.intrinsics_free:
+            idx_a = np.array([i for i in idx if free[i]], dtype=int)
+            if idx_a.size == 0:
                 continue
-            idx_a = np.array(idx)
-            var = float(np.sum(full_var[idx_a]))
-            if var > NEGLIGIBLE_SIGMA**2:
+            var = float(np.sum(full_var[idx_a]))  # one unit per group: rad, m or px
+            if var > 0:
                 factors[v, gi] = max(1.0, float(np.sum(jk[idx_a])) / var)
     return apply_factors(post, factors), factors
 
@@ -248,7 +249,7 @@ def apply_factors(post: Posterior, factors: np.ndarray) -> Posterior:
         pose_cov[v] = post.pose_cov[v] * np.outer(scale[:6], scale[:6])
         intr_cov[v] = post.intr_cov[v] * np.outer(scale[6:], scale[6:])
         cross[v] = post.cross[v] * np.outer(scale[:6], scale[6:])
-    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px)
+    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px, post.held)
 
 
 def held_group_priors(calib: Calibration, config: RefineConfig, views: set[int],
@@ -261,14 +262,16 @@ def held_group_priors(calib: Calibration, config: RefineConfig, views: set[int],
     else:
         pose_s = np.full((calib.num_views, 6), NO_PULL_SIGMA)
         intr_s = np.full((calib.num_views, 4), NO_PULL_SIGMA)
+    held = np.zeros((calib.num_views, 10), dtype=bool)
     for v in views:
         for g in set(GROUPS) - set(changed[v]):
             for i in GROUPS[g]:
+                held[v, i] = True
                 if i < 6:
                     pose_s[v, i] = HELD_SIGMA
                 else:
                     intr_s[v, i - 6] = HELD_SIGMA
-    return ViewPriors(calib, pose_s, intr_s)
+    return ViewPriors(calib, pose_s, intr_s, held)
 
 
 def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
@@ -279,7 +282,7 @@ def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
         return post
     pose_cov = post.pose_cov + np.stack([np.diag(s**2) for s in own[0]])
     intr_cov = post.intr_cov if not post.intrinsics_free else post.intr_cov + np.stack([np.diag(s**2) for s in own[1]])
-    return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px)
+    return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px, post.held)
 
 
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
@@ -288,7 +291,6 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     """MAP fit, posterior, fold refits (held-out tracks and the jackknife), significance, verdicts (see the
     module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames.
     ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
-    from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.refinement.fit import fit_auto
 
     obs = observer
@@ -296,7 +298,6 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     post = posterior(calib, fit, config)
     n, ref = calib.num_views, calib.grid.reference
     rays = infinity_rays(calib)
-    proposed_px = transfer_error_at_infinity(fit.calib, calib)
     # folds: whole frames when there are several (errors within a frame are correlated), else random tracks
     px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
     fold = None
@@ -321,8 +322,6 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             except (RuntimeError, ValueError):
                 continue
             fold_calibs.append(fk.calib)
-            e_before.append(heldoutfinite_rms(calib, px[:, test], ok[:, test]))
-            e_after.append(heldoutfinite_rms(fk.calib, px[:, test], ok[:, test]))
     factors = np.ones((n, 4))
     if post is not None:
         post, factors = inflate(post, calib, fold_calibs)
@@ -335,13 +334,23 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
     z = {v: max(zg[v].values(), default=0.0) for v in free}
     changed = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
+    size_px = change_size_px(calib, fit.calib)
     sig_views = {v for v in free if changed[v]}
+    # a drifted view is refitted whole (its MAP priors hold what the data leave weak): holding its groups that were
+    # not significant at the input let the others absorb their real change (sweep: pan/tilt error/sigma 5.8 -> 3.1,
+    # misses 1 -> 0 of 267)
+    changed = {v: tuple(zg[v]) if v in sig_views else () for v in free}
+    # significant is not the same as mattering: a change within the tolerance is reported, not applied
+    small = {v for v in sig_views if not size_px[v] > config.tolerance_px}
+    sig_views -= small
     candidate = calib
     heldout_before = heldout_after = float("nan")
     accepted = False
     cand_post: Posterior | None = None
     unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
     cand_fit = fit
+    hold: frozenset[int] = frozenset()
+    partial: ViewPriors | None = None
     for _ in range(MAX_HOLD_ROUNDS):
         if not sig_views:
             break
@@ -352,36 +361,63 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         cand_post = apply_factors(cp, factors) if cp is not None else None
         worse = {v: predicted_transfer_px(calib, cand_post, v, rays) if cand_post is not None else float("inf")
                  for v in sig_views}
-        drop = {v for v, x in worse.items() if not x <= config.uncertain_transfer_px}
-        if not drop:
+        cand_size = change_size_px(calib, cand_fit.calib)
+        # what would be written must itself matter (holding a group can leave a change within the tolerance) ...
+        within = {v for v in sig_views if not cand_size[v] > config.tolerance_px}
+        # ... and be determined: its change at infinity must itself stand out (significance_sigma times) against what
+        # the refit leaves undetermined there — a change significant in its parameters (a position, say) that is
+        # small against that uncertainty at infinity cannot be trusted to improve the view (sweep: 1 frame, 34 tracks)
+        limit = cand_size / config.significance_sigma
+        drop = {v for v, x in worse.items() if v not in within and not x <= limit[v]}
+        if not drop and not within:
             break
         unsure.update({v: worse[v] for v in drop})
-        sig_views -= drop
+        small |= within
+        size_px[list(within)] = cand_size[list(within)]
+        sig_views -= drop | within
     else:
         sig_views = set()
     if sig_views:
         candidate = combine(calib, cand_fit.calib, sig_views)
         accepted = True
+        if fold is not None:
+            # the held-out test scores what would be written: the candidate's structure refitted without each fold
+            e_before, e_after = [], []
+            for k in range(int(fold.max()) + 1 if fold.size else 0):
+                train, test = fold != k, fold == k
+                if not test.any() or not train.any():
+                    continue
+                try:
+                    fk = fit_auto(calib, px[:, train], ok[:, train], config, _Silent(), hold | fit.held, fit.sigma_px,
+                                  partial)
+                except (RuntimeError, ValueError):
+                    continue
+                e_before.append(heldoutfinite_rms(calib, px[:, test], ok[:, test]))
+                e_after.append(heldoutfinite_rms(combine(calib, fk.calib, sig_views), px[:, test], ok[:, test]))
         if e_before:
             heldout_before = finite_rms(np.concatenate(e_before, axis=1))
             heldout_after = finite_rms(np.concatenate(e_after, axis=1))
             accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
             obs.log(f"held-out tracks ({len(e_before)} folds): RMS {heldout_before:.4f} px with the input, "
-                    f"{heldout_after:.4f} px with refits that did not see them: "
+                    f"{heldout_after:.4f} px with the candidate refitted without them: "
                     + ("accepted" if accepted else "rejected"))
     out = candidate if accepted else calib
+    written_size = change_size_px(calib, out)
     verdicts = []
+    own = input_sigmas(calib)
     for v in range(n):
-        d = pose_change(calib.ref_T_view[v], fit.calib.ref_T_view[v])
-        a, b = fit.calib.intrinsics[v], calib.intrinsics[v]
+        applied = v in sig_views and accepted
+        shown = out if applied else fit.calib  # an applied view reports what was written, the others the proposal
+        d = pose_change(calib.ref_T_view[v], shown.ref_T_view[v])
+        a, b = shown.intrinsics[v], calib.intrinsics[v]
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
-        # a refined view reports the posterior of what was applied (held groups included); the others the full fit's
-        pv = cand_post if (v in sig_views and accepted and cand_post is not None) else post
+        # an applied view reports the posterior of what was written: its refitted groups from the candidate's graph,
+        # the groups it kept at the input from the full fit plus the input's own uncertainty
+        pv = merge_held(cand_post, test_post, v) if (applied and cand_post is not None) else post
         if pv is not None:
             s_rot = np.degrees(np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[:3], 0.0)))
             s_pos = 1e3 * np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[3:], 0.0))
             s_int = np.sqrt(np.maximum(np.diag(pv.intr_cov[v]), 0.0))
-            own = input_sigmas(calib)
             if not pv.intrinsics_free and own is not None:  # held: what the input itself knew
                 s_int = own[1][v]
             pred = predicted_transfer_px(calib, pv, v, rays) if v != ref else 0.0
@@ -389,26 +425,31 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
         obs_v = int(fit.valid[v].sum())
         needs: tuple[str, ...] = ()
-        applied = False
+        change_px = float(written_size[v] if applied else size_px[v])
         if v == ref:
             verdict, reason = REFERENCE, "the reference view (the gauge)"
         elif v in fit.held:
             verdict, reason = UNCERTAIN, f"only {obs_v} observations (< {config.min_view_observations}): held"
             needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
-        elif v in sig_views and accepted:
-            verdict, applied = DRIFTED, True
+        elif applied:
+            verdict = DRIFTED
             kept_groups = [g for g in zg[v] if g not in changed[v]]
-            reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v]) + " changed, confirmed by held-out "
+            reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v])
+                      + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by held-out "
                       "tracks" + (f"; {', '.join(kept_groups)} kept (not significant)" if kept_groups else ""))
+        elif v in small:
+            verdict = OK
+            reason = (f"a significant ({z[v]:.1f} sigma) change of {change_px:.3f} px, within the tolerance "
+                      f"{config.tolerance_px:g} px: not applied")
         elif v in unsure:
             verdict = UNCERTAIN
-            reason = (f"a {z[v]:.1f}-sigma change, but applied alone it would leave {unsure[v]:.2f} px (1 sigma) at "
-                      f"infinity undetermined (> {config.uncertain_transfer_px:g} px): kept")
+            reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px, but applied it would leave {unsure[v]:.2f} px "
+                      f"(1 sigma) undetermined at infinity: kept")
             needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
         elif v in sig_views:
             verdict = UNCERTAIN
-            reason = (f"a {z[v]:.1f}-sigma change that refits did not confirm on held-out tracks "
-                      f"({heldout_before:.3f} -> {heldout_after:.3f} px): kept")
+            reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px that the held-out tracks did not confirm "
+                      f"({heldout_before:.3f} px with the input, {heldout_after:.3f} px with the change): kept")
             needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
         elif post is None or not pred <= config.uncertain_transfer_px:
             verdict = UNCERTAIN
@@ -419,6 +460,35 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             verdict = OK
             reason = f"no significant change ({z.get(v, 0.0):.1f} sigma; 1 sigma = {pred:.3f} px at infinity)"
         verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),
-                                    1e3 * d[3:], dk, float(proposed_px[v]), s_rot, s_pos, s_int, float(pred), obs_v,
+                                    1e3 * d[3:], dk, change_px, s_rot, s_pos, s_int, float(pred), obs_v,
                                     applied, reason, needs))
     return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
+
+
+def change_size_px(before: Calibration, after: Calibration) -> np.ndarray:
+    """(V,) how much a change moves each view's image: its transfer at infinity (RMS over the reference image, px),
+    the figure disparity and refocusing see and that ``tolerance_px`` is stated in."""
+    from lfgraph.alignment import transfer_error_at_infinity
+
+    return transfer_error_at_infinity(after, before)
+
+
+def merge_held(cand: Posterior, full: Posterior | None, v: int) -> Posterior:
+    """``cand`` with the directions it held by structure in view v (groups kept at the input) given ``full``'s
+    variances: the kept values are the input's, known as well as the full fit and the input knew them."""
+    if full is None:
+        return cand
+    held = cand.held_mask(v) & ~full.held_mask(v)
+    if not held.any():
+        return cand
+    pose_cov, intr_cov, cross = cand.pose_cov.copy(), cand.intr_cov.copy(), cand.cross.copy()
+    full_var = np.concatenate([np.diag(full.pose_cov[v]), np.diag(full.intr_cov[v])])
+    for i in np.nonzero(held)[0]:
+        if i < 6:
+            pose_cov[v][i, :], pose_cov[v][:, i], cross[v][i, :] = 0.0, 0.0, 0.0
+            pose_cov[v][i, i] = full_var[i]
+        else:
+            intr_cov[v][i - 6, :], intr_cov[v][:, i - 6], cross[v][:, i - 6] = 0.0, 0.0, 0.0
+            intr_cov[v][i - 6, i - 6] = full_var[i]
+    return Posterior(pose_cov, intr_cov, cross, cand.intrinsics_free or full.intrinsics_free, cand.sigma_px,
+                     cand.held)

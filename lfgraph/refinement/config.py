@@ -142,7 +142,13 @@ class RefineConfig:
             exceeds the chi-square quantile equivalent to this many sigmas (one-sided normal); otherwise the view
             keeps its input parameters.
         uncertain_transfer_px: a view whose change is not significant is OK when its posterior predicts at most this
-            transfer error at infinity (1-sigma, px), else UNCERTAIN (the data could hide a drift that large).
+            transfer error at infinity (1-sigma, px), else UNCERTAIN (the data could hide a drift that large); a
+            significant change is applied only if what it leaves undetermined is at most this, or at most its own
+            size / ``significance_sigma``.
+        tolerance_px: a practical tolerance (px of transfer at infinity, RMS over the reference image; default
+            0.1): a view is DRIFTED, and its change applied, only when the change is significant *and* moves the
+            view's transfer at infinity by more than this. A significant change within it is reported as OK with its
+            size and not applied (0: apply every significant change).
         triangulation_filter: ``median`` (the paper: keep tracks whose reference-view error is <= the median; it
             halves the tracks and favours the image centre), ``worst`` (drop tracks whose worst error is > 4x the
             median track's and > 0.5 px) or ``none``; default: ``median`` with the paper's schedule, else ``worst``.
@@ -184,6 +190,7 @@ class RefineConfig:
     folds: int = 3
     significance_sigma: float = 3.0
     uncertain_transfer_px: float = 0.2
+    tolerance_px: float = 0.1
 
     def __post_init__(self) -> None:
         stages = parse_stages(self.stages)
@@ -205,6 +212,8 @@ class RefineConfig:
             object.__setattr__(self, "drift", DriftModel.parse(self.drift))
         if self.folds < 0 or self.folds == 1:
             raise ValueError(f"folds must be 0 (no held-out test) or >= 2, got {self.folds}")
+        if not (np.isfinite(self.tolerance_px) and self.tolerance_px >= 0):
+            raise ValueError(f"tolerance_px must be a number >= 0, got {self.tolerance_px}")
         if not self.significance_sigma > 0:
             raise ValueError(f"significance_sigma must be positive, got {self.significance_sigma}")
         if self.measurement_sigma_px is not None and not (self.measurement_sigma_px > 0):

@@ -11,6 +11,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
+from lfgraph.factors.scene_graph import principal_point_gauge, rotation_gauge
 from lfgraph.geometry import rotation_from_rotvec, to_pose3
 from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.config import RefineConfig, Stage
@@ -21,7 +22,6 @@ from lfgraph.schur_system import NotReducible, camera_block
 
 TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
-NEGLIGIBLE_SIGMA = 1e-5  # rad, m, px: posterior directions held by a gauge or a hold are left out of the test
 
 
 def chi2_sigma(d2: float, dof: int) -> float:
@@ -39,13 +39,50 @@ class Posterior:
     ``pose_cov``: (V, 6, 6) body-frame Pose3 covariance (rotation x, y, z in rad, then position in m);
     ``intr_cov``: (V, 4, 4) fx, fy, cx, cy (px^2) — from the graph when a stage freed them, else zeros (held);
     ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
-    ``intrinsics_free``: whether the graph freed fx, fy, cx, cy."""
+    ``intrinsics_free``: whether the graph freed fx, fy, cx, cy;
+    ``held``: (V, 10) which of rotation x, y, z, position x, y, z, fx, fy, cx, cy the graph held by its structure
+    (the reference view, held views and groups, gauges, intrinsics a stage does not free: `held_directions`) —
+    never inferred from the size of a sigma, which mixes rad, m and px and shrinks as data improve."""
 
     pose_cov: np.ndarray
     intr_cov: np.ndarray
     cross: np.ndarray
     intrinsics_free: bool
     sigma_px: float
+    held: np.ndarray | None = None
+
+    def held_mask(self, v: int) -> np.ndarray:
+        """(10,) directions of view v held by structure (all intrinsics when the graph did not free them)."""
+        if self.held is not None:
+            return self.held[v]
+        mask = np.zeros(10, dtype=bool)
+        mask[6:] = not self.intrinsics_free
+        return mask
+
+
+def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int],
+                    priors: ViewPriors | None = None) -> np.ndarray:
+    """(V, 10) the directions a stage's graph holds by construction: everything of the reference view and of held
+    views; fx, fy, cx, cy unless the stage frees them, and then the principal-point gauge and the rotation gauge
+    (`lfgraph.factors.scene_graph`); the groups ``priors`` holds (`ViewPriors.held`)."""
+    n = calib.num_views
+    mask = np.zeros((n, 10), dtype=bool)
+    mask[calib.grid.reference] = True
+    for v in held_views:
+        mask[v] = True
+    if stage in (Stage.INTRINSICS, Stage.ALL):
+        gauge, rgauge = principal_point_gauge(calib), rotation_gauge(calib)
+        if gauge is not None:
+            mask[gauge[0], 6 + gauge[1] - 1] = True  # Cal3DS2 index 3/4 (cx/cy) -> 8/9
+        if rgauge is not None:
+            mask[rgauge[0], rgauge[1]] = True
+    else:
+        mask[:, 6:] = True
+    if stage == Stage.INTRINSICS:
+        mask[:, :6] = True
+    if priors is not None and priors.held is not None:
+        mask |= priors.held
+    return mask
 
 
 def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors | None = None) -> Posterior | None:
@@ -99,7 +136,8 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
                     pose_cov[v] = marginals.marginalCovariance(view_pose_key(v))
     except RuntimeError:  # an indeterminate system: report no posterior rather than a wrong one
         return None
-    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px)
+    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px,
+                     held_directions(calib, fit.last_stage, fit.held, priors))
 
 
 def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
@@ -108,6 +146,7 @@ def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.nda
     ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)
     gx, gy = np.meshgrid(xs, ys)
     xy = calib.intrinsics[calib.grid.reference].undistort(np.column_stack([gx.ravel(), gy.ravel()]))
+    xy = xy[np.all(np.isfinite(xy), axis=1)]  # corners a strong barrel lens folds over have no ray
     return np.column_stack([xy, np.ones(len(xy))])
 
 

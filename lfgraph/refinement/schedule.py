@@ -184,8 +184,9 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
     fit = result.fit
     kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
     before = finite_rms(reprojection_errors(calib, triangulate_dlt(calib, kept_px, kept_valid), kept_px, kept_valid))
-    after = finite_rms(reprojection_errors(fit.calib, triangulate_dlt(fit.calib, kept_px, kept_valid), kept_px,
-                                     kept_valid))
+    # the RMS of what is written (the input where nothing was applied), not of the full fit
+    after = finite_rms(reprojection_errors(result.calib, triangulate_dlt(result.calib, kept_px, kept_valid), kept_px,
+                                           kept_valid))
     if coverage < COVERAGE_WARN:
         warnings.append(f"tracks cover only {100 * coverage:.0f} % of the reference image ({COVERAGE_CELLS}x"
                         f"{COVERAGE_CELLS} cells): rotations about the optical axis are weakly constrained; use "

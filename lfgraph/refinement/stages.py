@@ -67,7 +67,7 @@ def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.
     insert_view_poses(values, calib.ref_T_view)
     centre = None if priors is None else priors.centre.ref_T_view
     graph.push_back(scene_graph.pose_priors(calib, poses_free, held_views, scale_sigma_mm, centre,
-                                            None if priors is None else priors.pose_sigmas))
+                                            None if priors is None else priors.pose_sigmas, intr_free))
     free_views = [v for v in range(n_views) if v != calib.grid.reference and v not in held_views]
     # a held view fixes scale by itself; otherwise one range does, and the result is rescaled in run_stage
     if poses_free and scale_sigma_mm is None and not held_views and free_views:

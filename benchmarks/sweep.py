@@ -1,0 +1,322 @@
+"""Randomized sweep of `refine` on rigs nobody tuned on (issue 24): every scenario draws a grid, image size, focal
+length, distortion, scattered view poses, a knock about random axes (a quarter of the rigs not knocked at all),
+the number of frames, sensor noise, texture (rich, repetitive, poor) and scene depth; renders the knocked rig's
+scenes; refines the *unknocked* calibration with the defaults; and scores what was written against the truth.
+
+Per texture class and overall:
+(a) never worse: scenarios whose written calibration is worse than the input beyond 1 sigma (any view's transfer
+    at infinity, or its scale-aligned position) — goal 0;
+(b) false alarms: unknocked rigs with a view DRIFTED — goal <= 1 %;
+(c) misses: views whose knock moves the transfer at infinity by >= 3x the tolerance left OK — goal <= 1 %;
+(d) honest sigmas: RMS of error / reported sigma over applied views, per group (pan/tilt, roll, position) — goal 0.5-2;
+(e) accuracy (median and worst transfer at infinity after) and seconds per frame.
+
+    python benchmarks/sweep.py --scenarios 200 [--seed 0] [--csv out/sweep.csv] [--jobs 2]
+
+Rows are appended to the CSV as scenarios finish (a re-run skips the seeds already there). `tests/test_sweep.py`
+runs a fixed-seed subset of the same scenarios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lfgraph.alignment import transfer_error_at_infinity
+from lfgraph.calibration import Calibration
+from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
+from lfgraph.geometry import rotvec_from_rotation
+from lfgraph.refinement import RefineConfig, refine
+from lfgraph.refinement.assess import DRIFTED, OK
+
+GRIDS = [(1, 2), (2, 2), (1, 3), (2, 3), (3, 3), (3, 4), (4, 4), (1, 5), (5, 5), (6, 6), (1, 8)]
+IMAGE_SIZES = [(320, 240), (400, 300), (512, 512), (640, 480), (800, 600), (1024, 768), (1280, 960), (1920, 1080)]
+TEXTURES = ("rich", "repetitive", "poor")
+MAX_PIXELS = 40e6  # rendered pixels per scenario (views x frames x W x H): frames are cut to stay within
+UNKNOCKED_SHARE = 0.25
+MAX_KNOCK_DEG = 2.0
+MAX_KNOCK_MM = 5.0
+DISTORTION_JITTER = 0.01  # RigConfig's default spread of k1 (k2: half) between views
+MIN_DISTORTION_SLOPE = 0.3  # d(distorted radius)/d(radius) everywhere in the image: a lens, not a fold-over
+MISS_FACTOR = 3.0  # a view knocked by >= 3x the tolerance (transfer at infinity) must not be left OK
+GOAL_FALSE_ALARM = 0.01
+GOAL_MISS = 0.01
+GOAL_SIGMA_RATIO = (0.5, 2.0)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    seed: int
+    rows: int
+    cols: int
+    width: int
+    height: int
+    focal_px: float
+    pitch_m: float
+    k1: float
+    k2: float
+    rot_jitter_deg: float
+    trans_jitter_mm: float
+    knock_deg: float
+    knock_mm: float
+    frames: int
+    noise_grey: float
+    texture: str
+    near_m: float
+    far_m: float
+
+    @property
+    def knocked(self) -> bool:
+        return self.knock_deg > 0 or self.knock_mm > 0
+
+    def label(self) -> str:
+        return (f"#{self.seed} {self.rows}x{self.cols} {self.width}x{self.height} f{self.focal_px:.0f} "
+                f"{self.texture} {self.frames}fr knock {self.knock_deg:.2f}deg {self.knock_mm:.1f}mm")
+
+
+def draw(seed: int) -> Scenario:
+    """One scenario, a pure function of its seed."""
+    rng = np.random.default_rng([24, seed])
+    rows, cols = GRIDS[rng.integers(len(GRIDS))]
+    if rng.uniform() < 0.5:
+        rows, cols = cols, rows  # columns as often as rows
+    w, h = IMAGE_SIZES[rng.integers(len(IMAGE_SIZES))]
+    # field of view from ~35 to ~95 degrees across the image width, focal 300-2000 px
+    focal = float(np.clip(w / (2 * np.tan(np.radians(rng.uniform(17, 47)))), 300, 2000))
+    near = float(rng.choice([1.0, 2.0, 3.0]) * rng.uniform(0.8, 1.2))
+    far = near * rng.uniform(1.5, 3.0)
+    # neighbour disparity at the near depth 8-40 px: what a real array of this field of view would have
+    pitch = float(rng.uniform(8, 40) * near / focal)
+    # a lens whose distortion stays monotonic out to the image corners (a real one: no fold-over in the image)
+    r_max = 1.1 * np.hypot(w, h) / (2 * focal)
+    while True:
+        k1 = float(rng.uniform(-0.25, 0.05))
+        k2 = float(rng.uniform(-0.02, 0.05))
+        r2 = np.linspace(0, r_max**2, 50)
+        k1j, k2j = k1 - 3 * DISTORTION_JITTER, k2 - 1.5 * DISTORTION_JITTER  # the views' own lenses vary
+        if np.all(1 + 3 * k1j * r2 + 5 * k2j * r2**2 > MIN_DISTORTION_SLOPE):
+            break
+    knocked = rng.uniform() >= UNKNOCKED_SHARE
+    knock_deg = float(rng.uniform(0.05, MAX_KNOCK_DEG)) if knocked else 0.0
+    knock_mm = float(rng.uniform(0.0, MAX_KNOCK_MM)) if knocked else 0.0
+    frames = int(rng.integers(1, 9))
+    frames = int(max(1, min(frames, MAX_PIXELS // (rows * cols * w * h))))
+    return Scenario(seed, int(rows), int(cols), w, h, focal, pitch, k1, k2, float(rng.uniform(0.0, 1.0)),
+                    float(rng.uniform(0.0, 2.0)), knock_deg, knock_mm, frames, float(rng.uniform(0.3, 2.0)),
+                    str(TEXTURES[rng.integers(len(TEXTURES))]), near, far)
+
+
+def rigs(s: Scenario) -> tuple[Calibration, Calibration]:
+    """(input, truth): the calibrated rig and the same rig after the knock."""
+    cfg = RigConfig(rows=s.rows, cols=s.cols, reference=(s.rows // 2) * s.cols + s.cols // 2, pitch_m=s.pitch_m,
+                    image_size_px=(s.width, s.height), focal_px=s.focal_px, k1=s.k1, k2=s.k2,
+                    focal_jitter_px=0.005 * s.focal_px, principal_jitter_px=0.01 * s.width,
+                    rot_jitter_deg=s.rot_jitter_deg, trans_jitter_mm=s.trans_jitter_mm)
+    original = make_rig(cfg, np.random.default_rng([s.seed, 1]))
+    if not s.knocked:
+        return original, original
+    truth = shake_rig(original, ShakeConfig(rot_deg=s.knock_deg, trans_mm=s.knock_mm, axis="any"),
+                      np.random.default_rng([s.seed, 2]))
+    return original, truth
+
+
+def scene_config(s: Scenario) -> SceneConfig:
+    poor = s.texture == "poor"
+    return SceneConfig(depth_m=(s.near_m, s.far_m), background_depth_m=s.far_m * 1.4,
+                       objects=3 if poor else 8, texels_per_m_at_1m=120.0 if poor else 700.0,
+                       blur_sigma_px=1.2 if poor else 0.5, noise_sigma=s.noise_grey,
+                       kind="keyboard" if s.texture == "repetitive" else "dead-leaves", supersample=1)
+
+
+def render(s: Scenario, truth: Calibration) -> list[np.ndarray]:
+    cfg = scene_config(s)
+    out = []
+    for f in range(s.frames):
+        scene = make_scene(cfg, np.random.default_rng([s.seed, 3, f]))
+        out.append(render_scene_views(scene, truth, cfg,
+                                      rngs=[np.random.default_rng([s.seed, 4, f, v]) for v in range(truth.num_views)]))
+    return out
+
+
+def _align_scale(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Positions (V, 3) of ``est`` scaled to best match ``truth`` (scale is a gauge of a scene refinement)."""
+    d = float(np.sum(est * est))
+    return est * (float(np.sum(est * truth)) / d if d > 0 else 1.0)
+
+
+def body_errors(est: Calibration, truth: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) body-frame rotation error (deg) and (V, 3) scale-aligned position error in the view's frame (mm)."""
+    rot = np.degrees(np.stack([rotvec_from_rotation(truth.ref_T_view[v][:3, :3].T @ est.ref_T_view[v][:3, :3])
+                               for v in range(truth.num_views)]))
+    p = _align_scale(est.ref_T_view[:, :3, 3], truth.ref_T_view[:, :3, 3]) - truth.ref_T_view[:, :3, 3]
+    pos = 1e3 * np.einsum("vji,vj->vi", truth.ref_T_view[:, :3, :3], p)  # in the view's own axes
+    return rot, pos
+
+
+def score(s: Scenario, inp: Calibration, truth: Calibration, out: Calibration, report, seconds: float,
+          tolerance_px: float) -> dict:
+    """One scenario's row: the criteria (a)-(e) of the module docstring."""
+    ref = truth.grid.reference
+    te_in = transfer_error_at_infinity(inp, truth)
+    te_out = transfer_error_at_infinity(out, truth)
+    _, pos_in = body_errors(inp, truth)
+    rot_out, pos_out = body_errors(out, truth)
+    verdicts = report.verdicts
+    sig_t = np.array([v.predicted_transfer_px if np.isfinite(v.predicted_transfer_px) else 0.0 for v in verdicts])
+    sig_p = np.array([np.linalg.norm(v.sigma_position_mm) if np.all(np.isfinite(v.sigma_position_mm)) else 0.0
+                      for v in verdicts])
+    worse_t = te_out > te_in + np.maximum(sig_t, 1e-3)
+    worse_p = np.linalg.norm(pos_out, axis=1) > np.linalg.norm(pos_in, axis=1) + np.maximum(sig_p, 1e-3)
+    worse = (worse_t | worse_p)
+    worse[ref] = False
+    drifted = np.array([v.verdict == DRIFTED for v in verdicts])
+    ok = np.array([v.verdict == OK for v in verdicts])
+    knock_px = te_in  # the input is the unknocked truth: its transfer error is the knock's effect
+    big = knock_px >= MISS_FACTOR * tolerance_px
+    big[ref] = False
+    applied = np.array([v.applied for v in verdicts])
+    z = {"pan_tilt": [], "roll": [], "position": []}
+    for v in np.nonzero(applied)[0]:
+        vd = verdicts[v]
+        z["pan_tilt"] += list(rot_out[v, :2] / np.maximum(vd.sigma_rotation_deg[:2], 1e-12))
+        z["roll"].append(rot_out[v, 2] / max(vd.sigma_rotation_deg[2], 1e-12))
+        z["position"] += list(pos_out[v] / np.maximum(vd.sigma_position_mm, 1e-12))
+    return {**asdict(s), "views": truth.num_views, "knock_px_max": float(np.max(knock_px)),
+            "transfer_in_px": float(np.sqrt(np.mean(te_in**2))), "transfer_out_px": float(np.sqrt(np.mean(te_out**2))),
+            "transfer_out_max_px": float(np.max(te_out)), "transfer_in_max_px": float(np.max(te_in)),
+            "pos_in_max_mm": float(np.max(np.linalg.norm(pos_in, axis=1))),
+            "pos_out_max_mm": float(np.max(np.linalg.norm(pos_out, axis=1))),
+            "worse_views": int(worse.sum()), "worse_transfer_views": int(np.delete(worse_t, ref).sum()),
+            "drifted_views": int(drifted.sum()), "big_knocks": int(big.sum()),
+            "missed_views": int((big & ok).sum()), "uncertain_big": int((big & ~ok & ~drifted).sum()),
+            "applied_views": int(applied.sum()), "accepted": bool(report.accepted),
+            **{f"z_{k}": ";".join(f"{x:.3g}" for x in z[k]) for k in z},
+            "seconds": seconds, "seconds_per_frame": seconds / max(report.frames_used, 1)}
+
+
+def run(s: Scenario, config: RefineConfig | None = None) -> dict:
+    """Render, refine from the unknocked calibration, score."""
+    config = config or RefineConfig()
+    inp, truth = rigs(s)
+    frames = render(s, truth)
+    t0 = time.perf_counter()
+    try:
+        out, report = refine(inp, frames, config)
+    except ValueError as e:  # no usable tracks: nothing written, which is never worse
+        return {**asdict(s), "views": truth.num_views, "error": str(e)[:120]}
+    return score(s, inp, truth, out, report, time.perf_counter() - t0, config.tolerance_px)
+
+
+def _run_seed(seed: int) -> dict:
+    s = draw(seed)
+    try:
+        row = run(s)
+    except Exception as e:  # a crash is a finding: recorded, not hidden
+        row = {**asdict(s), "views": s.rows * s.cols, "error": f"{type(e).__name__}: {e}"[:160]}
+    return row
+
+
+def summary(rows: list[dict], tolerance_px: float) -> list[list[str]]:
+    """The table: per texture class and overall."""
+    out = []
+    for cls in (*TEXTURES, "all"):
+        rs = [r for r in rows if cls == "all" or r["texture"] == cls]
+        done = [r for r in rs if not r.get("error")]
+        if not rs:
+            continue
+        errors = len(rs) - len(done)
+        never_worse = sum(int(r["worse_views"]) > 0 for r in done)
+        unknocked = [r for r in done if not (float(r["knock_deg"]) > 0 or float(r["knock_mm"]) > 0)]
+        false_alarm = sum(int(r["drifted_views"]) > 0 for r in unknocked)
+        big = sum(int(r["big_knocks"]) for r in done)
+        missed = sum(int(r["missed_views"]) for r in done)
+        unc = sum(int(r["uncertain_big"]) for r in done)
+
+        def zrms(key, done=done):
+            z = [float(x) for r in done for x in str(r.get(key) or "").split(";") if x]
+            return f"{np.sqrt(np.mean(np.square(z))):.2f} ({len(z)})" if z else "-"
+
+        t_out = np.array([float(r["transfer_out_max_px"]) for r in done]) if done else np.zeros(1)
+        spf = np.array([float(r["seconds_per_frame"]) for r in done]) if done else np.zeros(1)
+        out.append([cls, str(len(rs)), str(errors), str(never_worse),
+                    f"{false_alarm}/{len(unknocked)}", f"{missed}/{big} ({unc} unc.)",
+                    zrms("z_pan_tilt"), zrms("z_roll"), zrms("z_position"),
+                    f"{np.median(t_out):.3f} / {np.max(t_out):.3f}", f"{np.median(spf):.2f} / {np.max(spf):.2f}"])
+    return out
+
+
+HEADER = ["texture", "scenarios", "errors", "(a) worse", "(b) false alarms", "(c) misses", "(d) z pan/tilt",
+          "(d) z roll", "(d) z position", "(e) transfer after px (med/worst view)", "s/frame (med/max)"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    from lfgraph.report import format_table
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenarios", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=0, help="first scenario seed")
+    ap.add_argument("--csv", default="out/bench-sweep/sweep.csv")
+    ap.add_argument("--jobs", type=int, default=1, help="scenarios in parallel (processes)")
+    args = ap.parse_args(argv)
+    path = Path(args.csv)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    if path.exists():
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    done = {int(r["seed"]) for r in rows}
+    todo = [s for s in range(args.seed, args.seed + args.scenarios) if s not in done]
+    tol = RefineConfig().tolerance_px
+    print(f"{len(todo)} scenarios to run ({len(done)} in {path})", flush=True)
+
+    def record(row: dict) -> None:
+        rows.append(row)
+        new = not path.exists() or path.stat().st_size == 0
+        keys = list(_run_fields())
+        with open(path, "a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
+            if new:
+                w.writeheader()
+            w.writerow(row)
+        flag = row.get("error") or (f"worse {row['worse_views']} drifted {row['drifted_views']} missed "
+                                    f"{row['missed_views']}/{row['big_knocks']} transfer "
+                                    f"{row['transfer_in_max_px']:.3f} -> {row['transfer_out_max_px']:.3f} px, "
+                                    f"{row['seconds']:.1f} s")
+        print(f"{draw(int(row['seed'])).label()}: {flag}", flush=True)
+
+    if args.jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(args.jobs) as pool:
+            for row in pool.map(_run_seed, todo):
+                record(row)
+    else:
+        for seed in todo:
+            record(_run_seed(seed))
+    rows = [r for r in rows if args.seed <= int(r["seed"]) < args.seed + args.scenarios]
+    print(format_table(HEADER, summary(rows, tol)))
+    print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
+          f"(d) {GOAL_SIGMA_RATIO[0]}-{GOAL_SIGMA_RATIO[1]}")
+    return 0
+
+
+def _run_fields() -> list[str]:
+    base = list(asdict(draw(0)))
+    return [*base, "views", "error", "knock_px_max", "transfer_in_px", "transfer_out_px", "transfer_out_max_px",
+            "transfer_in_max_px", "pos_in_max_mm", "pos_out_max_mm", "worse_views", "worse_transfer_views",
+            "drifted_views", "big_knocks",
+            "missed_views", "uncertain_big", "applied_views", "accepted", "z_pan_tilt", "z_roll", "z_position",
+            "seconds", "seconds_per_frame"]
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    sys.exit(main())

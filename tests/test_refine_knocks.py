@@ -1,0 +1,119 @@
+"""Issue 24: refinement after real knocks (pan, tilt and roll about random axes), gauges by structure, a practical
+tolerance, and a fixed-seed subset of the randomized sweep (`benchmarks/sweep.py`), each against the truth."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lfgraph.alignment import transfer_error_at_infinity
+from lfgraph.camera import project_world
+from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.factors.scene_graph import rotation_gauge
+from lfgraph.refinement import RefineConfig
+from lfgraph.refinement.assess import DRIFTED, OK, assess, group_significance
+from lfgraph.refinement.config import Stage
+from lfgraph.refinement.posterior import Posterior, held_directions
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import sweep  # noqa: E402
+
+TRACK_NOISE_PX = 0.05  # synthetic track noise per coordinate
+KNOCK_FIXED_PX = 0.05  # a knock of several px at infinity, refined from exact tracks: within this of the truth
+NOT_WORSE_PX = 0.05  # "never worse" margin of transfer at infinity in the sweep subset (px)
+# seeds of small scenarios (<= 6 Mpx rendered each) spanning grids 1x2..4x3, lines 1x5/1x8, the three textures,
+# 1-7 frames, knocked and unknocked
+SWEEP_SUBSET = (4, 6, 8, 18, 21, 23, 37, 42, 45, 56)
+
+
+class _Quiet:
+    def __getattr__(self, name):
+        return lambda *a, **k: None
+
+
+def exact_tracks(truth, n=400, seed=3, near=1.5, far=5.0):
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(near, far, n)
+    w, h = truth.image_size_px
+    f = truth.intrinsics[0].fx
+    half = 0.45 * np.array([w, h]) / f
+    pts = np.column_stack([rng.uniform(-1, 1, (n, 2)) * half * depth[:, None], depth])
+    pix = np.stack([project_world(truth.intrinsics[v], truth.view_T_ref(v), pts) for v in range(truth.num_views)])
+    pix += TRACK_NOISE_PX * rng.standard_normal(pix.shape)
+    return pix, np.all(np.isfinite(pix), axis=-1)
+
+
+def test_pan_and_tilt_knocks_are_repaired_not_moved_into_positions():
+    """The issue's first row: a 2x2 rig knocked about random axes; the pan of the reference's row neighbour is not a
+    gauge with the intrinsics held, so it must be refitted (before: held, and a 13 mm position error absorbed it)."""
+    original = make_rig(RigConfig(rows=2, cols=2, reference=3, pitch_m=0.05, image_size_px=(1280, 960),
+                                  focal_px=1400.0), np.random.default_rng(0))
+    truth = shake_rig(original, ShakeConfig(rot_deg=1.0, trans_mm=3.0, axis="any"), np.random.default_rng(1))
+    pix, valid = exact_tracks(truth)
+    result = assess(original, pix, valid, RefineConfig(), _Quiet(), 1.0, 1)
+    before = transfer_error_at_infinity(original, truth)
+    after = transfer_error_at_infinity(result.calib, truth)
+    assert before.max() > 1.0  # a real knock
+    assert after.max() < KNOCK_FIXED_PX
+    _, pos_before = sweep.body_errors(original, truth)
+    _, pos_after = sweep.body_errors(result.calib, truth)
+    assert np.linalg.norm(pos_after, axis=1).max() <= np.linalg.norm(pos_before, axis=1).max()
+    assert [v.verdict for v in result.verdicts if before[v.view] > 1.0] == [DRIFTED] * int((before > 1.0).sum())
+
+
+def test_gauges_follow_the_graph_structure_not_sigma_sizes():
+    rig = make_rig(RigConfig(rows=1, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    held_poses = held_directions(rig, Stage.POSES, frozenset())
+    assert held_poses[0].all()  # the reference view
+    assert not held_poses[1, :6].any() and held_poses[1, 6:].all()  # poses free (pan too), intrinsics held
+    held_all = held_directions(rig, Stage.ALL, frozenset())
+    assert rotation_gauge(rig) == (1, 1)
+    assert held_all[1, 1] and held_all[1, 8]  # with the intrinsics free: the pan/cx gauge of the neighbour
+    assert not held_all[1, [0, 2, 3, 4, 5, 6, 7, 9]].any()
+    # a roll changed by 0.57 deg and known to 2e-6 rad (well below rad/m/px thresholds) is highly significant
+    cov = np.diag([1e-8, 1e-8, (2e-6) ** 2, 1e-8, 1e-8, 1e-8])
+    post = Posterior(np.stack([np.zeros((6, 6)), cov]), np.zeros((2, 4, 4)), np.zeros((2, 6, 4)), False, 0.1,
+                     held_poses)
+    turned = shake_rig(rig, ShakeConfig(rot_deg=0.57), np.random.default_rng(5))
+    z = group_significance(rig, turned, post, 1)
+    assert z["roll"] > 100
+
+
+def test_a_significant_change_within_the_tolerance_is_ok_and_not_applied():
+    original = make_rig(RigConfig(rows=2, cols=2, pitch_m=0.05, image_size_px=(640, 480), focal_px=600.0),
+                        np.random.default_rng(2))
+    truth = shake_rig(original, ShakeConfig(rot_deg=0.02, axis="any"), np.random.default_rng(3))
+    pix, valid = exact_tracks(truth, n=1500)
+    knock = transfer_error_at_infinity(original, truth)
+    assert 0.02 < knock.max() < 0.3  # a real but small knock
+    loose = assess(original, pix, valid, RefineConfig(tolerance_px=1.0), _Quiet(), 1.0, 1)
+    assert all(v.verdict in (OK, "REFERENCE") and not v.applied for v in loose.verdicts)
+    np.testing.assert_array_equal(loose.calib.ref_T_view, original.ref_T_view)
+    assert any("within the tolerance" in v.reason for v in loose.verdicts)
+    strict = assess(original, pix, valid, RefineConfig(tolerance_px=0.0), _Quiet(), 1.0, 1)
+    assert any(v.applied for v in strict.verdicts)
+    assert transfer_error_at_infinity(strict.calib, truth).max() < knock.max()
+    with pytest.raises(ValueError, match="tolerance_px"):
+        RefineConfig(tolerance_px=-1.0)
+
+
+@pytest.mark.parametrize("seed", SWEEP_SUBSET)
+def test_sweep_subset_never_worse_no_false_alarm_no_miss(seed):
+    """Rendered scenes of rigs drawn at random (grid, size, focal, lens, knock axis, frames, noise, texture): the
+    written calibration is never worse than the input (transfer at infinity and scale-aligned positions, beyond
+    1 sigma), an unknocked rig has no DRIFTED view, and no view knocked by >= 3x the tolerance is left OK."""
+    s = sweep.draw(seed)
+    row = sweep.run(s)
+    if row.get("error"):  # nothing written: never worse; but only texture-poor scenes may refuse
+        assert s.texture != "rich", row["error"]
+        return
+    assert row["worse_transfer_views"] == 0, row
+    if s.texture != "repetitive":
+        # on a repetitive pattern the position sigmas are still too small (mismatches agree within a frame, and two
+        # frames give a weak jackknife): a written position may sit a few of its sigmas off (issue 24's notes)
+        assert row["worse_views"] == 0, row
+    assert row["transfer_out_max_px"] <= row["transfer_in_max_px"] + NOT_WORSE_PX
+    if not s.knocked:
+        assert row["drifted_views"] == 0
+    assert row["missed_views"] == 0
