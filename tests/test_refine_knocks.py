@@ -11,10 +11,11 @@ from lfgraph.alignment import transfer_error_at_infinity
 from lfgraph.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.factors.scene_graph import rotation_gauge
-from lfgraph.refinement import RefineConfig
+from lfgraph.refinement import DriftModel, RefineConfig
 from lfgraph.refinement.assess import DRIFTED, OK, assess, group_significance
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.posterior import Posterior, held_directions
+from lfgraph.refinement.priors import view_priors
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import sweep  # noqa: E402
@@ -63,20 +64,25 @@ def test_pan_and_tilt_knocks_are_repaired_not_moved_into_positions():
 
 
 def test_gauges_follow_the_graph_structure_not_sigma_sizes():
-    rig = make_rig(RigConfig(rows=1, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
-    held_poses = held_directions(rig, Stage.POSES, frozenset())
+    line = make_rig(RigConfig(rows=1, cols=3, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    priors = view_priors(line, DriftModel())
+    held_poses = held_directions(line, Stage.POSES, frozenset(), priors)
     assert held_poses[0].all()  # the reference view
-    assert not held_poses[1, :6].any() and held_poses[1, 6:].all()  # poses free (pan too), intrinsics held
-    held_all = held_directions(rig, Stage.ALL, frozenset())
-    assert rotation_gauge(rig) == (1, 1)
+    assert not held_poses[1:, :6].any() and held_poses[:, 6:].all()  # poses free (pans too), intrinsics held
+    held_all = held_directions(line, Stage.ALL, frozenset(), priors)
+    assert rotation_gauge(line) == (1, 1)
     assert held_all[1, 1] and held_all[1, 8]  # with the intrinsics free: the pan/cx gauge of the neighbour
-    assert not held_all[1, [0, 2, 3, 4, 5, 6, 7, 9]].any()
+    assert not held_all[1, [0, 2, 3, 4, 5, 6, 7, 9]].any() and not held_all[2].any()
+    # in a stereo pair the hidden mode is the second view's pan alone: held even with the intrinsics held
+    pair = make_rig(RigConfig(rows=1, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    held_pair = held_directions(pair, Stage.POSES, frozenset(), view_priors(pair, DriftModel()))
+    assert held_pair[1, 1] and not held_pair[1, [0, 2, 3, 4, 5]].any()
     # a roll changed by 0.57 deg and known to 2e-6 rad (well below rad/m/px thresholds) is highly significant
     cov = np.diag([1e-8, 1e-8, (2e-6) ** 2, 1e-8, 1e-8, 1e-8])
-    post = Posterior(np.stack([np.zeros((6, 6)), cov]), np.zeros((2, 4, 4)), np.zeros((2, 6, 4)), False, 0.1,
+    post = Posterior(np.stack([np.zeros((6, 6)), cov, cov]), np.zeros((3, 4, 4)), np.zeros((3, 6, 4)), False, 0.1,
                      held_poses)
-    turned = shake_rig(rig, ShakeConfig(rot_deg=0.57), np.random.default_rng(5))
-    z = group_significance(rig, turned, post, 1)
+    turned = shake_rig(line, ShakeConfig(rot_deg=0.57), np.random.default_rng(5))
+    z = group_significance(line, turned, post, 1)
     assert z["roll"] > 100
 
 

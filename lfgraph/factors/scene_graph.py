@@ -12,9 +12,11 @@ rotations: turning each view by delta * (-c_y, c_x, 0) (body x, y; c its positio
 inverse depth by delta leaves all images unchanged to first order. With the intrinsics held this is *not* a gauge:
 a pan moves every image point by (1 + x^2) delta, a principal-point shift by delta, so the data see the pan across
 the field of view, and holding it turned a knocked view's real pan into a pan/tilt ramp across the grid (issue 24).
-Only where the principal points are free does the pan trade exactly (to first order) against the held cx of gauge
-(2); there the pan (tilt in a single column) of that neighbour view is held at its input (`rotation_gauge`).
-Everything else a stage does not pin is weakly determined, not a gauge: the MAP drift priors hold it.
+Where the principal points are free the pan trades exactly (to first order) against the held cx of gauge (2), and
+in a stereo pair the hidden mode *is* the second view's pan (no third view shares it): there the pan (tilt in a
+single column) of that neighbour view is held at its input (`holds_rotation_gauge`). In a grid of three or more views
+the mode is a ramp shared by all views, which real knocks do not follow: it is weakly determined, not a gauge, and
+the MAP drift priors hold it with everything else a stage does not pin.
 """
 
 from __future__ import annotations
@@ -86,6 +88,11 @@ def rotation_gauge(calib: Calibration) -> tuple[int, int] | None:
     return gauge[0], 1 if gauge[1] == 3 else 0
 
 
+def holds_rotation_gauge(calib: Calibration, intrinsics_free: bool) -> bool:
+    """Whether a stage holds `rotation_gauge` (4): with the principal points free, or in a stereo pair."""
+    return intrinsics_free or calib.num_views == 2
+
+
 def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int],
                 scale_sigma_mm: float | None, map_centre: np.ndarray | None = None,
                 map_sigmas: np.ndarray | None = None, intrinsics_free: bool = False) -> gtsam.NonlinearFactorGraph:
@@ -94,7 +101,7 @@ def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int]
     `drift_pose_noise`) or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
     priors and ``intrinsics_free`` the hidden rotation gauge (`rotation_gauge`) is held at the input."""
     graph = gtsam.NonlinearFactorGraph()
-    rgauge = rotation_gauge(calib) if intrinsics_free else None
+    rgauge = rotation_gauge(calib) if holds_rotation_gauge(calib, intrinsics_free) else None
     for v in range(calib.num_views):
         pose = to_pose3(calib.ref_T_view[v])
         if v == calib.grid.reference:

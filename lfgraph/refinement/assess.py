@@ -41,6 +41,8 @@ MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole fra
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
 COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
 FEW_OBSERVATIONS = 100  # a view with fewer observations than this wants more texture or frames
+MAX_TRACK_SIGMA_PX = 1.0  # px per coordinate: KLT tracks fit a right rig to ~0.05-0.3 px (rendered and real sets);
+# a refit that leaves more has fitted mismatches (sweep: a keyboard texture knocked by 15 px, all 72 tracks a key off)
 
 
 @dataclass(frozen=True)
@@ -343,6 +345,16 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     # significant is not the same as mattering: a change within the tolerance is reported, not applied
     small = {v for v in sig_views if not size_px[v] > config.tolerance_px}
     sig_views -= small
+    # tracks that no rig explains to within MAX_TRACK_SIGMA_PX are mismatches (a repeated pattern shifted by whole
+    # periods looks like a turned camera): nothing they suggest is applied
+    mismatched = not fit.sigma_px <= MAX_TRACK_SIGMA_PX
+    if mismatched:
+        obs.log(f"the refit leaves {fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px): the tracks are "
+                f"mismatched, nothing is changed")
+        unsure_mismatch = set(sig_views) | small
+        sig_views, small = set(), set()
+    else:
+        unsure_mismatch = set()
     candidate = calib
     heldout_before = heldout_after = float("nan")
     accepted = False
@@ -437,6 +449,13 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v])
                       + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by held-out "
                       "tracks" + (f"; {', '.join(kept_groups)} kept (not significant)" if kept_groups else ""))
+        elif v in unsure_mismatch:
+            verdict = UNCERTAIN
+            reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
+                      f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a repeated "
+                      f"pattern?): kept")
+            needs = ("texture that does not repeat (or a scene farther away)", *data_needs(
+                calib, fit.points, fit.valid, v, coverage, frames))
         elif v in small:
             verdict = OK
             reason = (f"a significant ({z[v]:.1f} sigma) change of {change_px:.3f} px, within the tolerance "

@@ -11,7 +11,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
-from lfgraph.factors.scene_graph import principal_point_gauge, rotation_gauge
+from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_gauge, rotation_gauge
 from lfgraph.geometry import rotation_from_rotvec, to_pose3
 from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.config import RefineConfig, Stage
@@ -64,20 +64,21 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
                     priors: ViewPriors | None = None) -> np.ndarray:
     """(V, 10) the directions a stage's graph holds by construction: everything of the reference view and of held
     views; fx, fy, cx, cy unless the stage frees them, and then the principal-point gauge and the rotation gauge
-    (`lfgraph.factors.scene_graph`); the groups ``priors`` holds (`ViewPriors.held`)."""
+    (`lfgraph.factors.scene_graph`: with the principal points free or in a stereo pair, and only under MAP
+    ``priors``, as `pose_priors` holds it); the groups ``priors`` holds (`ViewPriors.held`)."""
     n = calib.num_views
     mask = np.zeros((n, 10), dtype=bool)
     mask[calib.grid.reference] = True
     for v in held_views:
         mask[v] = True
-    if stage in (Stage.INTRINSICS, Stage.ALL):
-        gauge, rgauge = principal_point_gauge(calib), rotation_gauge(calib)
-        if gauge is not None:
-            mask[gauge[0], 6 + gauge[1] - 1] = True  # Cal3DS2 index 3/4 (cx/cy) -> 8/9
-        if rgauge is not None:
-            mask[rgauge[0], rgauge[1]] = True
-    else:
+    intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
+    gauge, rgauge = principal_point_gauge(calib), rotation_gauge(calib)
+    if intr_free and gauge is not None:
+        mask[gauge[0], 6 + gauge[1] - 1] = True  # Cal3DS2 index 3/4 (cx/cy) -> 8/9
+    if not intr_free:
         mask[:, 6:] = True
+    if rgauge is not None and holds_rotation_gauge(calib, intr_free) and priors is not None:
+        mask[rgauge[0], rgauge[1]] = True
     if stage == Stage.INTRINSICS:
         mask[:, :6] = True
     if priors is not None and priors.held is not None:
