@@ -21,6 +21,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import HELD_SIGMA
+from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.posterior import (
     Posterior,
@@ -58,9 +59,11 @@ class ViewVerdict:
         intrinsics_change_px: (4,) fx, fy, cx, cy change the fit proposed.
         transfer_change_px: the proposed change's effect on the transfer at infinity (px, RMS over the image).
         sigma_rotation_deg, sigma_position_mm, sigma_intrinsics_px: posterior 1-sigma (3, 3, 4), widened to the
-            fold refits' scatter when that is larger; intrinsics a stage held report the input's own sigmas.
+            fold refits' scatter when that is larger; intrinsics a stage held report the input's own sigmas, a
+            rotation held as a gauge (the second view's pan in a stereo pair) its drift prior's sigma, groups a
+            DRIFTED view kept report the full fit's.
         predicted_transfer_px: 1-sigma transfer error at infinity (px) that the posterior of the refined parameters
-            predicts (rotation, and intrinsics when freed).
+            predicts (rotation, and intrinsics when freed; the directions the data determine, not a held gauge).
         applied: whether the output carries the change.
         reason: one line of why; needs: what data would decide an UNCERTAIN view.
     """
@@ -417,6 +420,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     written_size = change_size_px(calib, out)
     verdicts = []
     own = input_sigmas(calib)
+    gauge_axis = rotation_gauge(calib)
+    gauge_sigma = view_priors(calib, config.drift).pose_sigmas
     for v in range(n):
         applied = v in sig_views and accepted
         shown = out if applied else fit.calib  # an applied view reports what was written, the others the proposal
@@ -433,6 +438,10 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             if not pv.intrinsics_free and own is not None:  # held: what the input itself knew
                 s_int = own[1][v]
             pred = predicted_transfer_px(calib, pv, v, rays) if v != ref else 0.0
+            if gauge_axis is not None and gauge_axis[0] == v and pv.held_mask(v)[gauge_axis[1]]:
+                # a rotation held as a gauge is not known to the graph's ~0: as well as the drift prior allows
+                # (predicted_transfer_px covers the directions the data determine)
+                s_rot[gauge_axis[1]] = np.degrees(gauge_sigma[v, gauge_axis[1]])
         else:
             s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
         obs_v = int(fit.valid[v].sum())
