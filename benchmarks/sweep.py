@@ -305,7 +305,23 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(HEADER, summary(rows, tol)))
     print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
           f"(d) {GOAL_SIGMA_RATIO[0]}-{GOAL_SIGMA_RATIO[1]}")
-    return 0
+    worst = sorted((r for r in rows if not r.get("error")), key=lambda r: -float(r["transfer_out_max_px"]))[:5]
+    print("worst cases (transfer at infinity after, worst view): " + "; ".join(
+        f"{draw(int(r['seed'])).label()}: {float(r['transfer_in_max_px']):.3f} -> "
+        f"{float(r['transfer_out_max_px']):.3f} px" for r in worst))
+    return 0 if goals_met(rows) else 1
+
+
+def goals_met(rows: list[dict]) -> bool:
+    """(a) no scenario written worse, (b) false alarms and (c) misses within their goals."""
+    done = [r for r in rows if not r.get("error")]
+    worse = sum(int(r["worse_views"]) > 0 for r in done)
+    unknocked = [r for r in done if not (float(r["knock_deg"]) > 0 or float(r["knock_mm"]) > 0)]
+    alarms = sum(int(r["drifted_views"]) > 0 for r in unknocked)
+    big = sum(int(r["big_knocks"]) for r in done)
+    missed = sum(int(r["missed_views"]) for r in done)
+    return (worse == 0 and alarms <= GOAL_FALSE_ALARM * max(len(unknocked), 1)
+            and missed <= GOAL_MISS * max(big, 1))
 
 
 def _run_fields() -> list[str]:

@@ -42,6 +42,10 @@ MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole fra
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
 COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
 FEW_OBSERVATIONS = 100  # a view with fewer observations than this wants more texture or frames
+HELDOUT_CONSISTENCY = 10.0  # held-out RMS of the candidate at most this x the full fit's RMS of its own tracks:
+# legitimate thin fits predicted held-out tracks at up to ~5x (one frame of a 3x3 rig: 0.40 px vs 0.08 px); fits of
+# mismatches at 17-39x (keyboard textures in benchmarks/sweep.py)
+MIN_TRACK_RMS_PX = 0.05  # ... floored (KLT tracks are not better than this)
 MAX_TRACK_SIGMA_PX = 1.0  # px per coordinate: KLT tracks fit a right rig to ~0.05-0.3 px (rendered and real sets);
 # a refit that leaves more has fitted mismatches (sweep: a keyboard texture knocked by 15 px, all 72 tracks a key off)
 
@@ -359,7 +363,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     else:
         unsure_mismatch = set()
     candidate = calib
-    heldout_before = heldout_after = float("nan")
+    heldout_before = heldout_after = fit_rms = float("nan")
+    inconsistent = False
     accepted = False
     cand_post: Posterior | None = None
     unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
@@ -413,9 +418,14 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             heldout_before = finite_rms(np.concatenate(e_before, axis=1))
             heldout_after = finite_rms(np.concatenate(e_after, axis=1))
             accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
+            # the candidate must predict tracks it did not see about as well as it fits its own: far worse means the
+            # folds disagree (mismatches on a repeated pattern, too few tracks), whatever the input scores
+            fit_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
+            inconsistent = bool(heldout_after > HELDOUT_CONSISTENCY * max(fit_rms, MIN_TRACK_RMS_PX))
+            accepted &= not inconsistent
             obs.log(f"held-out tracks ({len(e_before)} folds): RMS {heldout_before:.4f} px with the input, "
-                    f"{heldout_after:.4f} px with the candidate refitted without them: "
-                    + ("accepted" if accepted else "rejected"))
+                    f"{heldout_after:.4f} px with the candidate refitted without them (its own tracks "
+                    f"{fit_rms:.4f} px): " + ("accepted" if accepted else "rejected"))
     out = candidate if accepted else calib
     written_size = change_size_px(calib, out)
     verdicts = []
@@ -477,7 +487,9 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         elif v in sig_views:
             verdict = UNCERTAIN
             reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px that the held-out tracks did not confirm "
-                      f"({heldout_before:.3f} px with the input, {heldout_after:.3f} px with the change): kept")
+                      f"({heldout_before:.3f} px with the input, {heldout_after:.3f} px with the change"
+                      + (f", {heldout_after / max(fit_rms, MIN_TRACK_RMS_PX):.0f}x what it leaves on its own tracks: "
+                         f"the frames disagree" if inconsistent else "") + "): kept")
             needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
         elif post is None or not pred <= config.uncertain_transfer_px:
             verdict = UNCERTAIN
