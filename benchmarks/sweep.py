@@ -4,8 +4,10 @@ the number of frames, sensor noise, texture (rich, repetitive, poor) and scene d
 scenes; refines the *unknocked* calibration with the defaults; and scores what was written against the truth.
 
 Per texture class and overall:
-(a) never worse: scenarios whose written calibration is worse than the input beyond 1 sigma (any view's transfer
-    at infinity, or its scale-aligned position) — goal 0;
+(a) never worse: scenarios whose written calibration is worse than the input beyond 1 sigma — its RMS over views of
+    the transfer at infinity, or of the scale-aligned position error, above the input's by more than the RMS of the
+    reported sigmas — goal 0; beside it the views worse than the input by more than 3 of their own sigmas (a view
+    refitted from an exact input is beyond 1 sigma ~40 % of the time by chance);
 (b) false alarms: unknocked rigs with a view DRIFTED — goal <= 1 %;
 (c) misses: views whose knock moves the transfer at infinity by >= 3x the tolerance left OK — goal <= 1 %;
 (d) honest sigmas: RMS of error / reported sigma over applied views, per group (pan/tilt, roll, position) — goal 0.5-2;
@@ -173,10 +175,18 @@ def score(s: Scenario, inp: Calibration, truth: Calibration, out: Calibration, r
     sig_t = np.array([v.predicted_transfer_px if np.isfinite(v.predicted_transfer_px) else 0.0 for v in verdicts])
     sig_p = np.array([np.linalg.norm(v.sigma_position_mm) if np.all(np.isfinite(v.sigma_position_mm)) else 0.0
                       for v in verdicts])
+    free = np.arange(truth.num_views) != ref
+    pin, pout = np.linalg.norm(pos_in, axis=1), np.linalg.norm(pos_out, axis=1)
+    # calibration level (the criterion): RMS over views of the written vs the input, beyond the RMS 1-sigma
+    worse_cal_t = _rms(te_out[free]) > _rms(te_in[free]) + max(_rms(sig_t[free]), 1e-3)
+    worse_cal_p = _rms(pout[free]) > _rms(pin[free]) + max(_rms(sig_p[free]), 1e-3)
+    # per view, beyond 1 and beyond 3 of its own sigmas (a refitted view whose input was exact is beyond 1 sigma
+    # ~40 % of the time by chance: the 3-sigma count is the one that says "made worse")
     worse_t = te_out > te_in + np.maximum(sig_t, 1e-3)
-    worse_p = np.linalg.norm(pos_out, axis=1) > np.linalg.norm(pos_in, axis=1) + np.maximum(sig_p, 1e-3)
+    worse_p = pout > pin + np.maximum(sig_p, 1e-3)
+    worse3 = (te_out > te_in + 3 * np.maximum(sig_t, 1e-3)) | (pout > pin + 3 * np.maximum(sig_p, 1e-3))
     worse = (worse_t | worse_p)
-    worse[ref] = False
+    worse[ref] = worse3[ref] = False
     drifted = np.array([v.verdict == DRIFTED for v in verdicts])
     ok = np.array([v.verdict == OK for v in verdicts])
     knock_px = te_in  # the input is the unknocked truth: its transfer error is the knock's effect
@@ -194,12 +204,18 @@ def score(s: Scenario, inp: Calibration, truth: Calibration, out: Calibration, r
             "transfer_out_max_px": float(np.max(te_out)), "transfer_in_max_px": float(np.max(te_in)),
             "pos_in_max_mm": float(np.max(np.linalg.norm(pos_in, axis=1))),
             "pos_out_max_mm": float(np.max(np.linalg.norm(pos_out, axis=1))),
-            "worse_views": int(worse.sum()), "worse_transfer_views": int(np.delete(worse_t, ref).sum()),
+            "worse_calibration": int(worse_cal_t or worse_cal_p), "worse_calibration_transfer": int(worse_cal_t),
+            "worse_views": int(worse.sum()), "worse_views_3sigma": int(worse3.sum()),
+            "worse_transfer_views": int(np.delete(worse_t, ref).sum()),
             "drifted_views": int(drifted.sum()), "big_knocks": int(big.sum()),
             "missed_views": int((big & ok).sum()), "uncertain_big": int((big & ~ok & ~drifted).sum()),
             "applied_views": int(applied.sum()), "accepted": bool(report.accepted),
             **{f"z_{k}": ";".join(f"{x:.3g}" for x in z[k]) for k in z},
             "seconds": seconds, "seconds_per_frame": seconds / max(report.frames_used, 1)}
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else 0.0
 
 
 def run(s: Scenario, config: RefineConfig | None = None) -> dict:
@@ -233,7 +249,10 @@ def summary(rows: list[dict], tolerance_px: float) -> list[list[str]]:
         if not rs:
             continue
         errors = len(rs) - len(done)
-        never_worse = sum(int(r["worse_views"]) > 0 for r in done)
+        never_worse = sum(int(r["worse_calibration"]) > 0 for r in done)
+        worse_t = sum(int(r["worse_calibration_transfer"]) > 0 for r in done)
+        views3 = sum(int(r["worse_views_3sigma"]) for r in done)
+        views_all = sum(int(r["views"]) - 1 for r in done)
         unknocked = [r for r in done if not (float(r["knock_deg"]) > 0 or float(r["knock_mm"]) > 0)]
         false_alarm = sum(int(r["drifted_views"]) > 0 for r in unknocked)
         big = sum(int(r["big_knocks"]) for r in done)
@@ -246,15 +265,16 @@ def summary(rows: list[dict], tolerance_px: float) -> list[list[str]]:
 
         t_out = np.array([float(r["transfer_out_max_px"]) for r in done]) if done else np.zeros(1)
         spf = np.array([float(r["seconds_per_frame"]) for r in done]) if done else np.zeros(1)
-        out.append([cls, str(len(rs)), str(errors), str(never_worse),
+        out.append([cls, str(len(rs)), str(errors), f"{never_worse} ({worse_t} in transfer)", f"{views3}/{views_all}",
                     f"{false_alarm}/{len(unknocked)}", f"{missed}/{big} ({unc} unc.)",
                     zrms("z_pan_tilt"), zrms("z_roll"), zrms("z_position"),
                     f"{np.median(t_out):.3f} / {np.max(t_out):.3f}", f"{np.median(spf):.2f} / {np.max(spf):.2f}"])
     return out
 
 
-HEADER = ["texture", "scenarios", "errors", "(a) worse", "(b) false alarms", "(c) misses", "(d) z pan/tilt",
-          "(d) z roll", "(d) z position", "(e) transfer after px (med/worst view)", "s/frame (med/max)"]
+HEADER = ["texture", "scenarios", "refused", "(a) calibrations worse", "views worse > 3 sigma", "(b) false alarms",
+          "(c) misses", "(d) z pan/tilt", "(d) z roll", "(d) z position", "(e) transfer after px (med/worst view)",
+          "s/frame (med/max)"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -286,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
             if new:
                 w.writeheader()
             w.writerow(row)
-        flag = row.get("error") or (f"worse {row['worse_views']} drifted {row['drifted_views']} missed "
+        flag = row.get("error") or (f"worse {row['worse_calibration']} (views {row['worse_views']}, > 3 sigma "
+                                    f"{row['worse_views_3sigma']}) drifted {row['drifted_views']} missed "
                                     f"{row['missed_views']}/{row['big_knocks']} transfer "
                                     f"{row['transfer_in_max_px']:.3f} -> {row['transfer_out_max_px']:.3f} px, "
                                     f"{row['seconds']:.1f} s")
@@ -315,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
 def goals_met(rows: list[dict]) -> bool:
     """(a) no scenario written worse, (b) false alarms and (c) misses within their goals."""
     done = [r for r in rows if not r.get("error")]
-    worse = sum(int(r["worse_views"]) > 0 for r in done)
+    worse = sum(int(r["worse_calibration"]) > 0 for r in done)
     unknocked = [r for r in done if not (float(r["knock_deg"]) > 0 or float(r["knock_mm"]) > 0)]
     alarms = sum(int(r["drifted_views"]) > 0 for r in unknocked)
     big = sum(int(r["big_knocks"]) for r in done)
@@ -327,7 +348,8 @@ def goals_met(rows: list[dict]) -> bool:
 def _run_fields() -> list[str]:
     base = list(asdict(draw(0)))
     return [*base, "views", "error", "knock_px_max", "transfer_in_px", "transfer_out_px", "transfer_out_max_px",
-            "transfer_in_max_px", "pos_in_max_mm", "pos_out_max_mm", "worse_views", "worse_transfer_views",
+            "transfer_in_max_px", "pos_in_max_mm", "pos_out_max_mm", "worse_calibration", "worse_calibration_transfer",
+            "worse_views", "worse_views_3sigma", "worse_transfer_views",
             "drifted_views", "big_knocks",
             "missed_views", "uncertain_big", "applied_views", "accepted", "z_pan_tilt", "z_roll", "z_position",
             "seconds", "seconds_per_frame"]
