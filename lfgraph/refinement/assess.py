@@ -22,6 +22,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import HELD_SIGMA
 from lfgraph.factors.scene_graph import rotation_gauge
+from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.posterior import (
     Posterior,
@@ -343,7 +344,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
     z = {v: max(zg[v].values(), default=0.0) for v in free}
     changed = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
-    size_px = change_size_px(calib, fit.calib)
+    significant = dict(changed)  # the groups whose change is significant: only they count towards the tolerance
+    size_px = change_size_px(calib, fit.calib, significant)
     sig_views = {v for v in free if changed[v]}
     # a drifted view is refitted whole (its MAP priors hold what the data leave weak): holding its groups that were
     # not significant at the input let the others absorb their real change (sweep: pan/tilt error/sigma 5.8 -> 3.1,
@@ -381,7 +383,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         cand_post = apply_factors(cp, factors) if cp is not None else None
         worse = {v: predicted_transfer_px(calib, cand_post, v, rays) if cand_post is not None else float("inf")
                  for v in sig_views}
-        cand_size = change_size_px(calib, cand_fit.calib)
+        cand_size = change_size_px(calib, cand_fit.calib, significant)
         # what would be written must itself matter (holding a group can leave a change within the tolerance) ...
         within = {v for v in sig_views if not cand_size[v] > config.tolerance_px}
         # ... and be determined: its change at infinity must itself stand out (significance_sigma times) against what
@@ -427,7 +429,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
                     f"{heldout_after:.4f} px with the candidate refitted without them (its own tracks "
                     f"{fit_rms:.4f} px): " + ("accepted" if accepted else "rejected"))
     out = candidate if accepted else calib
-    written_size = change_size_px(calib, out)
+    written_size = change_size_px(calib, out, significant)
     verdicts = []
     own = input_sigmas(calib)
     gauge_axis = rotation_gauge(calib)
@@ -468,6 +470,12 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v])
                       + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by held-out "
                       "tracks" + (f"; {', '.join(kept_groups)} kept (not significant)" if kept_groups else ""))
+        elif inconsistent and v not in sig_views:
+            verdict = UNCERTAIN
+            reason = (f"a {z.get(v, 0.0):.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits "
+                      f"predict held-out tracks {heldout_after / max(fit_rms, MIN_TRACK_RMS_PX):.0f}x worse than "
+                      f"they fit their own (mismatches, or too few tracks): kept")
+            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
         elif v in unsure_mismatch:
             verdict = UNCERTAIN
             reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
@@ -505,12 +513,29 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
 
 
-def change_size_px(before: Calibration, after: Calibration) -> np.ndarray:
+def change_size_px(before: Calibration, after: Calibration,
+                   groups: dict[int, tuple[str, ...]] | None = None) -> np.ndarray:
     """(V,) how much a change moves each view's image: its transfer at infinity (RMS over the reference image, px),
-    the figure disparity and refocusing see and that ``tolerance_px`` is stated in."""
+    the figure disparity and refocusing see and that ``tolerance_px`` is stated in. With ``groups`` (view -> the
+    groups whose change was significant) only those groups' part of the change counts: a significant position change
+    that carries an insignificant turn is not a turn that matters."""
     from lfgraph.alignment import transfer_error_at_infinity
 
-    return transfer_error_at_infinity(after, before)
+    if groups is None:
+        return transfer_error_at_infinity(after, before)
+    poses = np.array(before.ref_T_view)
+    intr = list(before.intrinsics)
+    for v, gs in groups.items():
+        d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
+        mask = np.zeros(3)
+        for g in gs:
+            for i in GROUPS[g]:
+                if i < 3:
+                    mask[i] = 1.0
+        poses[v] = before.ref_T_view[v] @ make_T(rotation_from_rotvec(d[:3] * mask), np.zeros(3))
+        if "intrinsics" in gs:
+            intr[v] = after.intrinsics[v]
+    return transfer_error_at_infinity(before.replace(ref_T_view=poses, intrinsics=tuple(intr)), before)
 
 
 def merge_held(cand: Posterior, full: Posterior | None, v: int) -> Posterior:
