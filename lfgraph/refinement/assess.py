@@ -3,14 +3,17 @@ view's change per parameter group, and a per-view verdict (OK, DRIFTED, UNCERTAI
 
 The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`:
 1. the MAP fit over all tracks (`lfgraph.refinement.fit.fit_auto`) and its marginals (`posterior`);
-2. refits on folds (whole frames when there are several, else random thirds of the tracks): their held-out RMS
-   against the input's, and their scatter, which widens the marginals where those are too small (`inflate`);
+2. refits on folds (whole frames when there are several, else random thirds of the tracks): their scatter widens
+   the marginals where those are too small (`inflate`);
 3. per view and group (pan/tilt, roll, position, intrinsics when freed) a chi-square test of the change against the
-   widened posterior plus the input's own sigma (`group_significance`): groups below ``significance_sigma`` are held
-   at the input, views with none left are held whole;
-4. a refit with those holds; a view whose applied change would still leave more than ``uncertain_transfer_px`` at
-   infinity (1 sigma, from that refit's posterior) is held too, and the refit repeated;
-5. the changes are applied only if the held-out RMS did not get worse (``min_improvement``).
+   widened posterior plus the input's own sigma (`group_significance`), over the directions the graph does not hold
+   by its structure; the significant groups' part of the change must move the transfer at infinity by more than
+   ``tolerance_px`` (`change_size_px`), and by more than ``significance_sigma`` times what the fit leaves
+   undetermined there;
+4. the views that pass are written whole from the full fit (`combine`), if each fold's refit, applied to the same
+   views, predicts its left-out tracks better than the input (``min_improvement``) and not far worse than the fit
+   predicts its own (``HELDOUT_CONSISTENCY``); a fit that leaves more than ``MAX_TRACK_SIGMA_PX`` has fitted
+   mismatches and changes nothing.
 """
 
 from __future__ import annotations
@@ -20,7 +23,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.factors.noise import HELD_SIGMA
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.refinement.config import RefineConfig
@@ -32,13 +34,11 @@ from lfgraph.refinement.posterior import (
     posterior,
     predicted_transfer_px,
 )
-from lfgraph.refinement.priors import ViewPriors, input_sigmas, view_priors
+from lfgraph.refinement.priors import input_sigmas, view_priors
 from lfgraph.refinement.triangulate import finite_rms, reprojection_errors, triangulate_dlt
 
 OK, DRIFTED, UNCERTAIN, REFERENCE = "OK", "DRIFTED", "UNCERTAIN", "REFERENCE"
 FOLD_SEED = 14
-MAX_HOLD_ROUNDS = 3  # refits that hold views whose applied change would stay too uncertain
-NO_PULL_SIGMA = 1e3  # rad, m, px: a "prior" that does not pull (the free fit with some groups held)
 MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
 COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
@@ -104,6 +104,7 @@ class ViewVerdict:
 
 
 GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics": (6, 7, 8, 9)}
+ROTATION = (0, 1, 2)  # also tested jointly: a tilt and a roll each just short of significance can be clear together
 
 
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
@@ -117,7 +118,7 @@ def group_significance(before: Calibration, after: Calibration, post: Posterior,
                                                           post.cross[v].T)
     free = ~post.held_mask(v)
     out = {}
-    for name, idx in GROUPS.items():
+    for name, idx in (*GROUPS.items(), ("rotation", ROTATION)):
         idx_a = np.array([i for i in idx if free[i]], dtype=int)
         if idx_a.size == 0:
             continue
@@ -262,28 +263,6 @@ def apply_factors(post: Posterior, factors: np.ndarray) -> Posterior:
     return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px, post.held)
 
 
-def held_group_priors(calib: Calibration, config: RefineConfig, views: set[int],
-                      changed: dict[int, tuple[str, ...]]) -> ViewPriors:
-    """Priors for the candidate refit: in ``views`` the groups whose change was not significant are held at the
-    input; the others keep the drift priors (or, without priors, no pull)."""
-    if config.priors:
-        base = view_priors(calib, config.drift)
-        pose_s, intr_s = base.pose_sigmas.copy(), base.intrinsics_sigmas.copy()
-    else:
-        pose_s = np.full((calib.num_views, 6), NO_PULL_SIGMA)
-        intr_s = np.full((calib.num_views, 4), NO_PULL_SIGMA)
-    held = np.zeros((calib.num_views, 10), dtype=bool)
-    for v in views:
-        for g in set(GROUPS) - set(changed[v]):
-            for i in GROUPS[g]:
-                held[v, i] = True
-                if i < 6:
-                    pose_s[v, i] = HELD_SIGMA
-                else:
-                    intr_s[v, i - 6] = HELD_SIGMA
-    return ViewPriors(calib, pose_s, intr_s, held)
-
-
 def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
     """The covariance of (refined - input): the posterior plus the input's own (calibrate's marginals, when
     stored). A change within what the input calibration itself could not pin down is no drift."""
@@ -321,7 +300,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         else:
             fold = fold_split(px.shape[1], config.folds)
     fold_calibs: list[Calibration] = []
-    e_before, e_after = [], []
+    fold_tests: list[np.ndarray] = []  # the tracks each fold refit did not see
     if fold is not None:
         for k in range(int(fold.max()) + 1 if fold.size else 0):
             train, test = fold != k, fold == k
@@ -332,6 +311,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             except (RuntimeError, ValueError):
                 continue
             fold_calibs.append(fk.calib)
+            fold_tests.append(test)
     factors = np.ones((n, 4))
     if post is not None:
         post, factors = inflate(post, calib, fold_calibs)
@@ -343,15 +323,11 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     free = [v for v in range(n) if v != ref and v not in fit.held]
     zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
     z = {v: max(zg[v].values(), default=0.0) for v in free}
-    changed = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
-    significant = dict(changed)  # the groups whose change is significant: only they count towards the tolerance
+    significant = {v: tuple(g for g, x in zg[v].items() if x > config.significance_sigma) for v in free}
+    # significant is not the same as mattering: only the significant groups' part of a change counts towards the
+    # tolerance, and a change within it is reported, not applied
     size_px = change_size_px(calib, fit.calib, significant)
-    sig_views = {v for v in free if changed[v]}
-    # a drifted view is refitted whole (its MAP priors hold what the data leave weak): holding its groups that were
-    # not significant at the input let the others absorb their real change (sweep: pan/tilt error/sigma 5.8 -> 3.1,
-    # misses 1 -> 0 of 267)
-    changed = {v: tuple(zg[v]) if v in sig_views else () for v in free}
-    # significant is not the same as mattering: a change within the tolerance is reported, not applied
+    sig_views = {v for v in free if significant[v]}
     small = {v for v in sig_views if not size_px[v] > config.tolerance_px}
     sig_views -= small
     # tracks that no rig explains to within MAX_TRACK_SIGMA_PX are mismatches (a repeated pattern shifted by whole
@@ -364,58 +340,34 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         sig_views, small = set(), set()
     else:
         unsure_mismatch = set()
+    # a drifted view is written whole from the full MAP fit, in which every view was free: holding its groups that
+    # were not significant let the others absorb their real change (sweep: pan/tilt error/sigma 5.8 -> 3.1, misses
+    # 1 -> 0 of 267), and a refit holding the views that did not drift let a weakly seen view's insignificant but
+    # real error pull every other view (sweep #166: all positions 1.2 mm off, 50 sigma). Its change at infinity must
+    # stand out (significance_sigma times) against what the fit leaves undetermined there in the same groups: a
+    # change significant in a position that is small against that uncertainty cannot be trusted to improve the view
+    # (the groups that did not change significantly are about as uncertain in the input as in the fit).
+    unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
+    for v in sorted(sig_views):
+        x = predicted_transfer_px(calib, restricted(post, v, significant[v]), v, rays) if post is not None \
+            else float("inf")
+        if not x <= size_px[v] / config.significance_sigma:
+            unsure[v] = x
+    sig_views -= set(unsure)
     candidate = calib
     heldout_before = heldout_after = fit_rms = float("nan")
     inconsistent = False
     accepted = False
-    cand_post: Posterior | None = None
-    unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
-    cand_fit = fit
-    hold: frozenset[int] = frozenset()
-    partial: ViewPriors | None = None
-    for _ in range(MAX_HOLD_ROUNDS):
-        if not sig_views:
-            break
-        hold = frozenset(set(range(n)) - sig_views - {ref})
-        partial = held_group_priors(calib, config, sig_views, changed)
-        cand_fit = fit_auto(calib, pixels, valid, config, _Silent(), hold, fit.sigma_px, partial)
-        cp = posterior(calib, cand_fit, config, partial)
-        cand_post = apply_factors(cp, factors) if cp is not None else None
-        worse = {v: predicted_transfer_px(calib, cand_post, v, rays) if cand_post is not None else float("inf")
-                 for v in sig_views}
-        cand_size = change_size_px(calib, cand_fit.calib, significant)
-        # what would be written must itself matter (holding a group can leave a change within the tolerance) ...
-        within = {v for v in sig_views if not cand_size[v] > config.tolerance_px}
-        # ... and be determined: its change at infinity must itself stand out (significance_sigma times) against what
-        # the refit leaves undetermined there — a change significant in its parameters (a position, say) that is
-        # small against that uncertainty at infinity cannot be trusted to improve the view (sweep: 1 frame, 34 tracks)
-        limit = cand_size / config.significance_sigma
-        drop = {v for v, x in worse.items() if v not in within and not x <= limit[v]}
-        if not drop and not within:
-            break
-        unsure.update({v: worse[v] for v in drop})
-        small |= within
-        size_px[list(within)] = cand_size[list(within)]
-        sig_views -= drop | within
-    else:
-        sig_views = set()
+    e_before: list[np.ndarray] = []
+    e_after: list[np.ndarray] = []
     if sig_views:
-        candidate = combine(calib, cand_fit.calib, sig_views)
+        candidate = combine(calib, fit.calib, sig_views)
         accepted = True
-        if fold is not None:
-            # the held-out test scores what would be written: the candidate's structure refitted without each fold
-            e_before, e_after = [], []
-            for k in range(int(fold.max()) + 1 if fold.size else 0):
-                train, test = fold != k, fold == k
-                if not test.any() or not train.any():
-                    continue
-                try:
-                    fk = fit_auto(calib, px[:, train], ok[:, train], config, _Silent(), hold | fit.held, fit.sigma_px,
-                                  partial)
-                except (RuntimeError, ValueError):
-                    continue
-                e_before.append(heldoutfinite_rms(calib, px[:, test], ok[:, test]))
-                e_after.append(heldoutfinite_rms(combine(calib, fk.calib, sig_views), px[:, test], ok[:, test]))
+        # the held-out test scores what is written: each fold's refit, applied to the same views, on its left-out
+        # tracks
+        for fc, test in zip(fold_calibs, fold_tests, strict=True):
+            e_before.append(heldoutfinite_rms(calib, px[:, test], ok[:, test]))
+            e_after.append(heldoutfinite_rms(combine(calib, fc, sig_views), px[:, test], ok[:, test]))
         if e_before:
             heldout_before = finite_rms(np.concatenate(e_before, axis=1))
             heldout_after = finite_rms(np.concatenate(e_after, axis=1))
@@ -440,9 +392,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         d = pose_change(calib.ref_T_view[v], shown.ref_T_view[v])
         a, b = shown.intrinsics[v], calib.intrinsics[v]
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
-        # an applied view reports the posterior of what was written: its refitted groups from the candidate's graph,
-        # the groups it kept at the input from the full fit plus the input's own uncertainty
-        pv = merge_held(cand_post, test_post, v) if (applied and cand_post is not None) else post
+        pv = post  # an applied view was written from the full fit: its posterior
         if pv is not None:
             s_rot = np.degrees(np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[:3], 0.0)))
             s_pos = 1e3 * np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[3:], 0.0))
@@ -466,10 +416,9 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
         elif applied:
             verdict = DRIFTED
-            kept_groups = [g for g in zg[v] if g not in changed[v]]
-            reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in changed[v])
+            reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in significant[v])
                       + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by held-out "
-                      "tracks" + (f"; {', '.join(kept_groups)} kept (not significant)" if kept_groups else ""))
+                      "tracks; the view is written from the full fit")
         elif inconsistent and v not in sig_views:
             verdict = UNCERTAIN
             reason = (f"a {z.get(v, 0.0):.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits "
@@ -513,6 +462,20 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
 
 
+def restricted(post: Posterior, v: int, groups: tuple[str, ...]) -> Posterior:
+    """``post`` with view v's covariance kept only in the rotation and intrinsics directions of ``groups``."""
+    keep = np.zeros(10, dtype=bool)
+    if "pan_tilt" in groups or "roll" in groups:  # the joint rotation test only counts when neither group does
+        groups = tuple(g for g in groups if g != "rotation")
+    for g in groups:
+        keep[list(ROTATION if g == "rotation" else GROUPS[g])] = True
+    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
+    pose_cov[v] = pose_cov[v] * np.outer(keep[:6], keep[:6])
+    intr_cov[v] = intr_cov[v] * np.outer(keep[6:], keep[6:])
+    cross[v] = cross[v] * np.outer(keep[:6], keep[6:])
+    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px, post.held)
+
+
 def change_size_px(before: Calibration, after: Calibration,
                    groups: dict[int, tuple[str, ...]] | None = None) -> np.ndarray:
     """(V,) how much a change moves each view's image: its transfer at infinity (RMS over the reference image, px),
@@ -529,31 +492,10 @@ def change_size_px(before: Calibration, after: Calibration,
         d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
         mask = np.zeros(3)
         for g in gs:
-            for i in GROUPS[g]:
+            for i in (ROTATION if g == "rotation" else GROUPS[g]):
                 if i < 3:
                     mask[i] = 1.0
         poses[v] = before.ref_T_view[v] @ make_T(rotation_from_rotvec(d[:3] * mask), np.zeros(3))
         if "intrinsics" in gs:
             intr[v] = after.intrinsics[v]
     return transfer_error_at_infinity(before.replace(ref_T_view=poses, intrinsics=tuple(intr)), before)
-
-
-def merge_held(cand: Posterior, full: Posterior | None, v: int) -> Posterior:
-    """``cand`` with the directions it held by structure in view v (groups kept at the input) given ``full``'s
-    variances: the kept values are the input's, known as well as the full fit and the input knew them."""
-    if full is None:
-        return cand
-    held = cand.held_mask(v) & ~full.held_mask(v)
-    if not held.any():
-        return cand
-    pose_cov, intr_cov, cross = cand.pose_cov.copy(), cand.intr_cov.copy(), cand.cross.copy()
-    full_var = np.concatenate([np.diag(full.pose_cov[v]), np.diag(full.intr_cov[v])])
-    for i in np.nonzero(held)[0]:
-        if i < 6:
-            pose_cov[v][i, :], pose_cov[v][:, i], cross[v][i, :] = 0.0, 0.0, 0.0
-            pose_cov[v][i, i] = full_var[i]
-        else:
-            intr_cov[v][i - 6, :], intr_cov[v][:, i - 6], cross[v][:, i - 6] = 0.0, 0.0, 0.0
-            intr_cov[v][i - 6, i - 6] = full_var[i]
-    return Posterior(pose_cov, intr_cov, cross, cand.intrinsics_free or full.intrinsics_free, cand.sigma_px,
-                     cand.held)

@@ -142,9 +142,9 @@ class RefineConfig:
             exceeds the chi-square quantile equivalent to this many sigmas (one-sided normal); otherwise the view
             keeps its input parameters.
         uncertain_transfer_px: a view whose change is not significant is OK when its posterior predicts at most this
-            transfer error at infinity (1-sigma, px), else UNCERTAIN (the data could hide a drift that large); a
-            significant change is applied only if what it leaves undetermined is at most this, or at most its own
-            size / ``significance_sigma``.
+            transfer error at infinity (1-sigma, px), else UNCERTAIN (the data could hide a drift that large). (A
+            significant change is applied only if what the fit leaves undetermined at infinity is at most its size /
+            ``significance_sigma``.)
         tolerance_px: a practical tolerance (px of transfer at infinity, RMS over the reference image; default
             0.1): a view is DRIFTED, and its change applied, only when the change is significant *and* moves the
             view's transfer at infinity by more than this. A significant change within it is reported as OK with its

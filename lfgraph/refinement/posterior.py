@@ -41,7 +41,7 @@ class Posterior:
     ``cross``: (V, 6, 4) pose-intrinsics cross covariance (zeros when intrinsics were held);
     ``intrinsics_free``: whether the graph freed fx, fy, cx, cy;
     ``held``: (V, 10) which of rotation x, y, z, position x, y, z, fx, fy, cx, cy the graph held by its structure
-    (the reference view, held views and groups, gauges, intrinsics a stage does not free: `held_directions`) —
+    (the reference view, held views, gauges, intrinsics a stage does not free: `held_directions`) —
     never inferred from the size of a sigma, which mixes rad, m and px and shrinks as data improve."""
 
     pose_cov: np.ndarray
@@ -65,7 +65,7 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
     """(V, 10) the directions a stage's graph holds by construction: everything of the reference view and of held
     views; fx, fy, cx, cy unless the stage frees them, and then the principal-point gauge and the rotation gauge
     (`lfgraph.factors.scene_graph`: with the principal points free or in a stereo pair, and only under MAP
-    ``priors``, as `pose_priors` holds it); the groups ``priors`` holds (`ViewPriors.held`)."""
+    ``priors``, as `pose_priors` holds it)."""
     n = calib.num_views
     mask = np.zeros((n, 10), dtype=bool)
     mask[calib.grid.reference] = True
@@ -81,8 +81,6 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
         mask[rgauge[0], rgauge[1]] = True
     if stage == Stage.INTRINSICS:
         mask[:, :6] = True
-    if priors is not None and priors.held is not None:
-        mask |= priors.held
     return mask
 
 

@@ -20,14 +20,11 @@ class ViewPriors:
         pose_sigmas: (V, 6) in GTSAM's Pose3 tangent order, body frame: rotation x, y (pan/tilt), z (roll about
             the optical axis) in radians, then position x, y, z in metres.
         intrinsics_sigmas: (V, 4) fx, fy, cx, cy in pixels.
-        held: (V, 10) the directions (pose tangent order, then fx, fy, cx, cy) these priors hold at the centre
-            (their sigma is ``HELD_SIGMA``), or None: none. The posterior's tests skip them by this mask.
     """
 
     centre: Calibration
     pose_sigmas: np.ndarray
     intrinsics_sigmas: np.ndarray
-    held: np.ndarray | None = None
 
 
 def input_sigmas(calib: Calibration) -> tuple[np.ndarray, np.ndarray] | None:
