@@ -108,7 +108,8 @@ def test_a_significant_change_within_the_tolerance_is_ok_and_not_applied():
 def test_sweep_subset_never_worse_no_false_alarm_no_miss(seed):
     """Rendered scenes of rigs drawn at random (grid, size, focal, lens, knock axis, frames, noise, texture): the
     written calibration is never worse than the input (transfer at infinity and scale-aligned positions, beyond
-    1 sigma; no view beyond 3 of its sigmas), an unknocked rig has no DRIFTED view, and no view knocked by >= 3x the tolerance is left OK."""
+    1 sigma; no view beyond 3 of its sigmas), an unknocked rig has no DRIFTED view, and no view knocked by >= 3x
+    the tolerance is left OK."""
     s = sweep.draw(seed)
     row = sweep.run(s)
     if row.get("error"):  # nothing written: never worse; but only texture-poor scenes may refuse
