@@ -60,6 +60,31 @@ def test_refine_refuses_its_inputs_and_overwrites_a_calibration_only_when_asked(
     assert "--overwrite" in run(["refine", calib, boards, "-o", calib, "--quiet"], capsys)[1]
 
 
+def test_save_and_plots_follow_the_output_rule(boards, tmp_path, capsys):
+    """Issue 27: `--save` and `--plots` were not checked like `-o`: a recording replaced the input calibration or an
+    image, `--plots` into the capture made it ambiguous, and a study's figure replaced its CSV."""
+    calib = boards / "truth.json"
+    image = next(boards.glob("*/r00_c00.png"))
+    listing = sorted(p.name for p in boards.rglob("*"))
+    before = calib.read_bytes(), image.read_bytes()
+    for target in (calib, image):
+        code, text = run(["refine", calib, boards, "-o", tmp_path / "r.json", "--save", target, "--quiet"], capsys)
+        assert code == EXIT_BAD_INPUT and "--save" in text and str(target) in text
+    code, text = run(["refine", calib, boards, "-o", tmp_path / "r.json", "--save", tmp_path / "r.json", "--quiet"],
+                     capsys)
+    assert code == EXIT_USAGE and "--save" in text and "also the command's output" in text
+    code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path / "c.json", "--plots", boards], capsys)
+    assert code == EXIT_BAD_INPUT and "--plots" in text and "inside the input" in text
+    code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path / "c.json", "--plots", boards / "figs"], capsys)
+    assert code == EXIT_BAD_INPUT and "inside the input" in text
+    assert (calib.read_bytes(), image.read_bytes()) == before
+    assert sorted(p.name for p in boards.rglob("*")) == listing  # nothing was written into the capture
+    assert not (tmp_path / "r.json").exists() and not (tmp_path / "c.json").exists()
+    code, text = run(["study", "shake", "--scene", "small-2x2", "--trials", "1", "-o", tmp_path / "s.png",
+                      "--quiet"], capsys)
+    assert code == EXIT_USAGE and ".csv" in text and not (tmp_path / "s.png").exists()
+
+
 def test_outputs_that_cannot_be_written_fail_before_any_work(boards, tmp_path, capsys):
     start = time.perf_counter()
     code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path], capsys)  # a folder

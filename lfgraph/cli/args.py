@@ -89,6 +89,38 @@ def check_rerun(args: argparse.Namespace) -> bool:
     return True
 
 
+def check_side_outputs(args: argparse.Namespace, inputs: Iterable[Path] = (), outputs: Iterable[Path] = ()) -> None:
+    """``--save`` (a rerun recording) and ``--plots`` (a figures folder) follow ``-o``'s rule, before any work: never
+    one of the command's inputs (a calibration, an image), never another of its outputs, and ``--plots`` never a
+    folder inside the input capture (figures there would make it an ambiguous capture).
+
+    Raises:
+        ValueError: the path is an input or lies inside the input folder (exit code 1).
+        UsageError: the path is another output of the command, or its folder is missing (exit code 2).
+    """
+    inputs = [Path(p) for p in inputs]
+    outputs = [Path(p) for p in outputs if p is not None]
+    save = getattr(args, "save", None)
+    if save:
+        check_output_file(Path(save), inputs=inputs, flag="--save")
+        for out in outputs:
+            if _same_file(Path(save), out):
+                raise UsageError(f"--save {save}: is also the command's output {out}; give the recording its own path")
+    plots = getattr(args, "plots", None)
+    if plots is not None:
+        plots = Path(plots)
+        if plots.exists() and not plots.is_dir():
+            raise UsageError(f"--plots {plots} is a file; give a folder for the report figures")
+        root = getattr(args, "input", None)
+        if root is not None and Path(root).is_dir() and (plots.resolve() == Path(root).resolve()
+                                                         or Path(root).resolve() in plots.resolve().parents):
+            raise ValueError(f"--plots {plots}: lies inside the input {root}; figures there would become part of "
+                             f"the capture. Give a folder outside it")
+        for p in (*inputs, *outputs):
+            if _same_file(plots, p):
+                raise ValueError(f"--plots {plots}: is {p}, which this command reads or writes")
+
+
 def _same_file(a: Path, b: Path) -> bool:
     """Whether two paths name one file (resolved, or hard links)."""
     if a.resolve() == b.resolve():

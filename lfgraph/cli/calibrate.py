@@ -15,6 +15,7 @@ from lfgraph.cli.args import (
     add_rerun_args,
     check_output_file,
     check_rerun,
+    check_side_outputs,
     cli_observer,
     grid_size,
     image_size,
@@ -96,8 +97,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     board, grid, config = _board_and_config(args)
     check_output_file(args.output)
-    if args.plots is not None and args.plots.exists() and not args.plots.is_dir():
-        raise UsageError(f"--plots {args.plots} is a file; give a folder for the report figures")
+    check_side_outputs(args, outputs=[args.output])
     logging = check_rerun(args)
     start = time.perf_counter()
     capture = None
@@ -106,6 +106,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
         sources = [args.input, *Path(args.input).glob("*"), *([args.object_points] if args.object_points else [])]
         check_output_file(args.output, inputs=sources)
+        check_side_outputs(args, inputs=sources, outputs=[args.output])
         obs = load_detections(args.input, args.detections, grid, args.image_size, args.object_points)
         print(f"{args.input}: {args.detections} detections, {obs.num_frames} frames x {grid.num_views} views of "
               f"{obs.image_size_px[0]}x{obs.image_size_px[1]} px; target {obs.board}")
@@ -117,6 +118,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
         capture = open_capture(args.input, grid, args.layout or "auto", missing=args.missing_view or "error")
         check_output_file(args.output, inputs=capture.all_paths())
+        check_side_outputs(args, inputs=capture.all_paths(), outputs=[args.output])
         print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
               f"{capture.image_size_px[0]}x{capture.image_size_px[1]} px; board {board}")
         for note in capture.notes:

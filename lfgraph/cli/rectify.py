@@ -16,6 +16,7 @@ from lfgraph.cli.args import (
     add_rerun_args,
     check_output_folder,
     check_rerun,
+    check_side_outputs,
     jobs_default,
     positive_float,
     positive_int,
@@ -83,6 +84,7 @@ def _rectify(args: argparse.Namespace) -> int:
         print(f"note: {note}")
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     logging = check_rerun(args)
+    check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[out])
     rect = compute_rectification(calib, args.crop)
     rectified = attach(calib, rect)
     print(rectification_text(calib, rect))
@@ -169,7 +171,7 @@ def add_parsers(sub: Any) -> None:
     rc.set_defaults(func=cmd_rectify)
 
     ck = sub.add_parser("check", help="drift check: does the calibration still fit an ordinary capture? "
-                                      "(exit 2 when not)")
+                                      "(exit 3 when a view drifted)")
     ck.add_argument("calibration", type=Path, help="calibration.json")
     ck.add_argument("input", type=Path, help="capture folder of any textured scene")
     ck.add_argument("--tolerance-px", "--max-px", dest="max_px", type=positive_float, default=0.1,

@@ -13,6 +13,7 @@ from lfgraph.cli.args import (
     add_rerun_args,
     check_output_file,
     check_rerun,
+    check_side_outputs,
     cli_observer,
     positive_float,
     positive_int,
@@ -56,6 +57,7 @@ def _refine(args: argparse.Namespace) -> int:
     for note in capture.notes:
         print(f"note: {note}")
     check_output_file(args.output, inputs=capture.all_paths())
+    check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[args.output])
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
     if not args.json:

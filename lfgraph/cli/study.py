@@ -11,6 +11,7 @@ from lfgraph.cli.args import (
     UsageError,
     add_rerun_args,
     check_rerun,
+    check_side_outputs,
     floats,
     ints,
     jobs_default,
@@ -59,6 +60,9 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+FIGURE_SUFFIXES = (".png", ".pdf")  # the study figures beside the CSV
+
+
 def _study_common(args: argparse.Namespace) -> None:
     from lfgraph.executor import parse_executor
 
@@ -68,6 +72,11 @@ def _study_common(args: argparse.Namespace) -> None:
         raise UsageError(str(exc)) from None
     if not args.output.parent.exists():
         raise UsageError(f"-o {args.output}: folder {args.output.parent} does not exist")
+    if args.output.suffix.lower() in FIGURE_SUFFIXES:
+        raise UsageError(f"-o {args.output}: the study writes a CSV there and its figures beside it as "
+                         f"{args.output.stem}.png and .pdf; give the CSV a .csv name")
+    figures = [args.output.with_name(args.output.stem + sfx) for sfx in FIGURE_SUFFIXES]
+    check_side_outputs(args, outputs=[args.output, *figures])
 
 
 def cmd_study_shake(args: argparse.Namespace) -> int:
