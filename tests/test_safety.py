@@ -85,6 +85,35 @@ def test_save_and_plots_follow_the_output_rule(boards, tmp_path, capsys):
     assert code == EXIT_USAGE and ".csv" in text and not (tmp_path / "s.png").exists()
 
 
+def test_synth_never_mixes_two_data_sets_and_non_regular_outputs_are_refused(tmp_path, capsys):
+    out = tmp_path / "scene"
+    args = ["synth", "scene", out, "--scene", "small-2x2", "--frames", "2", "--jobs", "1", "--quiet"]
+    assert run(args, capsys)[0] == EXIT_OK
+    frames_before = sorted(p.name for p in out.iterdir())
+    code, text = run([*args[:-3], "--frames", "1", "--jobs", "1", "--quiet"], capsys)
+    assert code == EXIT_USAGE and "--overwrite" in text
+    assert sorted(p.name for p in out.iterdir()) == frames_before  # untouched
+    assert run([*args[:-3], "--frames", "1", "--jobs", "1", "--quiet", "--overwrite"], capsys)[0] == EXIT_OK
+    assert len([p for p in out.iterdir() if p.is_dir()]) == 1  # emptied first: no frame of the old set is left
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "mine.txt").write_text("keep me")
+    code, text = run(["synth", "scene", other, "--scene", "small-2x2", "--frames", "1", "--quiet", "--overwrite"],
+                     capsys)
+    assert code == EXIT_USAGE and "not a synthetic set" in text and (other / "mine.txt").read_text() == "keep me"
+    # a symlink or a FIFO given as -o is refused, not replaced by a regular file
+    target = tmp_path / "real.json"
+    target.write_text("{}")
+    link = tmp_path / "link.json"
+    link.symlink_to(target)
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)
+    for bad, what in ((link, "symbolic link"), (fifo, "not a regular file")):
+        code, text = run(["refine", out / "truth.json", out, "-o", bad, "--quiet"], capsys)
+        assert code == EXIT_BAD_INPUT and what in text
+    assert link.is_symlink() and target.read_text() == "{}" and fifo.is_fifo()
+
+
 def test_outputs_that_cannot_be_written_fail_before_any_work(boards, tmp_path, capsys):
     start = time.perf_counter()
     code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path], capsys)  # a folder

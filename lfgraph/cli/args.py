@@ -155,6 +155,11 @@ def check_output_file(output: Path, inputs: Iterable[Path] = (), overwritable: I
     for source in inputs:
         if _same_file(output, Path(source)):
             raise ValueError(f"{flag} {output}: is the input {source}; refusing to overwrite it, write elsewhere")
+    if output.is_symlink():
+        raise ValueError(f"{flag} {output}: is a symbolic link (to {os.readlink(output)}); the atomic write would "
+                         f"replace the link, not its target: give the target's own path or a new file")
+    if output.exists() and not output.is_dir() and not output.is_file():
+        raise ValueError(f"{flag} {output}: is not a regular file (a device, FIFO or socket); refusing to replace it")
     folder = output.parent
     if not folder.exists():
         raise UsageError(f"{flag} {output}: folder {folder} does not exist")

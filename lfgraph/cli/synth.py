@@ -30,6 +30,32 @@ def _synth_rig(args: argparse.Namespace, named):
     return rig
 
 
+def _prepare_out(args: argparse.Namespace) -> None:
+    """Refuse, before rendering, an output that exists and is not an empty folder: rendering into an old capture
+    kept its other frames and files (a mix of two data sets). ``--overwrite`` empties a folder that holds an earlier
+    synthetic set (its ``truth.json`` says so); any other folder is never emptied."""
+    import shutil
+
+    out = Path(args.out)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise UsageError(f"{out} is a file; give a folder for the synthetic set")
+    if not any(out.iterdir()):
+        return
+    if not args.overwrite:
+        raise UsageError(f"{out} exists and is not empty; rendering into it would mix two data sets. Choose a new "
+                         f"folder, or pass --overwrite to empty it first")
+    if not (out / "truth.json").is_file():
+        raise UsageError(f"{out} holds files that are not a synthetic set (no truth.json); --overwrite only empties a "
+                         f"folder an earlier `lfgraph synth` wrote")
+    for child in out.iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
+
+
 def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -55,6 +81,7 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     calib = make_rig(rig, rng)
     truth = make_checkerboard_truth(calib, cfg, rng)
+    _prepare_out(args)
     start = time.perf_counter()
     write_checkerboard_dataset(args.out, calib, truth, cfg, seed=args.seed, layout=args.layout, jobs=args.jobs,
                                progress=not args.quiet)
@@ -86,6 +113,7 @@ def cmd_synth_scene(args: argparse.Namespace) -> int:
     if shaken:
         shake = ShakeConfig(rot_deg=args.shake_rot_deg, trans_mm=args.shake_trans_mm, axis=args.shake_axis)
         truth = shake_rig(original, shake, np.random.default_rng([args.seed, 1]))
+    _prepare_out(args)
     start = time.perf_counter()
     write_scene_dataset(args.out, truth, cfg, frames=frames, seed=args.seed, layout=args.layout, jobs=args.jobs,
                         progress=not args.quiet, original=original if shaken else None)
@@ -120,6 +148,8 @@ def add_parsers(sub: Any) -> None:
                        help="folders: OUT/<frame>/rRR_cCC.png; mosaic: OUT/<frame>.png with views tiled")
         p.add_argument("--jobs", type=positive_int, default=jobs_default(), help="worker processes")
         p.add_argument("--quiet", action="store_true", help="no progress bar")
+        p.add_argument("--overwrite", action="store_true",
+                       help="empty OUT first when it holds an earlier synthetic set (refused otherwise)")
 
     cb = synth_sub.add_parser("checkerboard", help="checkerboard captures rendered as images")
     common_synth(cb, "paper-4x4")
