@@ -16,6 +16,7 @@ SMALL_ARGS = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--jobs", 
 MAX_Z = 5.0  # rendered images: each error within 5 marginal sigmas (detection bias is small but not zero)
 RENDERED_RIG_RMS_PX = 0.1  # issue 3: rig-consistent RMS on rendered images
 STEREO_SQUARES = 1.0  # OpenCV's stereo sample has unit squares
+BAD_PAIR_BASELINE_REL = 0.01  # issue 27: one bad pair may not move the baseline by more than 1 %
 
 
 @pytest.fixture(scope="module")
@@ -198,3 +199,24 @@ def test_opencv_stereo_pair(test_data, tmp_path, capsys):
     calib = Calibration.load(out_json)
     baseline = 1e3 * np.linalg.norm(calib.ref_T_view[1][:3, 3])  # in squares
     assert 3.2 < baseline < 3.5  # OpenCV's sample calibration: about 3.3 squares
+
+
+def test_one_bad_pair_is_dropped_by_name_and_the_baseline_kept(test_data, tmp_path, capsys):
+    """Issue 27: right01.jpg replaced by a copy of left01.jpg took the baseline from 83.2 to 175.6 mm, exit 0. The
+    view-frame whose board pose contradicts the other frames' rig is dropped, named, and the baseline is that of the
+    good set (OpenCV's stereo sample, 25 mm squares) within 1 %."""
+    clean, src = tmp_path / "clean", tmp_path / "stereo"
+    shutil.copytree(test_data / "opencv_stereo", clean)
+    shutil.copytree(test_data / "opencv_stereo", src)
+    shutil.copy(src / "left01.jpg", src / "right01.jpg")
+    good, bad = tmp_path / "good.json", tmp_path / "bad.json"
+    args = ["--grid", "1x2", "--board", "9x6", "--square-mm", "25", "--quiet"]
+    assert main(["calibrate", str(clean), *args, "-o", str(good)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(src), *args, "-o", str(bad)]) == 0
+    text = capsys.readouterr().out
+    assert "right01.jpg" in text and "dropped" in text
+    b_good = np.linalg.norm(Calibration.load(good).ref_T_view[1][:3, 3])
+    b_bad = np.linalg.norm(Calibration.load(bad).ref_T_view[1][:3, 3])
+    assert abs(b_bad / b_good - 1) < BAD_PAIR_BASELINE_REL
+    assert Calibration.load(bad).metrics["rig_rms_px"] < 2 * Calibration.load(good).metrics["rig_rms_px"]

@@ -124,6 +124,78 @@ def relative_poses(view_T_board: np.ndarray, reference: int) -> tuple[np.ndarray
     return ref_T_view, parent
 
 
+def drop_view_frames(obs: BoardObservations, pairs: list[tuple[int, int]]) -> BoardObservations:
+    """``obs`` with the boards of the given (view, frame) pairs marked not observed."""
+    import dataclasses
+
+    valid = np.array(obs.valid)
+    for v, f in pairs:
+        valid[v, f] = False
+    return dataclasses.replace(obs, valid=valid)
+
+
+CONSENSUS_MIN_FRAMES = 3  # per-frame rig estimates needed before one can be called the odd one out
+CONSENSUS_MAD_FACTOR = 6.0  # a frame's relative pose is inconsistent beyond this many robust sigmas (1.4826 MAD) ...
+CONSENSUS_MIN_ROT_DEG = 1.0  # ... and beyond 1 degree of rotation ...
+CONSENSUS_MIN_TRANS_REL = 0.05  # ... or 5 % of the baseline in position
+
+
+def inconsistent_view_frames(view_T_board: np.ndarray, reference: int) -> list[tuple[int, int, float, float]]:  # noqa: N803
+    """View-frames whose board pose contradicts the rig that the other frames agree on.
+
+    For every view sharing at least `CONSENSUS_MIN_FRAMES` frames with the reference, each shared frame gives an
+    estimate of ``ref_T_view`` (PnP in both views); the medoid of those is the consensus, and a frame whose
+    estimate lies beyond `CONSENSUS_MAD_FACTOR` robust sigmas of the others *and* beyond 1 degree or 5 % of the
+    baseline is inconsistent (a mis-detected board, or an image of another camera). The view is blamed; when one
+    frame is inconsistent for at least two views and for half of those that share it, the reference view's board
+    in that frame is blamed instead.
+
+    Returns:
+        (view, frame, rotation off (deg), position off (m)) of each view-frame to drop.
+    """
+    n_views = view_T_board.shape[0]
+    have = np.all(np.isfinite(view_T_board.reshape(n_views, view_T_board.shape[1], -1)), axis=-1)
+    flagged: list[tuple[int, int, float, float]] = []
+    shared_count = np.zeros(view_T_board.shape[1], dtype=int)
+    for v in range(n_views):
+        if v == reference:
+            continue
+        frames = np.nonzero(have[v] & have[reference])[0]
+        shared_count[frames] += 1
+        if len(frames) < CONSENSUS_MIN_FRAMES:
+            continue
+        est = np.stack([view_T_board[reference, f] @ invert_T(view_T_board[v, f]) for f in frames])
+        rot = np.array([[_angle_deg(a[:3, :3].T @ b[:3, :3]) for b in est] for a in est])
+        pos = np.linalg.norm(est[:, None, :3, 3] - est[None, :, :3, 3], axis=-1)
+        baseline = float(np.median(np.linalg.norm(est[:, :3, 3], axis=1)))
+        scale = max(baseline, 1e-9)
+        medoid = int(np.argmin(np.median(rot / CONSENSUS_MIN_ROT_DEG + pos / (CONSENSUS_MIN_TRANS_REL * scale),
+                                         axis=1)))
+        d_rot, d_pos = rot[medoid], pos[medoid]
+        mad_rot = 1.4826 * float(np.median(d_rot)) + 1e-12
+        mad_pos = 1.4826 * float(np.median(d_pos)) + 1e-12
+        for i, f in enumerate(frames):
+            off_rot = d_rot[i] > max(CONSENSUS_MAD_FACTOR * mad_rot, CONSENSUS_MIN_ROT_DEG)
+            off_pos = d_pos[i] > max(CONSENSUS_MAD_FACTOR * mad_pos, CONSENSUS_MIN_TRANS_REL * scale)
+            if off_rot or off_pos:
+                flagged.append((v, int(f), float(d_rot[i]), float(d_pos[i])))
+    out: list[tuple[int, int, float, float]] = []
+    per_frame: dict[int, list[tuple[int, int, float, float]]] = {}
+    for item in flagged:
+        per_frame.setdefault(item[1], []).append(item)
+    for f, items in sorted(per_frame.items()):
+        if len(items) >= 2 and 2 * len(items) >= shared_count[f]:
+            worst = max(items, key=lambda x: x[3])
+            out.append((reference, f, worst[2], worst[3]))
+        else:
+            out.extend(items)
+    return out
+
+
+def _angle_deg(R: np.ndarray) -> float:  # noqa: N803
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def initial_board_T_ref(view_T_board: np.ndarray, ref_T_view: np.ndarray, counts: np.ndarray) -> np.ndarray:  # noqa: N802, N803
     """(F, 4, 4) per frame ``board_T_ref`` from the view that saw the most corners of it."""
     n_frames = view_T_board.shape[1]

@@ -14,7 +14,14 @@ from lfgraph.detections import BoardObservations
 from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
 from lfgraph.observer import Observer, resolve
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
-from lfgraph.pattern.initial import check_observations, design_initial, initial_board_T_ref, weak_views
+from lfgraph.pattern.initial import (
+    check_observations,
+    design_initial,
+    drop_view_frames,
+    inconsistent_view_frames,
+    initial_board_T_ref,
+    weak_views,
+)
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.paper import calibrate_paper
 from lfgraph.pattern.scoring import (
@@ -64,6 +71,18 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()
         paper = calibrate_paper(obs)
+        # one bad view-frame (a mis-detected board, another camera's image) skews the PnP average the rig starts
+        # from and then the whole fit: view-frames whose relative pose contradicts the other frames' are dropped
+        bad = inconsistent_view_frames(paper.view_T_board, obs.grid.reference)
+        if bad:
+            obs = drop_view_frames(obs, [(v, f) for v, f, _, _ in bad])
+            for v, f, rot, pos in bad:
+                message = (f"{obs.describe(v, f)}: its board pose contradicts the rig the other frames agree on "
+                           f"(off by {rot:.2f} deg, {1e3 * pos:.1f} mm): dropped from the calibration")
+                warnings.append(message)
+                say.log(message)
+            check_observations(obs)
+            paper = calibrate_paper(obs)
         seconds["paper"] = time.perf_counter() - t0
         warnings += paper.warnings
         say.log(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
