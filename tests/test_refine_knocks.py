@@ -124,3 +124,24 @@ def test_sweep_subset_never_worse_no_false_alarm_no_miss(seed):
     if not s.knocked:
         assert row["drifted_views"] == 0
     assert row["missed_views"] == 0
+
+
+def test_a_calibration_of_another_camera_is_not_refined_and_said(tmp_path):
+    """Issue 27: another camera's calibration (f 851 px on an f 300 px capture) was reported 'DRIFTED ... refined'
+    with fx still 550 px off. Nothing is written changed, and the warning says what is wrong."""
+    import dataclasses
+
+    from lfgraph.calibration import Calibration
+    from lfgraph.capture import open_capture
+    from lfgraph.cli import main
+    from lfgraph.refinement import refine
+
+    out = tmp_path / "scene"
+    assert main(["synth", "scene", str(out), "--scene", "small-2x2", "--frames", "2", "--shake-rot-deg", "0.5",
+                 "--quiet", "--jobs", "1"]) == 0
+    calib = Calibration.load(out / "original.json")
+    wrong = calib.replace(intrinsics=tuple(dataclasses.replace(i, fx=851.0, fy=851.0) for i in calib.intrinsics))
+    refined, report = refine(wrong, open_capture(out, calib.grid).frames())
+    np.testing.assert_array_equal(refined.ref_T_view, wrong.ref_T_view)
+    assert DRIFTED not in {v.verdict for v in report.verdicts}
+    assert any("is this calibration for this camera" in w for w in report.warnings)

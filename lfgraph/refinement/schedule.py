@@ -57,6 +57,9 @@ def _timed_track_chain(images: np.ndarray, grid, settings) -> tuple[Tracks, floa
     return tracks, time.perf_counter() - t0
 
 
+FOREIGN_RMS_PX = 1.0  # tracks that fit the input this badly and no refit: a calibration of another camera
+
+
 def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
            observer: Observer | None = None) -> tuple[Calibration, RefinementReport]:
     """Refine a calibration from ordinary (textured) captures, frame after frame.
@@ -211,6 +214,10 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
                                                f"({result.heldout_before_px:.4f} px input vs "
                                                f"{result.heldout_after_px:.4f} px refined)")
                         + "; the input calibration is kept")
+        if before > FOREIGN_RMS_PX:
+            warnings.append(f"the tracks fit the input calibration at {before:.2f} px RMS and no refit of the views' "
+                            f"poses explains them: is this calibration for this camera (focal length, lens, image "
+                            f"size, view order)? Re-calibrate rather than refine")
     for w in warnings:
         obs.log(f"warning: {w}")
     total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
