@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lfgraph.calibration import Calibration, CalibrationFileError
-from lfgraph.cli import EXIT_BAD_INPUT, EXIT_OK, EXIT_USAGE, main
+from lfgraph.cli import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_OK, EXIT_USAGE, main
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.rectification import RectificationError, compute_rectification
 from lfgraph.report import alignment_table
@@ -112,6 +112,13 @@ def test_synth_never_mixes_two_data_sets_and_non_regular_outputs_are_refused(tmp
         code, text = run(["refine", out / "truth.json", out, "-o", bad, "--quiet"], capsys)
         assert code == EXIT_BAD_INPUT and what in text
     assert link.is_symlink() and target.read_text() == "{}" and fifo.is_fifo()
+
+
+def test_an_internal_failure_is_said_as_such_not_as_bad_input(boards, tmp_path, capsys):
+    """Issue 27: GTSAM's IndeterminateSystemException reached the user raw, as exit 1 "bad input"."""
+    code, text = run(["calibrate", boards, *SMALL, "--robust", "tukey:0.0001", "-o", tmp_path / "c.json"], capsys)
+    assert code == EXIT_INTERNAL and "internal error" in text and "report" in text
+    assert not (tmp_path / "c.json").exists()
 
 
 def test_outputs_that_cannot_be_written_fail_before_any_work(boards, tmp_path, capsys):

@@ -4,7 +4,7 @@ One module per command group (`synth`, `calibrate`, `rectify`, `refine`, `study`
 ``add_parsers(sub)``; argument types, exit codes and shared flags in `args`. No command module imports another.
 
 Exit codes: 0 success, 1 bad input (the message names the file and what was wrong), 2 usage error, 3 drift found
-(``check``), 130 interrupted.
+(``check``), 4 internal error (an optimiser or library failure, never reported as bad input), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import sys
 from collections.abc import Sequence
 
 from lfgraph.cli import calibrate, fleet, interop, rectify, refine, selfcal, study, synth
-from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_OK, EXIT_USAGE, UsageError
+from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_INTERNAL, EXIT_OK, EXIT_USAGE, UsageError
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_DRIFT", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_DRIFT", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
 
 LOG_FORMAT = "%(message)s"
 
@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lfgraph",
         description="Calibrate, rectify and auto-refine light-field cameras built as camera arrays.",
-        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 drift found (check), 130 interrupted.")
+        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 drift found (check), 4 internal error, "
+               "130 interrupted.")
     parser.add_argument("--version", action="version", version=f"lfgraph {__version__}")
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="more log output (debug level)")
@@ -79,12 +80,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UsageError as exc:
         parser.error(str(exc))
         return EXIT_USAGE
-    except (ValueError, OSError, RuntimeError) as exc:
+    except (ValueError, OSError) as exc:
         print(f"lfgraph: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("lfgraph: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001  anything else is lfgraph's (or a library's) failure, not bad input
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        print(f"lfgraph: internal error ({type(exc).__name__}{': ' + first if first else ''}).\n"
+              f"  An optimiser that finds its system indeterminate usually means input it cannot use: a board size "
+              f"that does not match the images (--board), a view with too few points, an extreme robust threshold. "
+              f"If the input is right, please report this with the command line, `lfgraph --version` and the "
+              f"output of `-v`.", file=sys.stderr)
+        logging.getLogger("lfgraph").debug("internal error", exc_info=True)
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":
