@@ -10,10 +10,11 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from lfgraph.board import BoardSpec
-from lfgraph.capture import CaptureSet
+from lfgraph.capture import CaptureError, CaptureSet
 from lfgraph.charuco import detect_charuco
 from lfgraph.chessboard import detect_board
 from lfgraph.grid import ViewGrid
@@ -232,6 +233,68 @@ def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray | No
         return None
 
 
+BOARD_PROBE_FRAMES = 3  # frames whose views are probed for a board of another size before the detection
+BOARD_PROBE_IMAGES = 4  # at most this many images probed for a larger board around the asked one ...
+BOARD_SCAN_IMAGES = 2  # ... and this many without the asked board scanned for the size that is there
+_PROBE_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+
+
+def check_board_size(capture: CaptureSet, board: BoardSpec) -> None:
+    """Refuse, in seconds, a ``--board`` that does not match the images: a checkerboard with more inner corners
+    than asked (the detector would "find" the asked board inside it, every frame at another offset), or one that is
+    not in the first frames while a board of another size is (a search for a board that is not there is ~100x
+    slower than one that is). A quick OpenCV probe (`findChessboardCorners`) on the views of the first
+    `BOARD_PROBE_FRAMES` frames.
+
+    Raises:
+        CaptureError: the images show a board of another size (names the image and the size found).
+    """
+    if board.kind != "chessboard" or len(capture) == 0:
+        return
+    asked = (board.cols, board.rows)
+    around = [(board.cols + 1, board.rows), (board.cols, board.rows + 1)]
+    # sizes to scan where the asked board is not found: larger first, the asked orientation first, nearest first
+    scan = sorted(((c, r) for c in range(max(3, board.cols - 2), board.cols + 4)
+                   for r in range(max(3, board.rows - 2), board.rows + 4) if (c, r) != asked),
+                  key=lambda cr: (-cr[0] * cr[1], (cr[0] >= cr[1]) != (asked[0] >= asked[1]),
+                                  abs(cr[0] - asked[0]) + abs(cr[1] - asked[1])))
+    found_asked, found_other = False, None
+    probed = scanned = 0
+    for f in range(min(BOARD_PROBE_FRAMES, len(capture))):
+        try:
+            images = capture.load_frame(f)
+        except Exception:  # noqa: BLE001  the detection itself reports unreadable images with their names
+            return
+        for v, gray in enumerate(images):
+            files = capture.files[f] if capture.files else ()
+            name = str(files[v] if len(files) == len(images) else files[0]) if files and files[0] is not None \
+                else f"frame {f}, view {v}"
+            if cv2.findChessboardCorners(gray, asked, flags=_PROBE_FLAGS)[0]:
+                found_asked = True
+                if probed < BOARD_PROBE_IMAGES:
+                    probed += 1
+                    for size in around:
+                        if cv2.findChessboardCorners(gray, size, flags=_PROBE_FLAGS)[0]:
+                            found_other = (size, name)
+                            break
+            elif found_other is None and scanned < BOARD_SCAN_IMAGES:
+                scanned += 1
+                for size in scan:
+                    if cv2.findChessboardCorners(gray, size, flags=_PROBE_FLAGS)[0]:
+                        found_other = (size, name)
+                        break
+            if found_other is not None and found_other[0][0] * found_other[0][1] > asked[0] * asked[1]:
+                (c, r), name = found_other
+                raise CaptureError(f"{name} shows a {c}x{r} board, larger than --board {asked[0]}x{asked[1]} (found "
+                                   f"inside it, the asked board would sit at another offset in every frame): give the "
+                                   f"board's full inner-corner count (squares minus one per side)")
+    if not found_asked and found_other is not None:
+        (c, r), name = found_other
+        raise CaptureError(f"no {asked[0]}x{asked[1]} board in the first {min(BOARD_PROBE_FRAMES, len(capture))} "
+                           f"frames, but {name} shows a {c}x{r} board: check --board (inner corners, squares minus "
+                           f"one per side)")
+
+
 def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = None, progress: bool = True,
                    cache: bool = True) -> tuple[BoardObservations, bool]:
     """Detect the board in every image of a capture, one frame per task on a process pool.
@@ -253,6 +316,7 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
     corners = _read_cache(cache_path, key, shape) if cache and cache_path.exists() else None
     from_cache = corners is not None
     if corners is None:
+        check_board_size(capture, board)
         tasks = [(capture, f, board) for f in range(len(capture))]
         per_frame = run_tasks(_detect_frame, tasks, jobs, desc="detecting", unit="frame", progress=progress)
         corners = np.stack(per_frame, axis=1)

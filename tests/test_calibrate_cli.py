@@ -2,6 +2,7 @@
 
 import json
 import shutil
+import time
 
 import cv2
 import numpy as np
@@ -16,6 +17,7 @@ SMALL_ARGS = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--jobs", 
 MAX_Z = 5.0  # rendered images: each error within 5 marginal sigmas (detection bias is small but not zero)
 RENDERED_RIG_RMS_PX = 0.1  # issue 3: rig-consistent RMS on rendered images
 STEREO_SQUARES = 1.0  # OpenCV's stereo sample has unit squares
+WRONG_BOARD_S = 10.0  # a wrong --board is refused within this (the full search took minutes)
 BAD_PAIR_BASELINE_REL = 0.01  # issue 27: one bad pair may not move the baseline by more than 1 %
 
 
@@ -130,7 +132,18 @@ def test_view_with_two_frames_is_calibrated_with_a_warning(rendered, tmp_path, c
 
 def test_board_size_that_matches_nothing(rendered, tmp_path, capsys):
     err = bad(tmp_path, rendered, capsys, args=["--grid", "2x2", "--board", "9x6", "--square-mm", "15", "--quiet"])
-    assert "no board detected" in err and "--board" in err
+    assert "--board" in err and "7x5" in err  # the board that is there is named
+
+
+@pytest.mark.parametrize("wrong", ["4x3", "6x5", "8x5", "7x6"])
+def test_a_wrong_board_size_is_named_in_seconds(rendered, tmp_path, capsys, wrong):
+    """Issue 27: a board one corner too large searched ~120x slower; one too small was 'found' inside the real one
+    at another offset every frame and wrote a rig RMS of 62 px with exit 0. The 7x5 board is named instead."""
+    start = time.perf_counter()
+    err = bad(tmp_path, rendered, capsys, args=["--grid", "2x2", "--board", wrong, "--square-mm", "15", "--quiet"])
+    assert "7x5" in err and "--board" in err
+    assert time.perf_counter() - start < WRONG_BOARD_S
+    assert not (tmp_path / "out.json").exists()
 
 
 def test_images_of_different_sizes(rendered, tmp_path, capsys):
