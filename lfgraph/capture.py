@@ -417,3 +417,29 @@ def write_frame(out_dir: str | os.PathLike, frame_name: str, images: np.ndarray,
             if not cv2.imwrite(str(tmp), img):
                 raise OSError(f"could not write {path}")
     return [p for p, _ in targets]
+
+
+def check_frame_array(images: object, frame: int, grid, image_size_px: tuple[int, int], what: str = "frame") -> None:
+    """Refuse a frame the tracking cannot use, naming it and what it should be: (V, H, W) 8-bit grayscale, one
+    image per view of ``grid``, each ``image_size_px`` (width, height).
+
+    Raises:
+        TypeError: not a numpy array.
+        ValueError: the wrong number of dimensions (colour), dtype, view count or size, or NaN.
+    """
+    w, h = image_size_px
+    want = f"(V={grid.num_views}, H={h}, W={w}) uint8 grayscale"
+    if not isinstance(images, np.ndarray):
+        raise TypeError(f"{what} {frame}: expected a numpy array {want}, got {type(images).__name__}")
+    if images.ndim == 4:
+        raise ValueError(f"{what} {frame}: shape {images.shape} looks like colour images; convert each view to "
+                         f"grayscale (cv2.cvtColor(..., cv2.COLOR_BGR2GRAY)) to get {want}")
+    if images.ndim != 3:
+        raise ValueError(f"{what} {frame}: shape {images.shape}; expected {want} (one image per view, stacked)")
+    if images.dtype != np.uint8:
+        hint = " (16-bit: scale with (img >> 8).astype(np.uint8))" if images.dtype == np.uint16 else \
+            " (floats: clip to 0-255 and convert with .astype(np.uint8))" if images.dtype.kind == "f" else ""
+        raise ValueError(f"{what} {frame}: dtype {images.dtype}; expected {want}{hint}")
+    if images.shape[0] != grid.num_views or images.shape[1:3] != (h, w):
+        raise ValueError(f"{what} {frame} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but "
+                         f"the calibration is a {grid} grid of {w}x{h} px views")

@@ -15,6 +15,7 @@ import numpy as np
 
 from lfgraph.alignment import PointAlignmentReport, align_points
 from lfgraph.calibration import Calibration
+from lfgraph.capture import check_frame_array
 from lfgraph.rectification import Rectification
 from lfgraph.refinement.matching import MatchSettings, Tracks, track_chain
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
@@ -164,6 +165,7 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     config = config or RefineConfig()
     pixels, valid, frame_ids, counts, n_frames = [], [], [], {}, 0
     for f, images in enumerate(frames):
+        check_frame_array(images, f, calib.grid, calib.image_size_px)
         tracks = track_chain(images, calib.grid, settings)
         res = reprojection_residuals(calib, tracks)
         keep = worst_error_filter(res, TRACK_OUTLIER_FACTOR, TRACK_OUTLIER_MIN_PX)

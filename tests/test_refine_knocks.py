@@ -145,3 +145,21 @@ def test_a_calibration_of_another_camera_is_not_refined_and_said(tmp_path):
     np.testing.assert_array_equal(refined.ref_T_view, wrong.ref_T_view)
     assert DRIFTED not in {v.verdict for v in report.verdicts}
     assert any("is this calibration for this camera" in w for w in report.warnings)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.zeros((4, 240, 320), np.uint16), "16-bit"),
+    (np.zeros((4, 240, 320, 3), np.uint8), "colour"),
+    (np.zeros((4, 240, 320), np.float32), "floats"),
+    (np.zeros((240, 320), np.uint8), "shape"),
+    ([[0]], "numpy array"),
+])
+def test_refine_and_check_name_a_frame_they_cannot_use(bad, message):
+    """Issue 27/28: float, uint16 or RGB frames raised raw OpenCV assertions, one (H, W) frame an IndexError."""
+    from lfgraph.drift import check
+    from lfgraph.refinement import refine
+
+    rig = make_rig(RigConfig(rows=2, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    for run in (lambda: refine(rig, [bad]), lambda: check(rig, [bad])):
+        with pytest.raises((ValueError, TypeError), match=message):
+            run()

@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.capture import check_frame_array
 from lfgraph.observer import Observer, resolve
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig
@@ -117,9 +118,7 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
             break
-        if images.shape[0] != calib.num_views or images.shape[1:3] != (h, w):
-            raise ValueError(f"frame {f} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but the "
-                             f"calibration is a {calib.grid} grid of {w}x{h} px views")
+        check_frame_array(images, f, calib.grid, (w, h))
         tracking = klt.submit(_timed_track_chain, images, calib.grid, config.match)
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
