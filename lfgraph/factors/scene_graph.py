@@ -5,18 +5,19 @@ does not free, and the gauges. Each function returns a `gtsam.NonlinearFactorGra
 Gauges: (1) the array's frame — the reference view's pose is held; scale, unobservable from a scene alone, is fixed
 by one range (reference to the farthest view); (2) the hidden principal-point gauge — shifting each view's
 principal point in proportion to its baseline while shifting every landmark's inverse depth leaves all images
-unchanged, so cx of the reference row's neighbour (cy of its column neighbour in a single-column grid) is held
-whenever principal points are free; (3) with nearly parallel views a common zoom and shift of every view's fx, fy,
-cx, cy is unobservable too, so the reference view's intrinsics are held as its pose is; (4) the same hidden gauge in
-rotations: turning each view by delta * (-c_y, c_x, 0) (body x, y; c its position) while shifting every landmark's
-inverse depth by delta leaves all images unchanged to first order. With the intrinsics held this is *not* a gauge:
-a pan moves every image point by (1 + x^2) delta, a principal-point shift by delta, so the data see the pan across
-the field of view, and holding it turned a knocked view's real pan into a pan/tilt ramp across the grid (issue 24).
-Where the principal points are free the pan trades exactly (to first order) against the held cx of gauge (2), and
-in a stereo pair the hidden mode *is* the second view's pan (no third view shares it): there the pan (tilt in a
-single column) of that neighbour view is held at its input (`holds_rotation_gauge`). In a grid of three or more views
-the mode is a ramp shared by all views, which real knocks do not follow: it is weakly determined, not a gauge, and
-the MAP drift priors hold it with everything else a stage does not pin.
+unchanged; in the free fit (no priors) cx of the reference row's neighbour (cy of its column neighbour in a
+single-column grid) is held whenever principal points are free, under MAP priors the drift priors fix it (holding
+that cx exactly, together with the same view's pan, turned its real pan into a principal-point ramp over the grid:
+`--stages paper` wrote cx 20-30 px off after 1-degree knocks, issue 24); (3) with nearly parallel views a common
+zoom and shift of every view's fx, fy, cx, cy is unobservable too, so the reference view's intrinsics are held as
+its pose is; (4) the same hidden mode in rotations: turning each view by delta * (-c_y, c_x, 0) (body x, y; c its
+position) while shifting every landmark's inverse depth by delta leaves all images unchanged to first order. With
+the intrinsics held this is *not* a gauge in a grid of three or more views: a pan moves every image point by
+(1 + x^2) delta, a principal-point shift by delta, real knocks do not follow the ramp, and holding one view's pan
+turned its real pan into a pan/tilt ramp across the grid (issue 24). In a stereo pair the mode *is* the second
+view's pan (the data see it only through x*y vertical disparity): there it is held at its input under MAP priors
+(`holds_rotation_gauge`). Everything else a stage does not pin is weakly determined, not a gauge: the MAP drift
+priors hold it.
 """
 
 from __future__ import annotations
@@ -89,8 +90,11 @@ def rotation_gauge(calib: Calibration) -> tuple[int, int] | None:
 
 
 def holds_rotation_gauge(calib: Calibration, intrinsics_free: bool) -> bool:
-    """Whether a stage holds `rotation_gauge` (4): with the principal points free, or in a stereo pair."""
-    return intrinsics_free or calib.num_views == 2
+    """Whether a MAP stage holds `rotation_gauge` (4): in a stereo pair only (``intrinsics_free`` is not a reason:
+    holding the neighbour's pan *and* its cx exactly turned that view's real pan into a principal-point ramp over
+    the grid — `--stages paper` wrote cx 20-30 px off after 1-degree knocks; the MAP priors split pan and cx)."""
+    del intrinsics_free
+    return calib.num_views == 2
 
 
 def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int],
@@ -155,9 +159,9 @@ def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre
         centre = calib.intrinsics[v] if map_centre is None else map_centre.intrinsics[v]
         if map_centre is not None and map_sigmas is not None and v != calib.grid.reference \
                 and v not in held_views:
+            # with MAP priors no principal point is held exactly: the drift priors fix the hidden gauge (2), and a
+            # neighbour held at its input could not follow its own real pan (see `holds_rotation_gauge`)
             s4 = np.array(map_sigmas[v], dtype=float)
-            if gauge is not None and gauge[0] == v:
-                s4[gauge[1] - 1] = HELD_SIGMA  # Cal3DS2 index 3/4 -> cx/cy here
             graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), centre.to_gtsam(), drift_calibration_noise(s4)))
             continue
         sigmas = np.full(9, HELD_SIGMA)  # Cal3DS2 order: fx fy s cx cy k1 k2 p1 p2

@@ -63,9 +63,9 @@ class Posterior:
 def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int],
                     priors: ViewPriors | None = None) -> np.ndarray:
     """(V, 10) the directions a stage's graph holds by construction: everything of the reference view and of held
-    views; fx, fy, cx, cy unless the stage frees them, and then the principal-point gauge and the rotation gauge
-    (`lfgraph.factors.scene_graph`: with the principal points free or in a stereo pair, and only under MAP
-    ``priors``, as `pose_priors` holds it)."""
+    views; fx, fy, cx, cy unless the stage frees them, and then the principal-point gauge in the free fit (no
+    ``priors``); the rotation gauge in a stereo pair under MAP ``priors`` (`lfgraph.factors.scene_graph`, as
+    `pose_priors` and `intrinsics_priors` hold them)."""
     n = calib.num_views
     mask = np.zeros((n, 10), dtype=bool)
     mask[calib.grid.reference] = True
@@ -73,7 +73,7 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
         mask[v] = True
     intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
     gauge, rgauge = principal_point_gauge(calib), rotation_gauge(calib)
-    if intr_free and gauge is not None:
+    if intr_free and gauge is not None and priors is None:  # held exactly only in the free fit
         mask[gauge[0], 6 + gauge[1] - 1] = True  # Cal3DS2 index 3/4 (cx/cy) -> 8/9
     if not intr_free:
         mask[:, 6:] = True

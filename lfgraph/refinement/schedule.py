@@ -58,7 +58,8 @@ def _timed_track_chain(images: np.ndarray, grid, settings) -> tuple[Tracks, floa
     return tracks, time.perf_counter() - t0
 
 
-FOREIGN_RMS_PX = 1.0  # tracks that fit the input this badly and no refit: a calibration of another camera
+FOREIGN_RMS_PX = 1.0  # tracks that fit the input this badly, and refits of the poses that predict them no better:
+# a calibration of another camera (a knocked rig's refits predict better, even when the folds disagree)
 
 
 def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
@@ -213,7 +214,7 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
                                                f"({result.heldout_before_px:.4f} px input vs "
                                                f"{result.heldout_after_px:.4f} px refined)")
                         + "; the input calibration is kept")
-        if before > FOREIGN_RMS_PX:
+        if before > FOREIGN_RMS_PX and not result.heldout_after_px < result.heldout_before_px:
             warnings.append(f"the tracks fit the input calibration at {before:.2f} px RMS and no refit of the views' "
                             f"poses explains them: is this calibration for this camera (focal length, lens, image "
                             f"size, view order)? Re-calibrate rather than refine")
