@@ -112,7 +112,9 @@ class CaptureSet:
         return len(self.frame_names)
 
     def frames(self, limit: int | None = None, grayscale: bool = True) -> Iterator[np.ndarray]:
-        """Each frame's (V, H, W) images in order, loaded lazily (at most ``limit`` frames)."""
+        """Each frame's (V, H, W) images in order, loaded lazily (at most ``limit`` frames, a whole number >= 1)."""
+        if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int | np.integer) or limit < 1):
+            raise ValueError(f"frames(limit={limit!r}): the limit must be a whole number >= 1, or None for all frames")
         n = len(self) if limit is None else min(len(self), limit)
         for f in range(n):
             yield self.load_frame(f, grayscale)
@@ -313,7 +315,15 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
     """
     root = Path(path)
     if not isinstance(grid, ViewGrid):
-        grid = ViewGrid(*grid)
+        if isinstance(grid, str):  # the CLI's spelling, "2x2"
+            parts = grid.lower().split("x")
+            if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+                raise ValueError(f"grid {grid!r}: expected ROWSxCOLS such as '2x2', a (rows, cols) pair or a ViewGrid")
+            grid = (int(parts[0]), int(parts[1]))
+        if not isinstance(grid, tuple | list) or len(grid) != 2 or not all(
+                isinstance(n, int | np.integer) and not isinstance(n, bool) for n in grid):
+            raise ValueError(f"grid {grid!r}: expected a (rows, cols) pair of whole numbers, 'RxC' or a ViewGrid")
+        grid = ViewGrid(int(grid[0]), int(grid[1]))
     if layout not in LAYOUTS:
         raise CaptureError(f"{root}: unknown layout {layout!r}; choose from {', '.join(LAYOUTS)}")
     if missing not in MISSING_VIEW:

@@ -15,6 +15,11 @@ camera; a re-run skips cameras already in it), with a verdict:
   inspect the recording;
 - ``ERROR``: the recording or calibration could not be used (the message is in the row); other cameras go on.
 
+A refined version stores what it was made from (``metrics["fleet_source"]``: the input calibration's SHA-256, the
+capture, the options): a run interrupted between writing a version and writing its row is resumed by reusing that
+version, never by writing another. One run at a time writes a results file (an exclusive lock beside it,
+``.NAME.lock``); a second is refused with a message.
+
 Results do not depend on the executor or on the order in which cameras finish (every step is deterministic), except
 the ``seconds`` column. Paths in the results are relative to the manifest's folder.
 """
@@ -22,6 +27,7 @@ the ``seconds`` column. Paths in the results are relative to the manifest's fold
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import os
 import time
@@ -119,8 +125,40 @@ def next_version(calibration: Path) -> Path:
     raise OSError(f"{calibration.parent}: {MAX_VERSIONS} versions of {base} already; clean the folder")
 
 
-def _save_new_version(calib: Any, input_path: Path) -> Path:
-    """Write ``calib`` as the next free version, atomically and without ever replacing an existing file."""
+def source_key(item: FleetItem) -> dict[str, Any]:
+    """What a refined version was made from: the input calibration's bytes (SHA-256), the capture and the options
+    that decide the result. A re-run that finds a version with the same key reuses it instead of writing another."""
+    digest = hashlib.sha256(Path(item.calibration).read_bytes()).hexdigest()
+    return {"calibration_sha256": digest, "capture": os.path.relpath(item.capture, item.root),
+            "max_frames": item.max_frames, "tolerance_px": item.tolerance_px}
+
+
+def existing_version(input_path: Path, key: dict[str, Any]) -> Path | None:
+    """A version beside ``input_path`` that a run interrupted before its results row was written made from the same
+    source (``metrics["fleet_source"]`` equal to ``key``), or None."""
+    stem = input_path.stem
+    base = stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
+    for n in range(2, MAX_VERSIONS):
+        candidate = input_path.with_name(f"{base}.v{n}{input_path.suffix}")
+        if not candidate.exists():
+            return None
+        try:
+            stored = json.loads(candidate.read_text(encoding="utf-8")).get("metrics", {}).get("fleet_source")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if stored == key:
+            return candidate
+    return None
+
+
+def _save_new_version(calib: Any, input_path: Path, key: dict[str, Any] | None = None) -> Path:
+    """Write ``calib`` as the next free version, atomically and without ever replacing an existing file; with
+    ``key`` (`source_key`) stored in its metrics, and an earlier version of the same source reused."""
+    if key is not None:
+        found = existing_version(input_path, key)
+        if found is not None:
+            return found
+        calib = calib.replace(metrics={**dict(calib.metrics or {}), "fleet_source": key})
     for _ in range(MAX_VERSIONS):
         target = next_version(input_path)
         with atomic_path(target.with_name(f".{target.name}.partial")) as tmp:
@@ -163,7 +201,7 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
                        max_rotation_change_deg=float(rot.max()), max_position_change_mm=float(pos.max()),
                        view_changes=_verdicts_json(ref_report.verdicts))
             if ref_report.accepted and (rot.max() > 0 or pos.max() > 0):  # some view really changed
-                written = _save_new_version(refined, item.calibration)
+                written = _save_new_version(refined, item.calibration, source_key(item))
                 row.update(verdict="DRIFTED", refined_calibration=os.path.relpath(written, item.root))
             else:
                 row.update(verdict="UNCERTAIN", error="; ".join(ref_report.warnings))
@@ -205,11 +243,23 @@ def run_fleet(manifest: str | os.PathLike, results_csv: str | os.PathLike, execu
     Raises:
         ManifestError: a bad manifest; ValueError: a results CSV of another kind.
     """
+    import fcntl
+
     from lfgraph.study import run_study
 
     items = read_manifest(manifest)
-    return run_study(items, process_camera, results_csv, RESULT_COLUMNS, _item_rows, _row_key, executor, jobs,
-                     progress)
+    lock_path = Path(results_csv).with_name(f".{Path(results_csv).name}.lock")
+    with open(lock_path, "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{results_csv}: another fleet run is writing these results (lock {lock_path}); wait "
+                             f"for it to finish, or give this run its own results file") from None
+        try:
+            return run_study(items, process_camera, results_csv, RESULT_COLUMNS, _item_rows, _row_key, executor,
+                             jobs, progress)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def _item_rows(item: FleetItem) -> set[tuple]:

@@ -81,3 +81,28 @@ def test_versions_count_up_and_never_reuse_a_name(tmp_path):
     (tmp_path / "cam.v2.json").write_text("{}")
     assert next_version(calib).name == "cam.v3.json"
     assert next_version(tmp_path / "cam.v2.json").name == "cam.v3.json"
+
+
+def test_an_interrupted_run_is_resumed_without_orphans_and_runs_do_not_collide(fleet_dir, tmp_path):
+    """Issue 27: Ctrl-C after a version was written but before its results row left an orphaned v2 and the re-run
+    wrote v3 for the same drift; two runs on one results file both exited 0 and the first run's rows were lost."""
+    import fcntl
+
+    work = tmp_path / "w"
+    shutil.copytree(fleet_dir, work)
+    manifest, results = work / "manifest.csv", work / "results.csv"
+    run_fleet(manifest, results, "local", 1, progress=False)
+    assert (work / "knocked" / "original.v2.json").exists()
+    results.unlink()  # as if the run had been stopped between writing v2 and writing its row
+    run_fleet(manifest, results, "local", 1, progress=False)
+    rows = {r["camera"]: r for r in rows_without_time(results)}
+    assert rows["cam-knocked"]["refined_calibration"] == "knocked/original.v2.json"
+    assert not (work / "knocked" / "original.v3.json").exists()  # the same source: v2 reused, nothing orphaned
+    # another run holding the results file: this one is refused, nothing of the first is lost
+    before = results.read_text()
+    with open(work / ".results.csv.lock", "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        with pytest.raises(ValueError, match="another fleet run"):
+            run_fleet(manifest, results, "local", 1, progress=False)
+        assert main(["fleet", str(manifest), "-o", str(results), "--quiet"]) != EXIT_OK
+    assert results.read_text() == before

@@ -139,3 +139,21 @@ def test_views_layout_matches_frames_by_number_in_real_trinocular_folders():
     assert capture.frame_names == ("1", "6", "11", "16", "21")
     assert [p.name for p in capture.paths(2)] == ["left11.jpg", "middle11.jpg", "right11.jpg"]
     assert capture.image_size_px == (1224, 1024)
+
+
+def test_open_capture_validates_its_grid_and_frames_its_limit(tmp_path):
+    """Issues 27/28: ``open_capture(dir, (2, 2, 2))`` was accepted, ``open_capture(dir, "2x2")`` a TypeError and
+    ``frames(-1)`` silently empty."""
+    from lfgraph.cli import main
+
+    out = tmp_path / "s"
+    assert main(["synth", "scene", str(out), "--scene", "small-2x2", "--frames", "1", "--quiet", "--jobs", "1"]) == 0
+    assert open_capture(out, "2x2").grid.num_views == 4  # the CLI's spelling
+    for bad in ((2, 2, 2), (2.0, 2), "2by2", None):
+        with pytest.raises(ValueError, match="grid"):
+            open_capture(out, bad)
+    capture = open_capture(out, (2, 2))
+    for bad in (-1, 0, 1.5):
+        with pytest.raises(ValueError, match="limit"):
+            list(capture.frames(bad))
+    assert len(list(capture.frames(5))) == 1
