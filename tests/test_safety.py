@@ -121,6 +121,20 @@ def test_an_internal_failure_is_said_as_such_not_as_bad_input(boards, tmp_path, 
     assert not (tmp_path / "c.json").exists()
 
 
+def test_connect_without_a_viewer_fails_before_the_work(boards, tmp_path, capsys):
+    """Issue 27: `--connect` with no viewer ran the whole command, waited 71 s after writing, then exited 1."""
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    start = time.perf_counter()
+    code, text = run(["refine", boards / "truth.json", boards, "-o", tmp_path / "r.json", "--quiet", "--connect",
+                      "--url", f"rerun+http://127.0.0.1:{port}/proxy"], capsys)
+    assert code == EXIT_USAGE and "no rerun viewer listens" in text
+    assert time.perf_counter() - start < 5.0 and not (tmp_path / "r.json").exists()
+
+
 def test_outputs_that_cannot_be_written_fail_before_any_work(boards, tmp_path, capsys):
     start = time.perf_counter()
     code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path], capsys)  # a folder

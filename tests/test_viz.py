@@ -18,6 +18,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.cli import main
 
 SMALL = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--quiet"]
+STDOUT_CLOSED_S = 120  # seconds: the command must end by itself once its reader has gone
 CORNERS = 7 * 5
 RDF = [3, 2, 5]  # rerun's ViewDir codes of Right, Down, Forward (OpenCV camera axes)
 FRAMES = 10
@@ -269,3 +270,16 @@ def test_blueprint_kinds_are_checked():
     with pytest.raises(ValueError, match="unknown blueprint"):
         default_blueprint(ViewGrid(2, 2, 0), "plot")
 
+
+
+def test_stdout_to_a_reader_that_goes_away_neither_hangs_nor_loses_the_result(scene, tmp_path):
+    """Issue 27: `--stdout | head -c 100` never exited and wrote no calibration."""
+    out = tmp_path / "r.json"
+    cmd = [sys.executable, "-m", "lfgraph", "refine", str(scene / "original.json"), str(scene), "-o", str(out),
+           "--quiet", "--max-frames", "1", "--stdout"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.read(100)  # the reader takes 100 bytes and goes away, as `| head -c 100` does
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=STDOUT_CLOSED_S)
+    assert proc.returncode == 1 and b"stopped reading" in err
+    assert out.exists()  # the command's own output was written

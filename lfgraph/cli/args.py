@@ -79,6 +79,8 @@ def check_rerun(args: argparse.Namespace) -> bool:
     """Validate the rerun flags before any work; True when logging was asked for (rerun is imported only then)."""
     if not any(getattr(args, name, None) for name in RERUN_SINK_FLAGS):
         return False
+    if getattr(args, "connect", None) or getattr(args, "url", None):
+        check_viewer_listens(getattr(args, "url", None))
     if getattr(args, "save", None):
         from lfgraph.viz.rerun_log import check_save_path
 
@@ -87,6 +89,31 @@ def check_rerun(args: argparse.Namespace) -> bool:
         except ValueError as exc:
             raise UsageError(f"--save {exc}") from None
     return True
+
+
+DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"  # rerun's own default for connect_grpc
+VIEWER_PROBE_S = 2.0  # a viewer that does not accept a connection within this is not there
+
+
+def check_viewer_listens(url: str | None) -> None:
+    """Refuse ``--connect`` before any work when nothing listens at the viewer's address (rerun would otherwise
+    retry for about a minute after the work, then fail).
+
+    Raises:
+        UsageError: a URL without host and port, or no viewer there (exit code 2).
+    """
+    import socket
+    from urllib.parse import urlparse
+
+    parsed = urlparse((url or DEFAULT_VIEWER_URL).replace("rerun+", "", 1))
+    if not parsed.hostname or not parsed.port:
+        raise UsageError(f"--url {url}: expected rerun+http://HOST:PORT/proxy")
+    try:
+        with socket.create_connection((parsed.hostname, parsed.port), timeout=VIEWER_PROBE_S):
+            pass
+    except OSError:
+        raise UsageError(f"--connect: no rerun viewer listens at {parsed.hostname}:{parsed.port}; start one first "
+                         f"(`.venv/bin/rerun`), or record to a file with --save run.rrd") from None
 
 
 def check_side_outputs(args: argparse.Namespace, inputs: Iterable[Path] = (), outputs: Iterable[Path] = ()) -> None:
@@ -230,8 +257,13 @@ def rerun_session(args: argparse.Namespace, grid, logging: bool, kind: str = "ca
         logger = RerunLogger.connect(args.url, grid, kind)
     else:
         logger = RerunLogger.to_file(args.save, grid, kind)
-    with logger:
-        yield logger
+    from lfgraph.viz.rerun_log import StdoutClosed
+
+    try:
+        with logger:
+            yield logger
+    except StdoutClosed as exc:  # | head: the recording was cut, the command's own outputs were written
+        raise OSError(f"--stdout: {exc}; every other output of the command was written") from None
     if logger.path is not None:
         print(f"rerun recording: {logger.path} (open it with: rerun {logger.path})")
 

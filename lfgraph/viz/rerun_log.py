@@ -29,6 +29,7 @@ Entity tree (every command sends its own default blueprint, see `default_bluepri
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -75,6 +76,48 @@ def _frames_of(frames: Callable[[int], np.ndarray] | Sequence[np.ndarray] | None
     if frames is None:
         return None
     return frames(f) if callable(frames) else frames[f]
+
+
+class StdoutClosed(OSError):
+    """A `RerunLogger.stdout` recording lost its reader."""
+
+
+class _StdoutPump:
+    """File descriptor 1 replaced by a pipe whose contents a thread copies to the real standard output; after a
+    broken pipe the thread keeps reading and discards, so the writer of fd 1 never blocks or fails."""
+
+    def __init__(self) -> None:
+        import threading
+
+        sys.stdout.flush()
+        self._real = os.dup(1)
+        self._read, write = os.pipe()
+        os.dup2(write, 1)
+        os.close(write)
+        self.broken = False
+        self._thread = threading.Thread(target=self._copy, name="lfgraph-stdout", daemon=True)
+        self._thread.start()
+
+    def _copy(self) -> None:
+        while True:
+            chunk = os.read(self._read, 1 << 16)
+            if not chunk:
+                return
+            view = memoryview(chunk)
+            while view and not self.broken:
+                try:
+                    view = view[os.write(self._real, view):]
+                except OSError:  # EPIPE: the reader went away; drain from now on
+                    self.broken = True
+
+    def finish(self) -> bool:
+        """Restore fd 1, let the copy drain; True when the reader went away."""
+        sys.stdout.flush()
+        os.dup2(self._real, 1)  # closes our pipe's write end on fd 1: the copier sees the end
+        self._thread.join(timeout=60.0)
+        os.close(self._read)
+        os.close(self._real)
+        return self.broken
 
 
 class RerunLogger(BaseObserver):
@@ -142,10 +185,17 @@ class RerunLogger(BaseObserver):
 
     @classmethod
     def stdout(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
-        """Write the recording to standard output (pipe it into ``rerun -``); print nothing else there."""
+        """Write the recording to standard output (pipe it into ``rerun -``); print nothing else there.
+
+        rerun writes into a pipe of ours that a thread copies to the real standard output: when the reader goes away
+        (``| head``) the copy stops and the rest is discarded, so rerun's writer never meets the broken pipe (which
+        killed it and left every later log call blocked on it); `close` then raises `StdoutClosed`."""
+        pump = _StdoutPump()
         rec = rr.RecordingStream(APP_ID)
         rec.stdout(default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid)
+        logger = cls(rec, grid)
+        logger._pump = pump
+        return logger
 
     @property
     def path(self) -> Path | None:
@@ -419,9 +469,18 @@ class RerunLogger(BaseObserver):
             self.rec.log(f"{base}/guides", rr.LineStrips2D(lines, colors=GUIDE_COLOUR, radii=0.5), static=True)
 
     def close(self, success: bool = True) -> None:
-        """Flush and finish; a file recording appears only now, and only when ``success``."""
+        """Flush and finish; a file recording appears only now, and only when ``success``.
+
+        Raises:
+            StdoutClosed: a `stdout` recording whose reader stopped reading (the recording is incomplete)."""
         self.rec.flush(timeout_sec=60.0)
         self.rec.disconnect()
+        pump = getattr(self, "_pump", None)
+        if pump is not None:
+            self._pump = None
+            if pump.finish() and success:
+                raise StdoutClosed("the reader of standard output stopped reading (a closed pipe): the recording is "
+                                   "incomplete")
         if self._tmp is not None:
             if success:
                 os.replace(self._tmp, self._final)
