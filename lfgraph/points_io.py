@@ -33,6 +33,7 @@ MULTIVIEW_GLOB = "cam_*.json"
 IMAGE_MARGIN_PX = 1.0  # observed points may lie this far outside the image (sub-pixel corners at the border)
 _FRAME_RE = re.compile(r"^frame_(\d+)$")
 NPZ_KEYS = ("object_points", "image_points", "valid")
+MAX_TARGET_SPAN_M = 20.0  # object points spanning more than this are not a calibration target in metres
 SUSPECT_SPACING_M = 1.0  # object points further apart than this are probably in millimetres, not metres
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,10 @@ def load_object_points(path: str | os.PathLike) -> PointBoard:
         board = PointBoard(pts, path.name)
     except ValueError as exc:
         raise PointsError(str(exc)) from None
+    span = float(np.max(np.ptp(np.asarray(pts, dtype=float).reshape(-1, 3), axis=0)))
+    if span > MAX_TARGET_SPAN_M:
+        raise PointsError(f"{path}: the object points span {span:g} m, larger than any calibration target: they look "
+                          f"like millimetres; object points must be in metres (divide by 1000)")
     if board.spacing_m > SUSPECT_SPACING_M:
         log.warning("%s: neighbouring object points are %g m apart; object points must be in metres (millimetres "
                     "give a rig %gx too large)", path, board.spacing_m, 1000)

@@ -188,10 +188,14 @@ def test_object_points_are_checked(tmp_path, points, message):
         load_detections(DATA, "opencv-multiview", (1, 2), SIZE, tmp_path / "obj.npy")
 
 
-def test_millimetre_object_points_are_flagged(tmp_path, caplog):
+def test_millimetre_object_points_are_refused_and_odd_spacings_flagged(tmp_path, caplog):
+    """Issue 27: object points in mm were taken as metres ("spanning 560000 x 400000 mm") with a warning only."""
     np.save(tmp_path / "obj_mm.npy", np.load(OBJ) * 1000)
-    load_detections(DATA, "opencv-multiview", (1, 2), SIZE, tmp_path / "obj_mm.npy")
-    assert "obj_mm.npy: neighbouring object points are 80 m apart" in caplog.text
+    with pytest.raises(PointsError, match=r"obj_mm\.npy: the object points span .* m.*millimetres"):
+        load_detections(DATA, "opencv-multiview", (1, 2), SIZE, tmp_path / "obj_mm.npy")
+    np.save(tmp_path / "obj_big.npy", np.load(OBJ) * 15)  # 1.2 m apart: a big target, or a unit slip
+    load_detections(DATA, "opencv-multiview", (1, 2), SIZE, tmp_path / "obj_big.npy")
+    assert "obj_big.npy: neighbouring object points are 1.2 m apart" in caplog.text
 
 
 def test_npz_errors_name_the_key(tmp_path):

@@ -62,7 +62,9 @@ class ViewVerdict:
         rotation_change_deg: (3,) body-frame change of pan/tilt (x, y) and roll (z) the fit proposed.
         position_change_mm: (3,) body-frame change of position the fit proposed.
         intrinsics_change_px: (4,) fx, fy, cx, cy change the fit proposed.
-        transfer_change_px: the proposed change's effect on the transfer at infinity (px, RMS over the image).
+        transfer_change_px: the change's effect on the transfer at infinity (px, RMS over the image): of what was
+            written for a DRIFTED view, of the significant groups' part for a view with a significant change, of
+            the whole proposal otherwise.
         sigma_rotation_deg, sigma_position_mm, sigma_intrinsics_px: posterior 1-sigma (3, 3, 4), widened to the
             fold refits' scatter when that is larger; intrinsics a stage held report the input's own sigmas, a
             rotation held as a gauge (the second view's pan in a stereo pair) its drift prior's sigma, groups a
@@ -327,6 +329,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     # significant is not the same as mattering: only the significant groups' part of a change counts towards the
     # tolerance, and a change within it is reported, not applied
     size_px = change_size_px(calib, fit.calib, significant)
+    proposed_px = change_size_px(calib, fit.calib)  # the whole proposal, shown for views with nothing significant
     sig_views = {v for v in free if significant[v]}
     small = {v for v in sig_views if not size_px[v] > config.tolerance_px}
     sig_views -= small
@@ -408,7 +411,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
         obs_v = int(fit.valid[v].sum())
         needs: tuple[str, ...] = ()
-        change_px = float(written_size[v] if applied else size_px[v])
+        change_px = float(written_size[v] if applied else size_px[v] if significant.get(v) else proposed_px[v])
         if v == ref:
             verdict, reason = REFERENCE, "the reference view (the gauge)"
         elif v in fit.held:
