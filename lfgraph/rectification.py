@@ -252,11 +252,54 @@ def _largest_valid_rect(valid: np.ndarray) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
+MIN_SEPARATION_REL = 0.05  # two views closer than this fraction of the median neighbour distance are one position
+MIN_LENS_SLOPE = 0.0  # d(distorted radius)/d(radius) inside the image: below it the lens model folds over
+LENS_SCALE_RANGE = (0.2, 5.0)  # distorted / ideal radius at the image corner outside this: no real lens
+
+
+def check_rectifiable(calib: Calibration) -> None:
+    """Refuse a calibration whose rectification would be meaningless: two views at one position (no baseline between
+    them: the grid and its directions are undefined), or a lens model that folds over inside the image (its
+    undistortion is undefined there, e.g. k1 = 50).
+
+    Raises:
+        RectificationError: naming the views or the view and its coefficients.
+    """
+    grid = calib.grid
+    centres = calib.ref_T_view[:, :3, 3]
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    neighbours = [gaps[a, b] for a in range(grid.num_views) for b in range(a + 1, grid.num_views)
+                  if sum(abs(x - y) for x, y in zip(grid.position(a), grid.position(b), strict=True)) == 1]
+    scale = float(np.median(neighbours)) if neighbours else float(np.max(gaps))
+    for a in range(grid.num_views):
+        for b in range(a + 1, grid.num_views):
+            if not gaps[a, b] > MIN_SEPARATION_REL * scale:
+                raise RectificationError(
+                    f"views {grid.name(a)} and {grid.name(b)} are at one position ({1e3 * gaps[a, b]:.3f} mm apart, "
+                    f"neighbours are {1e3 * scale:.1f} mm): the grid's directions are undefined; check the calibration")
+    w, h = calib.image_size_px
+    for v, intr in enumerate(calib.intrinsics):
+        r_max = float(np.hypot(max(intr.cx, w - 1 - intr.cx) / intr.fx, max(intr.cy, h - 1 - intr.cy) / intr.fy))
+        r2 = np.linspace(0.0, r_max**2, 64)
+        slope = 1 + 3 * intr.k1 * r2 + 5 * intr.k2 * r2**2
+        factor = 1 + intr.k1 * r2 + intr.k2 * r2**2
+        if not LENS_SCALE_RANGE[0] <= factor[-1] <= LENS_SCALE_RANGE[1]:
+            raise RectificationError(
+                f"view {grid.name(v)}: its lens model (k1 {intr.k1:g}, k2 {intr.k2:g}) scales the image corner's "
+                f"radius by {factor[-1]:.3g}, which no real lens does; check the calibration")
+        if np.any(slope < MIN_LENS_SLOPE):
+            raise RectificationError(
+                f"view {grid.name(v)}: its lens model (k1 {intr.k1:g}, k2 {intr.k2:g}) folds over inside the image "
+                f"(the distortion is not monotonic out to the corners), so it cannot be undistorted there; check the "
+                f"calibration")
+
+
 def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectification:
     """The paper's rectification of a calibrated array (module docstring for the formulas).
 
     Raises:
-        RectificationError: unknown crop mode, a grid of one view, views with no common region.
+        RectificationError: unknown crop mode, a grid of one view, views with no common region, views at one
+            position, a lens model that folds over inside the image (`check_rectifiable`).
     """
     if crop not in CROPS:
         raise RectificationError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
@@ -266,6 +309,7 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
     w, h = calib.image_size_px
     ref_R_view = calib.ref_T_view[:, :3, :3]  # noqa: N806
     centres = calib.ref_T_view[:, :3, 3]
+    check_rectifiable(calib)
     _, u_fit, v_fit = fit_grid(grid, centres)
     rect_R_ref = common_rotation(ref_R_view, u_fit, v_fit)  # noqa: N806
     o, u, v = rectangular_grid(grid, centres, rect_R_ref)

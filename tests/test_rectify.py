@@ -18,7 +18,7 @@ from lfgraph.datasets.checkerboard import (
     make_checkerboard_truth,
     make_corner_observations,
 )
-from lfgraph.datasets.rig import make_rig
+from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.geometry import make_T
@@ -261,3 +261,19 @@ def test_opencv_stereo_rows_no_worse_than_stereo_rectify(test_data, tmp_path):
     print(f"row misalignment of corners: lfgraph {ours:.4f} px, cv2.stereoRectify {opencv:.4f} px")
     assert ours <= opencv * 1.0001, f"lfgraph {ours:.4f} px vs cv2.stereoRectify {opencv:.4f} px"
     assert ours < 0.5
+
+
+def test_degenerate_rigs_are_refused_by_name():
+    """Issue 27: two views at one position, or k1 = 50, gave rectified images and a grid deviation with no warning."""
+    from lfgraph.rectification import RectificationError, compute_rectification
+
+    rig = make_rig(RigConfig(rows=2, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    poses = np.array(rig.ref_T_view)
+    poses[3] = poses[2]  # r01_c01 at r01_c00's position
+    with pytest.raises(RectificationError, match="r01_c00 and r01_c01 are at one position"):
+        compute_rectification(rig.replace(ref_T_view=poses))
+    for k1, k2 in ((50.0, 0.0), (-1.5, 0.0)):  # absurd pincushion; a barrel lens that folds over inside the image
+        bad = rig.replace(intrinsics=(dataclasses.replace(rig.intrinsics[0], k1=k1, k2=k2), *rig.intrinsics[1:]))
+        with pytest.raises(RectificationError, match="r00_c00: its lens model"):
+            compute_rectification(bad)
+    compute_rectification(rig)  # the rig itself rectifies
