@@ -31,7 +31,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -114,15 +114,20 @@ def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
     return items
 
 
-def next_version(calibration: Path) -> Path:
-    """``NAME.vN.json`` beside ``calibration`` for the first N >= 2 that is free (the input is version 1)."""
+def _versions(calibration: Path) -> Iterator[Path]:
+    """``NAME.v2.json``, ``NAME.v3.json``, ... beside ``calibration`` (whose own version suffix is dropped)."""
     stem = calibration.stem
     base = stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
     for n in range(2, MAX_VERSIONS):
-        candidate = calibration.with_name(f"{base}.v{n}{calibration.suffix}")
+        yield calibration.with_name(f"{base}.v{n}{calibration.suffix}")
+
+
+def next_version(calibration: Path) -> Path:
+    """``NAME.vN.json`` beside ``calibration`` for the first N >= 2 that is free (the input is version 1)."""
+    for candidate in _versions(calibration):
         if not candidate.exists():
             return candidate
-    raise OSError(f"{calibration.parent}: {MAX_VERSIONS} versions of {base} already; clean the folder")
+    raise OSError(f"{calibration.parent}: {MAX_VERSIONS} versions of {calibration.stem} already; clean the folder")
 
 
 def source_key(item: FleetItem) -> dict[str, Any]:
@@ -136,10 +141,7 @@ def source_key(item: FleetItem) -> dict[str, Any]:
 def existing_version(input_path: Path, key: dict[str, Any]) -> Path | None:
     """A version beside ``input_path`` that a run interrupted before its results row was written made from the same
     source (``metrics["fleet_source"]`` equal to ``key``), or None."""
-    stem = input_path.stem
-    base = stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
-    for n in range(2, MAX_VERSIONS):
-        candidate = input_path.with_name(f"{base}.v{n}{input_path.suffix}")
+    for candidate in _versions(input_path):
         if not candidate.exists():
             return None
         try:
