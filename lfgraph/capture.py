@@ -453,3 +453,17 @@ def check_frame_array(images: object, frame: int, grid, image_size_px: tuple[int
     if images.shape[0] != grid.num_views or images.shape[1:3] != (h, w):
         raise ValueError(f"{what} {frame} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but "
                          f"the calibration is a {grid} grid of {w}x{h} px views")
+
+
+def check_frames_argument(frames: object, where: str) -> None:
+    """Refuse, with a message naming the argument, what is not an iterable of frames: None, a single (V, H, W) array
+    (one frame must be passed as ``[images]``), a string.
+
+    Raises:
+        TypeError: naming ``where`` and what it got.
+    """
+    if frames is None or isinstance(frames, str | bytes):
+        raise TypeError(f"{where}: frames must be an iterable of (V, H, W) uint8 arrays (e.g. capture.frames()), "
+                        f"got {type(frames).__name__}")
+    if isinstance(frames, np.ndarray) and frames.ndim == 3:
+        raise TypeError(f"{where}: frames is one (V, H, W) array; pass an iterable of frames, e.g. [images]")

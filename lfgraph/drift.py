@@ -15,7 +15,7 @@ import numpy as np
 
 from lfgraph.alignment import PointAlignmentReport, align_points
 from lfgraph.calibration import Calibration
-from lfgraph.capture import check_frame_array
+from lfgraph.capture import check_frame_array, check_frames_argument
 from lfgraph.rectification import Rectification
 from lfgraph.refinement.matching import MatchSettings, Tracks, track_chain
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
@@ -134,6 +134,9 @@ def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSetti
     """
     from lfgraph.rectification import compute_rectification, stored_rectification
 
+    if not isinstance(calib, Calibration):
+        raise TypeError(f"check: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
+    check_frames_argument(frames, "check")
     rect = stored_rectification(calib) or compute_rectification(calib)
     return check_capture(calib, rect, frames, settings, config)
 

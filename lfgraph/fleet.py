@@ -107,6 +107,12 @@ def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
         if not (np.isfinite(tolerance_px) and tolerance_px >= 0):
             raise ManifestError(f"{path}, line {line}: tolerance_px must be >= 0, got {tolerance_px:g}")
         base = path.parent
+        given = row["calibration"].strip()
+        target = (base / given).resolve()
+        if not Path(given).is_absolute() and base.resolve() not in target.parents:
+            raise ManifestError(f"{path}, line {line}: calibration {given!r} climbs out of the manifest's folder "
+                                f"{base}; the fleet writes new versions beside the calibrations, so a relative path "
+                                f"must stay inside it (an absolute path says where on purpose)")
         items.append(FleetItem(camera, base / row["calibration"].strip(), base / row["capture"].strip(),
                                (row.get("layout") or "auto").strip(), max_frames, max_px, base, tolerance_px))
     if not items:

@@ -274,3 +274,23 @@ def test_import_graph_has_no_circle_and_no_arrow_back_up():
     for m in graph:
         if m not in state:
             visit(m, [])
+
+
+def test_the_entry_points_name_arguments_of_the_wrong_kind():
+    """Issues 27/28: None, wrong types and a single frame gave tracebacks deep inside lfgraph."""
+    import numpy as np
+
+    import lfgraph as lf
+    from lfgraph.datasets.rig import RigConfig, make_rig
+
+    rig = make_rig(RigConfig(rows=2, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    one = np.zeros((4, 240, 320), np.uint8)
+    cases = [(lambda: lf.refine(None, [one]), "calib must be a lfgraph.Calibration"),
+             (lambda: lf.refine(rig, None), "frames must be an iterable"),
+             (lambda: lf.refine(rig, one), "one .V, H, W. array"),
+             (lambda: lf.refine(rig, [one], config="default"), "config must be a lfgraph.RefineConfig"),
+             (lambda: lf.check(None, [one]), "calib must be a lfgraph.Calibration"),
+             (lambda: lf.calibrate(None), "obs must be lfgraph.BoardObservations")]
+    for call, message in cases:
+        with pytest.raises(TypeError, match=message):
+            call()

@@ -72,6 +72,10 @@ def test_bad_manifests_are_named(tmp_path):
     bad.write_text("camera,calibration,capture,max_px\nA,a.json,x,zero\n")
     with pytest.raises(ManifestError, match="line 2"):
         read_manifest(bad)
+    # issue 27: `../../` paths wrote versions outside the manifest's tree
+    bad.write_text("camera,calibration,capture\nA,../../a.json,x\n")
+    with pytest.raises(ManifestError, match=r"line 2: calibration '../../a.json' climbs out of the manifest's folder"):
+        read_manifest(bad)
 
 
 def test_versions_count_up_and_never_reuse_a_name(tmp_path):

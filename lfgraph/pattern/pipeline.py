@@ -52,6 +52,11 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     Raises:
         CalibrationInputError: views without enough board detections, views that share no frames with others.
     """
+    if not isinstance(obs, BoardObservations):
+        raise TypeError(f"calibrate: obs must be lfgraph.BoardObservations (from lfgraph.detect_capture or "
+                        f"lfgraph.load_detections), got {type(obs).__name__}")
+    if config is not None and not isinstance(config, CalibrateConfig):
+        raise TypeError(f"calibrate: config must be a lfgraph.CalibrateConfig, got {type(config).__name__}")
     config = config or CalibrateConfig()
     say = resolve(observer)
     method, init = config.method, config.init

@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.capture import check_frame_array
+from lfgraph.capture import check_frame_array, check_frames_argument
 from lfgraph.observer import Observer, resolve
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig
@@ -87,6 +87,11 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         ValueError: a frame whose shape does not match the calibration (named), no frame, or no track survives the
             filters (too little texture).
     """
+    if not isinstance(calib, Calibration):
+        raise TypeError(f"refine: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
+    if config is not None and not isinstance(config, RefineConfig):
+        raise TypeError(f"refine: config must be a lfgraph.RefineConfig, got {type(config).__name__}")
+    check_frames_argument(frames, "refine")
     config = config or RefineConfig()
     obs = resolve(observer)
     # A frame's KLT does not depend on the calibration: it runs in a worker thread (OpenCV releases the GIL) while
