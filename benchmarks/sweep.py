@@ -48,6 +48,7 @@ MAX_KNOCK_DEG = 2.0
 MAX_KNOCK_MM = 5.0
 DISTORTION_JITTER = 0.01  # RigConfig's default spread of k1 (k2: half) between views
 MIN_DISTORTION_SLOPE = 0.3  # d(distorted radius)/d(radius) everywhere in the image: a lens, not a fold-over
+SIGMA_FLOOR = 1e-3  # px and mm: a reported sigma below this counts as this in the never-worse comparisons
 MISS_FACTOR = 3.0  # a view knocked by >= 3x the tolerance (transfer at infinity) must not be left OK
 GOAL_FALSE_ALARM = 0.01
 GOAL_MISS = 0.01
@@ -178,13 +179,13 @@ def score(s: Scenario, inp: Calibration, truth: Calibration, out: Calibration, r
     free = np.arange(truth.num_views) != ref
     pin, pout = np.linalg.norm(pos_in, axis=1), np.linalg.norm(pos_out, axis=1)
     # calibration level (the criterion): RMS over views of the written vs the input, beyond the RMS 1-sigma
-    worse_cal_t = _rms(te_out[free]) > _rms(te_in[free]) + max(_rms(sig_t[free]), 1e-3)
-    worse_cal_p = _rms(pout[free]) > _rms(pin[free]) + max(_rms(sig_p[free]), 1e-3)
+    worse_cal_t = _rms(te_out[free]) > _rms(te_in[free]) + max(_rms(sig_t[free]), SIGMA_FLOOR)
+    worse_cal_p = _rms(pout[free]) > _rms(pin[free]) + max(_rms(sig_p[free]), SIGMA_FLOOR)
     # per view, beyond 1 and beyond 3 of its own sigmas (a refitted view whose input was exact is beyond 1 sigma
     # ~40 % of the time by chance: the 3-sigma count is the one that says "made worse")
-    worse_t = te_out > te_in + np.maximum(sig_t, 1e-3)
-    worse_p = pout > pin + np.maximum(sig_p, 1e-3)
-    worse3 = (te_out > te_in + 3 * np.maximum(sig_t, 1e-3)) | (pout > pin + 3 * np.maximum(sig_p, 1e-3))
+    worse_t = te_out > te_in + np.maximum(sig_t, SIGMA_FLOOR)
+    worse_p = pout > pin + np.maximum(sig_p, SIGMA_FLOOR)
+    worse3 = (te_out > te_in + 3 * np.maximum(sig_t, SIGMA_FLOOR)) | (pout > pin + 3 * np.maximum(sig_p, SIGMA_FLOOR))
     worse = (worse_t | worse_p)
     worse[ref] = worse3[ref] = False
     drifted = np.array([v.verdict == DRIFTED for v in verdicts])
