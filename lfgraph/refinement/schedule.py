@@ -84,8 +84,9 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         ``verdicts``).
 
     Raises:
-        ValueError: a frame whose shape does not match the calibration (named), no frame, or no track survives the
-            filters (too little texture).
+        ValueError: a frame whose shape, dtype or size does not match the calibration (named), no frame, or no
+            track survives the filters (too little texture).
+        TypeError: ``calib``, ``config`` or ``frames`` of the wrong kind (named).
     """
     if not isinstance(calib, Calibration):
         raise TypeError(f"refine: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
