@@ -24,15 +24,18 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.factors.scene_graph import rotation_gauge
-from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.posterior import (
+    GROUPS,
+    ROTATION,
     Posterior,
+    change_size_px,
     chi2_sigma,
     infinity_rays,
     pose_change,
     posterior,
     predicted_transfer_px,
+    restricted,
 )
 from lfgraph.refinement.priors import input_sigmas, view_priors
 from lfgraph.refinement.triangulate import finite_rms, reprojection_errors, triangulate_dlt
@@ -105,8 +108,6 @@ class ViewVerdict:
                 "predicted_transfer_px": f(self.predicted_transfer_px), "observations": self.observations}
 
 
-GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics": (6, 7, 8, 9)}
-ROTATION = (0, 1, 2)  # also tested jointly: a tilt and a roll each just short of significance can be clear together
 
 
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
@@ -384,121 +385,106 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
                     f"{heldout_after:.4f} px with the candidate refitted without them (its own tracks "
                     f"{fit_rms:.4f} px): " + ("accepted" if accepted else "rejected"))
     out = candidate if accepted else calib
+    dec = _Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
+                    accepted, inconsistent, heldout_before, heldout_after, fit_rms)
     written_size = change_size_px(calib, out, significant)
-    verdicts = []
     own = input_sigmas(calib)
-    gauge_axis = rotation_gauge(calib)
     gauge_sigma = view_priors(calib, config.drift).pose_sigmas
+    verdicts = []
     for v in range(n):
         applied = v in sig_views and accepted
         shown = out if applied else fit.calib  # an applied view reports what was written, the others the proposal
         d = pose_change(calib.ref_T_view[v], shown.ref_T_view[v])
         a, b = shown.intrinsics[v], calib.intrinsics[v]
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
-        pv = post  # an applied view was written from the full fit: its posterior
-        if pv is not None:
-            s_rot = np.degrees(np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[:3], 0.0)))
-            s_pos = 1e3 * np.sqrt(np.maximum(np.diag(pv.pose_cov[v])[3:], 0.0))
-            s_int = np.sqrt(np.maximum(np.diag(pv.intr_cov[v]), 0.0))
-            if not pv.intrinsics_free and own is not None:  # held: what the input itself knew
-                s_int = own[1][v]
-            pred = predicted_transfer_px(calib, pv, v, rays) if v != ref else 0.0
-            if gauge_axis is not None and gauge_axis[0] == v and pv.held_mask(v)[gauge_axis[1]]:
-                # a rotation held as a gauge is not known to the graph's ~0: as well as the drift prior allows
-                # (predicted_transfer_px covers the directions the data determine)
-                s_rot[gauge_axis[1]] = np.degrees(gauge_sigma[v, gauge_axis[1]])
-        else:
-            s_rot, s_pos, s_int, pred = np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
-        obs_v = int(fit.valid[v].sum())
-        needs: tuple[str, ...] = ()
+        s_rot, s_pos, s_int, pred = _view_sigmas(calib, post, v, rays, own, gauge_sigma)
         change_px = float(written_size[v] if applied else size_px[v] if significant.get(v) else proposed_px[v])
-        if v == ref:
-            verdict, reason = REFERENCE, "the reference view (the gauge)"
-        elif v in fit.held:
-            verdict, reason = UNCERTAIN, f"only {obs_v} observations (< {config.min_view_observations}): held"
-            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
-        elif applied:
-            verdict = DRIFTED
-            reason = (", ".join(f"{g} {zg[v][g]:.1f} sigma" for g in significant[v])
-                      + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by held-out "
-                      "tracks; the view is written from the full fit")
-        elif inconsistent and v not in sig_views:
-            verdict = UNCERTAIN
-            reason = (f"a {z.get(v, 0.0):.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits "
-                      f"predict held-out tracks {heldout_after / max(fit_rms, MIN_TRACK_RMS_PX):.0f}x worse than "
-                      f"they fit their own (mismatches, or too few tracks): kept")
-            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
-        elif v in unsure_mismatch:
-            verdict = UNCERTAIN
-            reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
-                      f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a repeated "
-                      f"pattern?): kept")
-            needs = ("texture that does not repeat (or a scene farther away)", *data_needs(
-                calib, fit.points, fit.valid, v, coverage, frames))
-        elif v in small:
-            verdict = OK
-            reason = (f"a significant ({z[v]:.1f} sigma) change of {change_px:.3f} px, within the tolerance "
-                      f"{config.tolerance_px:g} px: not applied")
-        elif v in unsure:
-            verdict = UNCERTAIN
-            reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px, but applied it would leave {unsure[v]:.2f} px "
-                      f"(1 sigma) undetermined at infinity: kept")
-            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
-        elif v in sig_views:
-            verdict = UNCERTAIN
-            reason = (f"a {z[v]:.1f}-sigma change of {change_px:.2f} px that the held-out tracks did not confirm "
-                      f"({heldout_before:.3f} px with the input, {heldout_after:.3f} px with the change"
-                      + (f", {heldout_after / max(fit_rms, MIN_TRACK_RMS_PX):.0f}x what it leaves on its own tracks: "
-                         f"the frames disagree" if inconsistent else "") + "): kept")
-            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
-        elif post is None or not pred <= config.uncertain_transfer_px:
-            verdict = UNCERTAIN
-            reason = (f"no significant change ({z.get(v, 0.0):.1f} sigma) but the data leave {pred:.2f} px "
-                      f"(1 sigma) at infinity undetermined: kept")
-            needs = data_needs(calib, fit.points, fit.valid, v, coverage, frames)
-        else:
-            verdict = OK
-            reason = f"no significant change ({z.get(v, 0.0):.1f} sigma; 1 sigma = {pred:.3f} px at infinity)"
+        verdict, reason, needs = _verdict(v, dec, calib, fit, config, change_px, pred, post is not None)
+        needs = () if needs is None else (*needs, *data_needs(calib, fit.points, fit.valid, v, coverage, frames))
         verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),
-                                    1e3 * d[3:], dk, change_px, s_rot, s_pos, s_int, float(pred), obs_v,
-                                    applied, reason, needs))
+                                    1e3 * d[3:], dk, change_px, s_rot, s_pos, s_int, float(pred),
+                                    int(fit.valid[v].sum()), applied, reason, needs))
     return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
 
 
-def restricted(post: Posterior, v: int, groups: tuple[str, ...]) -> Posterior:
-    """``post`` with view v's covariance kept only in the rotation and intrinsics directions of ``groups``."""
-    keep = np.zeros(10, dtype=bool)
-    if "pan_tilt" in groups or "roll" in groups:  # the joint rotation test only counts when neither group does
-        groups = tuple(g for g in groups if g != "rotation")
-    for g in groups:
-        keep[list(ROTATION if g == "rotation" else GROUPS[g])] = True
-    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
-    pose_cov[v] = pose_cov[v] * np.outer(keep[:6], keep[:6])
-    intr_cov[v] = intr_cov[v] * np.outer(keep[6:], keep[6:])
-    cross[v] = cross[v] * np.outer(keep[:6], keep[6:])
-    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px, post.held)
+@dataclass(frozen=True)
+class _Decision:
+    """What `assess` decided, view by view, for `_verdict` to word."""
+
+    significant: dict[int, tuple[str, ...]]
+    zg: dict[int, dict[str, float]]
+    z: dict[int, float]
+    sig_views: frozenset[int]
+    small: frozenset[int]
+    unsure: dict[int, float]
+    unsure_mismatch: frozenset[int]
+    accepted: bool
+    inconsistent: bool
+    heldout_before: float
+    heldout_after: float
+    fit_rms: float
+
+    @property
+    def disagreement(self) -> float:
+        """How many times worse the refits predict held-out tracks than the fit its own."""
+        return self.heldout_after / max(self.fit_rms, MIN_TRACK_RMS_PX)
 
 
-def change_size_px(before: Calibration, after: Calibration,
-                   groups: dict[int, tuple[str, ...]] | None = None) -> np.ndarray:
-    """(V,) how much a change moves each view's image: its transfer at infinity (RMS over the reference image, px),
-    the figure disparity and refocusing see and that ``tolerance_px`` is stated in. With ``groups`` (view -> the
-    groups whose change was significant) only those groups' part of the change counts: a significant position change
-    that carries an insignificant turn is not a turn that matters."""
-    from lfgraph.alignment import transfer_error_at_infinity
+def _view_sigmas(calib: Calibration, post: Posterior | None, v: int, rays: np.ndarray,
+                 own: tuple[np.ndarray, np.ndarray] | None, gauge_sigma: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """View v's reported 1-sigmas (rotation deg, position mm, intrinsics px) and its predicted transfer at
+    infinity (px), from the posterior; intrinsics a stage held report the input's own sigmas, a rotation held as a
+    gauge its drift prior's (the graph's ~0 is no knowledge)."""
+    if post is None:
+        return np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
+    s_rot = np.degrees(np.sqrt(np.maximum(np.diag(post.pose_cov[v])[:3], 0.0)))
+    s_pos = 1e3 * np.sqrt(np.maximum(np.diag(post.pose_cov[v])[3:], 0.0))
+    s_int = np.sqrt(np.maximum(np.diag(post.intr_cov[v]), 0.0))
+    if not post.intrinsics_free and own is not None:
+        s_int = own[1][v]
+    pred = predicted_transfer_px(calib, post, v, rays) if v != calib.grid.reference else 0.0
+    gauge_axis = rotation_gauge(calib)
+    if gauge_axis is not None and gauge_axis[0] == v and post.held_mask(v)[gauge_axis[1]]:
+        s_rot[gauge_axis[1]] = np.degrees(gauge_sigma[v, gauge_axis[1]])  # predicted_transfer_px: the data's part
+    return s_rot, s_pos, s_int, pred
 
-    if groups is None:
-        return transfer_error_at_infinity(after, before)
-    poses = np.array(before.ref_T_view)
-    intr = list(before.intrinsics)
-    for v, gs in groups.items():
-        d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
-        mask = np.zeros(3)
-        for g in gs:
-            for i in (ROTATION if g == "rotation" else GROUPS[g]):
-                if i < 3:
-                    mask[i] = 1.0
-        poses[v] = before.ref_T_view[v] @ make_T(rotation_from_rotvec(d[:3] * mask), np.zeros(3))
-        if "intrinsics" in gs:
-            intr[v] = after.intrinsics[v]
-    return transfer_error_at_infinity(before.replace(ref_T_view=poses, intrinsics=tuple(intr)), before)
+
+def _verdict(v: int, dec: _Decision, calib: Calibration, fit, config: RefineConfig, change_px: float, pred: float,
+             have_posterior: bool) -> tuple[str, str, tuple[str, ...] | None]:
+    """(verdict, reason, needs) of view v: ``needs`` None when the verdict wants no more data, else the specific
+    needs that come before `data_needs` (which the caller appends)."""
+    z = dec.z.get(v, 0.0)
+    ask: tuple[str, ...] = ()
+    if v == calib.grid.reference:
+        return REFERENCE, "the reference view (the gauge)", None
+    if v in fit.held:
+        return UNCERTAIN, (f"only {int(fit.valid[v].sum())} observations (< {config.min_view_observations}): "
+                           f"held"), ask
+    if v in dec.sig_views and dec.accepted:
+        return DRIFTED, (", ".join(f"{g} {dec.zg[v][g]:.1f} sigma" for g in dec.significant[v])
+                         + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by "
+                         "held-out tracks; the view is written from the full fit"), None
+    if dec.inconsistent and v not in dec.sig_views:
+        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits predict "
+                           f"held-out tracks {dec.disagreement:.0f}x worse than they fit their own (mismatches, or "
+                           f"too few tracks): kept"), ask
+    if v in dec.unsure_mismatch:
+        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
+                           f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a "
+                           f"repeated pattern?): kept"), ("texture that does not repeat (or a scene farther away)",)
+    if v in dec.small:
+        return OK, (f"a significant ({z:.1f} sigma) change of {change_px:.3f} px, within the tolerance "
+                    f"{config.tolerance_px:g} px: not applied"), None
+    if v in dec.unsure:
+        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but applied it would leave "
+                           f"{dec.unsure[v]:.2f} px (1 sigma) undetermined at infinity: kept"), ask
+    if v in dec.sig_views:
+        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px that the held-out tracks did not confirm "
+                           f"({dec.heldout_before:.3f} px with the input, {dec.heldout_after:.3f} px with the change"
+                           + (f", {dec.disagreement:.0f}x what it leaves on its own tracks: the frames disagree"
+                              if dec.inconsistent else "") + "): kept"), ask
+    if not have_posterior or not pred <= config.uncertain_transfer_px:
+        return UNCERTAIN, (f"no significant change ({z:.1f} sigma) but the data leave {pred:.2f} px (1 sigma) at "
+                           f"infinity undetermined: kept"), ask
+    return OK, f"no significant change ({z:.1f} sigma; 1 sigma = {pred:.3f} px at infinity)", None

@@ -12,7 +12,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_gauge, rotation_gauge
-from lfgraph.geometry import rotation_from_rotvec, to_pose3
+from lfgraph.geometry import make_T, rotation_from_rotvec, to_pose3
 from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
@@ -20,6 +20,8 @@ from lfgraph.refinement.stages import stage_graph, stage_problem
 from lfgraph.schur import marginal_covariance, problem_covariance
 from lfgraph.schur_system import NotReducible, camera_block
 
+GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics": (6, 7, 8, 9)}  # of the 10 directions
+ROTATION = (0, 1, 2)  # also tested jointly: a tilt and a roll each just short of significance can be clear together
 TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
 
@@ -185,3 +187,44 @@ def predicted_transfer_px(calib: Calibration, post: Posterior, v: int, rays: np.
 def pose_change(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     """(6,) body-frame change, rotation (rad) then translation (m): Logmap(before^-1 after), as a Pose3 prior."""
     return np.asarray(gtsam.Pose3.Logmap(to_pose3(before).between(to_pose3(after))))
+
+
+def group_mask(groups: tuple[str, ...]) -> np.ndarray:
+    """(10,) the directions of parameter groups (`GROUPS` names, or ``"rotation"`` for all three rotations)."""
+    keep = np.zeros(10, dtype=bool)
+    for g in groups:
+        keep[list(ROTATION if g == "rotation" else GROUPS[g])] = True
+    return keep
+
+
+def restricted(post: Posterior, v: int, groups: tuple[str, ...]) -> Posterior:
+    """``post`` with view v's covariance kept only in the directions of ``groups`` (the joint ``"rotation"`` group
+    only when neither pan/tilt nor roll is among them)."""
+    if "pan_tilt" in groups or "roll" in groups:
+        groups = tuple(g for g in groups if g != "rotation")
+    keep = group_mask(groups)
+    pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
+    pose_cov[v] = pose_cov[v] * np.outer(keep[:6], keep[:6])
+    intr_cov[v] = intr_cov[v] * np.outer(keep[6:], keep[6:])
+    cross[v] = cross[v] * np.outer(keep[:6], keep[6:])
+    return Posterior(pose_cov, intr_cov, cross, post.intrinsics_free, post.sigma_px, post.held)
+
+
+def change_size_px(before: Calibration, after: Calibration,
+                   groups: dict[int, tuple[str, ...]] | None = None) -> np.ndarray:
+    """(V,) how much a change moves each view's image: its transfer at infinity (RMS over the reference image, px),
+    the figure disparity and refocusing see and that ``tolerance_px`` is stated in. With ``groups`` (view -> the
+    groups whose change was significant) only those groups' part of the change counts: a significant position change
+    that carries an insignificant turn is not a turn that matters."""
+    from lfgraph.alignment import transfer_error_at_infinity
+
+    if groups is None:
+        return transfer_error_at_infinity(after, before)
+    poses = np.array(before.ref_T_view)
+    intr = list(before.intrinsics)
+    for v, gs in groups.items():
+        d = pose_change(before.ref_T_view[v], after.ref_T_view[v])
+        poses[v] = before.ref_T_view[v] @ make_T(rotation_from_rotvec(d[:3] * group_mask(gs)[:3]), np.zeros(3))
+        if "intrinsics" in gs:
+            intr[v] = after.intrinsics[v]
+    return transfer_error_at_infinity(before.replace(ref_T_view=poses, intrinsics=tuple(intr)), before)
