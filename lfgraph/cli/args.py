@@ -139,13 +139,18 @@ def check_side_outputs(args: argparse.Namespace, inputs: Iterable[Path] = (), ou
         if plots.exists() and not plots.is_dir():
             raise UsageError(f"--plots {plots} is a file; give a folder for the report figures")
         root = getattr(args, "input", None)
-        if root is not None and Path(root).is_dir() and (plots.resolve() == Path(root).resolve()
-                                                         or Path(root).resolve() in plots.resolve().parents):
+        if root is not None and Path(root).is_dir() and _inside(plots, Path(root)):
             raise ValueError(f"--plots {plots}: lies inside the input {root}; figures there would become part of "
                              f"the capture. Give a folder outside it")
         for p in (*inputs, *outputs):
             if _same_file(plots, p):
                 raise ValueError(f"--plots {plots}: is {p}, which this command reads or writes")
+
+
+def _inside(path: Path, root: Path) -> bool:
+    """Whether ``path`` is ``root`` or lies below it (resolved)."""
+    path, root = path.resolve(), root.resolve()
+    return path == root or root in path.parents
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -207,8 +212,7 @@ def check_output_folder(path: Path, input_root: Path | None = None, flag: str = 
     if path.exists() and (not path.is_dir() or any(path.iterdir())):
         raise UsageError(f"{flag} {path} exists and is not an empty folder; choose a new output folder")
     if input_root is not None:
-        root = Path(input_root).resolve()
-        if path.resolve() == root or root in path.resolve().parents:
+        if _inside(path, Path(input_root)):
             raise UsageError(f"{flag} {path} is inside the input {input_root}; choose a folder outside it")
     parent = path.parent if str(path.parent) else Path(".")
     existing = parent
