@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from lfgraph.camera import Intrinsics
+from lfgraph.camera import DISTORTION_KEYS, LENSES, RADTAN, Intrinsics
 from lfgraph.geometry import invert_T, is_rotation, make_T
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import write_text_atomic
@@ -97,7 +97,8 @@ class Calibration:
             views.append({
                 "index": v, "row": r, "col": c,
                 "K": intr.K.tolist(),
-                "distortion": {"k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2},
+                "lens": intr.lens,
+                "distortion": intr.distortion,
                 "R_view_from_ref": view_T_ref[:3, :3].tolist(),
                 "t_view_from_ref_m": view_T_ref[:3, 3].tolist(),
             })
@@ -118,7 +119,7 @@ class Calibration:
         views = []
         for v, intr in enumerate(self.intrinsics):
             views.append({"index": v, "name": self.grid.name(v), "fx_px": intr.fx, "fy_px": intr.fy, "cx_px": intr.cx,
-                          "cy_px": intr.cy, "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2,
+                          "cy_px": intr.cy, "lens": intr.lens, **intr.distortion,
                           "position_mm": [float(x) for x in 1e3 * self.ref_T_view[v, :3, 3]],
                           "rotation_deg": float(rotation_angle_deg(self.ref_T_view[v, :3, :3]))})
         return {"grid": {"rows": self.grid.rows, "cols": self.grid.cols, "reference": self.grid.reference},
@@ -237,9 +238,19 @@ def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
         K = matrix(get(view, "K", w), (3, 3), f"{w}.K")  # noqa: N806
         if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise fail(f"{w}.K", f"must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
+        lens = view.get("lens", RADTAN) if isinstance(view, dict) else RADTAN
+        if lens not in LENSES:
+            raise fail(f"{w}.lens", f"must be one of {', '.join(LENSES)}, got {lens!r}")
         dist = get(view, "distortion", w)
-        coeffs = [number(get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}") for k in ("k1", "k2", "p1", "p2")]
-        intrinsics.append(Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *coeffs))
+        coeffs = {k: number(get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}") for k in DISTORTION_KEYS[lens]}
+        extra = sorted(set(dist) - set(DISTORTION_KEYS[lens]))
+        if extra:
+            raise fail(f"{w}.distortion", f"a {lens} lens has {', '.join(DISTORTION_KEYS[lens])}, not "
+                                          f"{', '.join(map(str, extra))}")
+        try:
+            intrinsics.append(Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], **coeffs, lens=lens))
+        except ValueError as exc:
+            raise fail(f"{w}.distortion", str(exc)) from None
         R = matrix(get(view, "R_view_from_ref", w), (3, 3), f"{w}.R_view_from_ref")  # noqa: N806
         if not is_rotation(R):
             raise fail(f"{w}.R_view_from_ref", "is not a rotation matrix (R^T R must be I and det R = +1)")

@@ -1,15 +1,26 @@
-"""Pinhole + Brown distortion camera model (paper eq. 1-3), vectorised.
+"""Per-view lens models (paper eq. 1-3 and two wide-angle models), vectorised.
 
-The model is exactly GTSAM's ``Cal3DS2`` and OpenCV's 5-coefficient model with ``k3 = 0``:
+Three models, each exactly the GTSAM calibration class named beside it (no skew):
 
-    r2 = x^2 + y^2,  radial = 1 + k1 r2 + k2 r2^2
-    x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
-    y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
-    u = fx x_d + cx,  v = fy y_d + cy
+- ``radtan`` — pinhole + Brown distortion, GTSAM's ``Cal3DS2`` and OpenCV's 5-coefficient model with ``k3 = 0``::
 
-where ``(x, y)`` are normalised image coordinates (``X/Z, Y/Z`` in the camera frame). Pixels follow OpenCV's
-convention: ``(0, 0)`` is the centre of the top-left pixel, ``x`` right, ``y`` down. The paper's distortion centre is
-the principal point, as in ``Cal3DS2``.
+      r2 = x^2 + y^2,  radial = 1 + k1 r2 + k2 r2^2
+      x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+      y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+
+- ``fisheye`` — equidistant Kannala–Brandt, GTSAM's ``Cal3Fisheye`` and OpenCV's ``cv2.fisheye`` (k1..k4)::
+
+      theta = atan(r),  theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+      (x_d, y_d) = (x, y) theta_d / r
+
+- ``unified`` — Mei's unified (omnidirectional) model with radial-tangential terms, GTSAM's ``Cal3Unified`` and
+  Kalibr's ``omni-radtan``: the point on the unit sphere is shifted by ``xi`` along the axis, then ``radtan``::
+
+      (x, y) -> (x, y) / (1 + xi sqrt(x^2 + y^2 + 1)),  then the radtan distortion with k1, k2, p1, p2
+
+and for every model ``u = fx x_d + cx,  v = fy y_d + cy``, where ``(x, y)`` are normalised image coordinates
+(``X/Z, Y/Z`` in the camera frame). Pixels follow OpenCV's convention: ``(0, 0)`` is the centre of the top-left pixel,
+``x`` right, ``y`` down. The distortion centre is the principal point.
 """
 
 from __future__ import annotations
@@ -23,6 +34,13 @@ import numpy as np
 UNDISTORT_MAX_ITERATIONS = 50
 UNDISTORT_TOLERANCE = 1e-15  # normalised units; ~1e-12 px at f = 1000 px
 UNDISTORT_RESIDUAL_LIMIT = 1e-11  # normalised units; larger residuals mean the pixel has no inverse
+
+RADTAN, FISHEYE, UNIFIED = "radtan", "fisheye", "unified"
+LENSES = (RADTAN, FISHEYE, UNIFIED)
+# the distortion keys of each model, as calibration.json stores them (OpenCV's names; Kalibr's xi for unified)
+DISTORTION_KEYS = {RADTAN: ("k1", "k2", "p1", "p2"), FISHEYE: ("k1", "k2", "k3", "k4"),
+                   UNIFIED: ("xi", "k1", "k2", "p1", "p2")}
+_UNUSED = {RADTAN: ("k3", "k4", "xi"), FISHEYE: ("p1", "p2", "xi"), UNIFIED: ("k3", "k4")}
 
 
 def _as_points(points: np.ndarray, dims: tuple[int, ...], name: str) -> np.ndarray:
@@ -50,9 +68,118 @@ def distortion_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2) -> tuple[n
             radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x)
 
 
+def fisheye_theta_d(theta: np.ndarray, k1, k2, k3, k4) -> np.ndarray:
+    """Kannala–Brandt: the distorted angle ``theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``."""
+    t2 = theta * theta
+    return theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+
+
+def distort_fisheye_xy(x: np.ndarray, y: np.ndarray, k1, k2, k3, k4) -> tuple[np.ndarray, np.ndarray]:
+    """The Cal3Fisheye / ``cv2.fisheye`` distortion of normalised coordinates (arrays broadcast)."""
+    r = np.hypot(x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(r > 1e-12, fisheye_theta_d(np.arctan(r), k1, k2, k3, k4) / np.where(r > 1e-12, r, 1.0),
+                         1.0)
+    return x * scale, y * scale
+
+
+def unified_to_plane(x: np.ndarray, y: np.ndarray, xi) -> tuple[np.ndarray, np.ndarray]:
+    """Mei's projection of the ray through normalised ``(x, y)`` from the unit sphere shifted by ``xi``."""
+    d = 1.0 + xi * np.sqrt(x * x + y * y + 1.0)
+    return x / d, y / d
+
+
+def _undo_radtan(target: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Newton inverse of `distort_xy` for (V, N, 2) distorted normalised coordinates, k (V, 4, 1) = k1 k2 p1 p2.
+
+    The loop runs until the largest step of all views is below the tolerance. Results that are not true inverses on
+    the unfolded branch (residual ~0 and d(r radial)/dr > 0) are NaN."""
+    k1, k2, p1, p2 = (k[:, i] for i in range(4))
+    xy = target.copy()
+    distorted = np.any(k[:, :, 0] != 0.0, axis=1)
+    if not distorted.any():
+        return xy
+    for _ in range(UNDISTORT_MAX_ITERATIONS):
+        x, y = xy[..., 0], xy[..., 1]
+        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
+        j00, j01, j11 = distortion_jacobian(x, y, k1, k2, p1, p2)
+        fx_, fy_ = xd - target[..., 0], yd - target[..., 1]
+        det = j00 * j11 - j01 * j01
+        dx = (j11 * fx_ - j01 * fy_) / det
+        dy = (-j01 * fx_ + j00 * fy_) / det
+        dx[~distorted], dy[~distorted] = 0.0, 0.0
+        xy[..., 0] -= dx
+        xy[..., 1] -= dy
+        if np.nanmax(np.abs(np.concatenate([dx.ravel(), dy.ravel()])), initial=0.0) < UNDISTORT_TOLERANCE:
+            break
+    with np.errstate(invalid="ignore", over="ignore"):
+        x, y = xy[..., 0], xy[..., 1]
+        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
+        residual = np.maximum(np.abs(xd - target[..., 0]), np.abs(yd - target[..., 1]))
+        r2 = x * x + y * y
+        radial_derivative = 1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2)
+        bad = (~(residual < UNDISTORT_RESIDUAL_LIMIT) | ~(radial_derivative > 0)) & distorted[:, None]
+    xy[bad] = np.nan
+    return xy
+
+
+def _undo_fisheye(target: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Newton inverse of `distort_fisheye_xy` for (V, N, 2), k (V, 4, 1) = k1..k4: solve theta_d(theta) = r_d, then
+    r = tan(theta). NaN where theta would reach 90 degrees, the polynomial is not increasing, or no root is found."""
+    k1, k2, k3, k4 = (k[:, i] for i in range(4))
+    rd = np.hypot(target[..., 0], target[..., 1])
+    theta = np.minimum(rd, 1.5)
+    for _ in range(UNDISTORT_MAX_ITERATIONS):
+        t2 = theta * theta
+        f = fisheye_theta_d(theta, k1, k2, k3, k4) - rd
+        df = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = f / df
+        theta = theta - step
+        if np.nanmax(np.abs(step), initial=0.0) < UNDISTORT_TOLERANCE:
+            break
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        t2 = theta * theta
+        df = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+        residual = np.abs(fisheye_theta_d(theta, k1, k2, k3, k4) - rd)
+        ok = (residual < UNDISTORT_RESIDUAL_LIMIT) & (df > 0) & (theta >= 0) & (theta < np.pi / 2)
+        scale = np.where(rd > 1e-12, np.tan(theta) / np.where(rd > 1e-12, rd, 1.0), 1.0)
+    xy = target * scale[..., None]
+    xy[~ok] = np.nan
+    return xy
+
+
+def _lift_unified(m: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Inverse of `unified_to_plane` for (V, N, 2) plane points, xi (V, 1): back to the unit sphere, then X/Z, Y/Z.
+    NaN for points off the model's image (no real lift) or behind the camera."""
+    r2 = m[..., 0] ** 2 + m[..., 1] ** 2
+    with np.errstate(invalid="ignore"):
+        disc = 1.0 + (1.0 - xi * xi) * r2
+        factor = (xi + np.sqrt(disc)) / (r2 + 1.0)
+        z = factor - xi
+        ok = (disc >= 0) & (z > 0)
+        xy = m * (factor / np.where(ok, z, 1.0))[..., None]
+    xy[~ok] = np.nan
+    return xy
+
+
+def _float_fields(obj: object) -> None:
+    for field in dataclasses.fields(obj):
+        if field.name == "lens":
+            continue
+        value = float(getattr(obj, field.name))
+        if not np.isfinite(value):
+            raise ValueError(f"Intrinsics.{field.name} must be finite, got {value}")
+        object.__setattr__(obj, field.name, value)
+
+
 @dataclass(frozen=True)
 class Intrinsics:
-    """One view's intrinsics: focal lengths and principal point in pixels, Brown k1, k2, p1, p2 (no skew, no k3)."""
+    """One view's intrinsics: focal lengths and principal point in pixels, the lens model and its coefficients.
+
+    ``lens`` is one of `LENSES`; each model uses the coefficients `DISTORTION_KEYS` names and the others must be
+    0: ``radtan`` k1, k2, p1, p2; ``fisheye`` k1..k4 (OpenCV's ``cv2.fisheye`` convention); ``unified`` xi, k1, k2,
+    p1, p2 (Kalibr's ``omni-radtan``). No skew. ``Intrinsics(fx, fy, cx, cy, k1, k2, p1, p2)`` is a radtan lens."""
 
     fx: float
     fy: float
@@ -62,15 +189,23 @@ class Intrinsics:
     k2: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    xi: float = 0.0
+    lens: str = RADTAN
 
     def __post_init__(self) -> None:
-        for field in dataclasses.fields(self):
-            value = float(getattr(self, field.name))
-            if not np.isfinite(value):
-                raise ValueError(f"Intrinsics.{field.name} must be finite, got {value}")
-            object.__setattr__(self, field.name, value)
+        if self.lens not in LENSES:
+            raise ValueError(f"Intrinsics.lens must be one of {', '.join(LENSES)}, got {self.lens!r}")
+        _float_fields(self)
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        unused = [name for name in _UNUSED[self.lens] if getattr(self, name) != 0.0]
+        if unused:
+            raise ValueError(f"a {self.lens} lens has no {', '.join(unused)} (its distortion is "
+                             f"{', '.join(DISTORTION_KEYS[self.lens])}); got {unused[0]}={getattr(self, unused[0])}")
+        if self.lens == UNIFIED and self.xi < 0:
+            raise ValueError(f"a unified lens needs xi >= 0, got xi={self.xi}")
 
     # ----------------------------------------------------------------------------------------- conversions
     @property
@@ -79,12 +214,25 @@ class Intrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
+    def distortion(self) -> dict[str, float]:
+        """The model's coefficients by name (`DISTORTION_KEYS`), as ``calibration.json`` stores them."""
+        return {k: getattr(self, k) for k in DISTORTION_KEYS[self.lens]}
+
+    @property
     def dist_cv(self) -> np.ndarray:
-        """(5,) OpenCV distortion vector ``[k1, k2, p1, p2, k3]`` with ``k3 = 0``."""
+        """OpenCV's distortion vector: ``[k1, k2, p1, p2, k3=0]`` (radtan, for ``cv2``) or ``[k1, k2, k3, k4]``
+        (fisheye, for ``cv2.fisheye``). The unified model has none in OpenCV's main modules (ValueError)."""
+        if self.lens == FISHEYE:
+            return np.array([self.k1, self.k2, self.k3, self.k4])
+        if self.lens == UNIFIED:
+            raise ValueError("a unified lens has no OpenCV distortion vector (cv2.omnidir is not in OpenCV's main "
+                             "modules); use Intrinsics.undistort / project")
         return np.array([self.k1, self.k2, self.p1, self.p2, 0.0])
 
     def as_vector(self) -> np.ndarray:
-        """(8,) ``[fx, fy, cx, cy, k1, k2, p1, p2]``."""
+        """(8,) ``[fx, fy, cx, cy, k1, k2, p1, p2]`` of a radtan lens (the fast solvers' layout)."""
+        if self.lens != RADTAN:
+            raise ValueError(f"as_vector is the radtan layout; this lens is {self.lens}")
         return np.array([self.fx, self.fy, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2])
 
     @classmethod
@@ -95,21 +243,42 @@ class Intrinsics:
                              f"got {v.shape}")
         return cls(*v.tolist())
 
-    def to_gtsam(self) -> gtsam.Cal3DS2:
-        """``gtsam.Cal3DS2(fx, fy, s=0, u0, v0, k1, k2, p1, p2)``."""
+    def with_distortion(self, lens: str, **coefficients: float) -> Intrinsics:
+        """The same fx, fy, cx, cy with another lens model and its coefficients (the others 0)."""
+        zero = dict.fromkeys(("k1", "k2", "p1", "p2", "k3", "k4", "xi"), 0.0)
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, **{**zero, **coefficients, "lens": lens})
+
+    def pinhole(self) -> Intrinsics:
+        """fx, fy, cx, cy without distortion (a radtan lens with zero coefficients)."""
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy)
+
+    def to_gtsam(self) -> gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified:
+        """The GTSAM calibration of this lens (skew 0): ``Cal3DS2``, ``Cal3Fisheye`` or ``Cal3Unified``."""
+        if self.lens == FISHEYE:
+            return gtsam.Cal3Fisheye(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.k3, self.k4)
+        if self.lens == UNIFIED:
+            return gtsam.Cal3Unified(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2,
+                                     self.xi)
         return gtsam.Cal3DS2(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2)
 
     @classmethod
-    def from_gtsam(cls, cal: gtsam.Cal3DS2) -> Intrinsics:
-        """From a ``gtsam.Cal3DS2``; raises if it has skew (this model has none)."""
+    def from_gtsam(cls, cal: gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified) -> Intrinsics:
+        """From a GTSAM calibration of one of the three models; raises if it has skew (these models have none)."""
         if abs(cal.skew()) > 1e-12:
-            raise ValueError(f"Cal3DS2 has skew {cal.skew()}, but lfgraph's model has none")
+            raise ValueError(f"{type(cal).__name__} has skew {cal.skew()}, but lfgraph's models have none")
+        if isinstance(cal, gtsam.Cal3Fisheye):
+            return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), k3=cal.k3(), k4=cal.k4(),
+                       lens=FISHEYE)
+        if isinstance(cal, gtsam.Cal3Unified):
+            return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), cal.p1(), cal.p2(), xi=cal.xi(),
+                       lens=UNIFIED)
         k = cal.k()
         return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), float(k[2]), float(k[3]))
 
     @classmethod
-    def from_opencv(cls, K: np.ndarray, dist: np.ndarray | None = None) -> Intrinsics:  # noqa: N803
-        """From an OpenCV camera matrix and distortion vector (4, 5 or more coefficients; extra ones must be 0).
+    def from_opencv(cls, K: np.ndarray, dist: np.ndarray | None = None, lens: str = RADTAN) -> Intrinsics:  # noqa: N803
+        """From an OpenCV camera matrix and distortion vector: radtan (4, 5 or more coefficients; those beyond
+        k1 k2 p1 p2 must be 0) or fisheye (``cv2.fisheye``'s 4 coefficients k1..k4).
 
         Raises:
             ValueError: K has skew or is not a camera matrix, or ``dist`` uses coefficients this model lacks.
@@ -118,6 +287,12 @@ class Intrinsics:
         if K.shape != (3, 3) or abs(K[0, 1]) > 1e-12 or np.any(np.abs(K[2] - [0, 0, 1]) > 1e-12) or K[1, 0] != 0:
             raise ValueError(f"K must be a skew-free 3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K.tolist()}")
         d = np.zeros(4) if dist is None else np.asarray(dist, dtype=np.float64).ravel()
+        if lens == FISHEYE:
+            if d.size != 4:
+                raise ValueError(f"a fisheye distortion has 4 coefficients (k1 k2 k3 k4), got {d.size}")
+            return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], d[0], d[1], k3=d[2], k4=d[3], lens=FISHEYE)
+        if lens != RADTAN:
+            raise ValueError(f"OpenCV has no {lens} lens in its main modules; choose radtan or fisheye")
         if d.size < 4:
             raise ValueError(f"distortion needs at least 4 coefficients (k1 k2 p1 p2), got {d.size}")
         if np.any(np.abs(d[4:]) > 0):
@@ -127,16 +302,16 @@ class Intrinsics:
 
     # ----------------------------------------------------------------------------------------- model
     def distort(self, xy: np.ndarray) -> np.ndarray:
-        """Apply distortion to normalised coordinates.
+        """Apply the lens to normalised coordinates.
 
         Args:
-            xy: (N, 2) undistorted normalised coordinates.
+            xy: (N, 2) undistorted normalised coordinates (``X/Z, Y/Z``).
 
         Returns:
-            (N, 2) distorted normalised coordinates.
+            (N, 2) distorted normalised coordinates (pixels are ``fx x_d + cx, fy y_d + cy``).
         """
         xy = _as_points(xy, (2,), "xy")
-        return np.stack(distort_xy(xy[:, 0], xy[:, 1], self.k1, self.k2, self.p1, self.p2), axis=1)
+        return np.stack(distort_lens_xy(self, xy[:, 0], xy[:, 1]), axis=1)
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Project camera-frame points or normalised coordinates to pixels.
@@ -160,10 +335,10 @@ class Intrinsics:
     def undistort(self, pixels: np.ndarray) -> np.ndarray:
         """Invert :meth:`project` for (N, 2) pixels: returns (N, 2) normalised coordinates.
 
-        Newton's method on the 2-D distortion map with its analytic Jacobian, started from the distorted
-        coordinates; converges to ~1e-15 for the radial strengths of real lenses (|k1| <= 0.3 over the image).
-        Pixels the model cannot reach (beyond the radius where strong barrel distortion folds back on itself), or
-        whose solution lies on the folded branch, give NaN rather than a wrong answer.
+        Newton's method on the model's distortion with its analytic Jacobian; converges to ~1e-15 for real lenses.
+        Pixels the model cannot reach (beyond the radius where strong barrel distortion folds back on itself, rays
+        at 90 degrees or more from the axis), or whose solution lies on the folded branch, give NaN rather than a
+        wrong answer.
         """
         px = _as_points(pixels, (2,), "pixels")
         return undistort_views((self,), px[None])[0]
@@ -172,6 +347,15 @@ class Intrinsics:
         """(N, 2) distorted pixels -> (N, 2) pixels of the same camera without distortion."""
         xy = self.undistort(pixels)
         return np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], axis=1)
+
+
+def distort_lens_xy(intr: Intrinsics, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distortion of one lens (any model) applied to normalised coordinates."""
+    if intr.lens == FISHEYE:
+        return distort_fisheye_xy(x, y, intr.k1, intr.k2, intr.k3, intr.k4)
+    if intr.lens == UNIFIED:
+        x, y = unified_to_plane(x, y, intr.xi)
+    return distort_xy(x, y, intr.k1, intr.k2, intr.p1, intr.p2)
 
 
 def in_image(px: np.ndarray, image_size_px: tuple[int, int], margin_px: float = 0.0) -> np.ndarray:
@@ -194,39 +378,27 @@ def project_world(intrinsics: Intrinsics, view_T_world: np.ndarray, points_world
 
 
 def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixels: np.ndarray) -> np.ndarray:
-    """`Intrinsics.undistort` of (V, N, 2) pixels, view v with ``intrinsics[v]``, all views in one Newton loop (a
-    loop per view costs ~25x the Python overhead for the few hundred tracks of a frame).
+    """`Intrinsics.undistort` of (V, N, 2) pixels, view v with ``intrinsics[v]``, all views of one lens model in one
+    Newton loop (a loop per view costs ~25x the Python overhead for the few hundred tracks of a frame).
 
-    NaN pixels stay NaN. Same model, iteration and validity rule as the method; the loop runs until the largest step
-    of all views is below the tolerance, so values agree with the method to round-off."""
+    NaN pixels stay NaN. Same models, iteration and validity rules as the method; values agree with it to
+    round-off."""
     px = np.asarray(pixels, dtype=np.float64)
-    k = np.array([i.as_vector() for i in intrinsics]).reshape(-1, 8, 1)
-    fx, fy, cx, cy, k1, k2, p1, p2 = (k[:, i] for i in range(8))
-    target = np.stack([(px[..., 0] - cx) / fx, (px[..., 1] - cy) / fy], axis=-1)
-    xy = target.copy()
-    distorted = np.any(k[:, 4:, 0] != 0.0, axis=1)
-    if not distorted.any():
-        return xy
-    for _ in range(UNDISTORT_MAX_ITERATIONS):
-        x, y = xy[..., 0], xy[..., 1]
-        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
-        j00, j01, j11 = distortion_jacobian(x, y, k1, k2, p1, p2)
-        fx_, fy_ = xd - target[..., 0], yd - target[..., 1]
-        det = j00 * j11 - j01 * j01
-        dx = (j11 * fx_ - j01 * fy_) / det
-        dy = (-j01 * fx_ + j00 * fy_) / det
-        dx[~distorted], dy[~distorted] = 0.0, 0.0
-        xy[..., 0] -= dx
-        xy[..., 1] -= dy
-        if np.nanmax(np.abs(np.concatenate([dx.ravel(), dy.ravel()])), initial=0.0) < UNDISTORT_TOLERANCE:
-            break
-    # keep only true inverses on the unfolded branch: residual ~0 and d(r radial)/dr > 0 (before the fold)
-    with np.errstate(invalid="ignore", over="ignore"):
-        x, y = xy[..., 0], xy[..., 1]
-        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
-        residual = np.maximum(np.abs(xd - target[..., 0]), np.abs(yd - target[..., 1]))
-        r2 = x * x + y * y
-        radial_derivative = 1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2)
-        bad = (~(residual < UNDISTORT_RESIDUAL_LIMIT) | ~(radial_derivative > 0)) & distorted[:, None]
-    xy[bad] = np.nan
-    return xy
+    f = np.array([[i.fx, i.fy] for i in intrinsics])[:, None, :]
+    c = np.array([[i.cx, i.cy] for i in intrinsics])[:, None, :]
+    target = (px - c) / f
+    lenses = np.array([i.lens for i in intrinsics])
+    if np.all(lenses == RADTAN):  # the common case without copies
+        return _undo_radtan(target, np.array([[i.k1, i.k2, i.p1, i.p2] for i in intrinsics])[:, :, None])
+    out = np.full(target.shape, np.nan)
+    for lens in LENSES:
+        idx = np.nonzero(lenses == lens)[0]
+        if not len(idx):
+            continue
+        sub = [intrinsics[v] for v in idx]
+        if lens == FISHEYE:
+            out[idx] = _undo_fisheye(target[idx], np.array([[i.k1, i.k2, i.k3, i.k4] for i in sub])[:, :, None])
+            continue
+        m = _undo_radtan(target[idx], np.array([[i.k1, i.k2, i.p1, i.p2] for i in sub])[:, :, None])
+        out[idx] = m if lens == RADTAN else _lift_unified(m, np.array([i.xi for i in sub])[:, None])
+    return out

@@ -14,7 +14,7 @@ import numpy as np
 from lfgraph.camera import Intrinsics
 from lfgraph.detections import BoardObservations
 from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
-from lfgraph.pattern.paper import MONO_FLAGS
+from lfgraph.pattern.lenses import MONO_FLAGS
 
 
 def calibrate_multiview(obs: BoardObservations) -> tuple[tuple[Intrinsics, ...], np.ndarray]:

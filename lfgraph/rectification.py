@@ -216,10 +216,20 @@ def _source_of(rect: np.ndarray, K: np.ndarray, rect_R_view: np.ndarray, intr: I
     # beyond the radius where the lens model folds back, project() returns plausible but wrong pixels
     with np.errstate(invalid="ignore", divide="ignore"):
         xy = rays_view[:, :2] / rays_view[:, 2:3]
-    r2 = np.sum(xy**2, axis=1)
-    folded = ~(1.0 + r2 * (3.0 * intr.k1 + 5.0 * intr.k2 * r2) > 0)
+    if intr.lens == "radtan":
+        r2 = np.sum(xy**2, axis=1)
+        folded = ~(1.0 + r2 * (3.0 * intr.k1 + 5.0 * intr.k2 * r2) > 0)
+    else:  # any model: a pixel is a true image of the ray only if undistorting it gives the ray back
+        back = np.full_like(xy, np.nan)
+        ok = np.all(np.isfinite(px), axis=1)
+        back[ok] = intr.undistort(px[ok])
+        with np.errstate(invalid="ignore"):
+            folded = ~(np.max(np.abs(back - xy), axis=1) <= ROUND_TRIP_TOLERANCE * np.maximum(1.0, np.abs(xy).max(1)))
     px[folded | ~(rays_view[:, 2] > 0)] = np.nan
     return px
+
+
+ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a rectified ray that its view's lens maps back to itself
 
 
 MIN_CROP_PX = 16  # a common region smaller than this is no rectified image (the views barely overlap)
@@ -279,6 +289,12 @@ def check_rectifiable(calib: Calibration) -> None:
                     f"neighbours are {1e3 * scale:.1f} mm): the grid's directions are undefined; check the calibration")
     w, h = calib.image_size_px
     for v, intr in enumerate(calib.intrinsics):
+        if intr.lens != "radtan":  # wide models: their field may end inside the image; the crop keeps what maps
+            centre = intr.undistort(np.array([[intr.cx, intr.cy], [(w - 1) / 2.0, (h - 1) / 2.0]]))
+            if not np.all(np.isfinite(centre)):
+                raise RectificationError(f"view {grid.name(v)}: its {intr.lens} lens model maps no ray to the image "
+                                         f"centre; check the calibration")
+            continue
         r_max = float(np.hypot(max(intr.cx, w - 1 - intr.cx) / intr.fx, max(intr.cy, h - 1 - intr.cy) / intr.fy))
         r2 = np.linspace(0.0, r_max**2, 64)
         slope = 1 + 3 * intr.k1 * r2 + 5 * intr.k2 * r2**2
@@ -390,12 +406,20 @@ class RectificationMaps:
 
 
 def build_maps(calib: Calibration, rect: Rectification) -> RectificationMaps:
-    """``cv2.initUndistortRectifyMap`` per view with its K, distortion, rectifying rotation and ``K_r``."""
+    """``cv2.initUndistortRectifyMap`` per radtan view with its K, distortion, rectifying rotation and ``K_r``; for a
+    fisheye or unified view the same map from the view's own model (`_source_of`; -1 where no ray reaches it)."""
     xy, frac = [], []
+    w, h = rect.image_size_px
     for i in range(calib.num_views):
         intr = calib.intrinsics[i]
-        m1, m2 = cv2.initUndistortRectifyMap(intr.K, intr.dist_cv, rect.rect_R_view[i], rect.K_r,
-                                             rect.image_size_px, cv2.CV_16SC2)
+        if intr.lens == "radtan":
+            m1, m2 = cv2.initUndistortRectifyMap(intr.K, intr.dist_cv, rect.rect_R_view[i], rect.K_r,
+                                                 rect.image_size_px, cv2.CV_16SC2)
+        else:
+            u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            src = _source_of(np.column_stack([u.ravel(), v.ravel()]), rect.K_r, rect.rect_R_view[i], intr)
+            src = np.where(np.isfinite(src), src, -1.0).reshape(h, w, 2).astype(np.float32)
+            m1, m2 = cv2.convertMaps(src, None, cv2.CV_16SC2)
         xy.append(m1)
         frac.append(m2)
     return RectificationMaps(tuple(xy), tuple(frac), rect.image_size_px)

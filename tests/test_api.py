@@ -193,7 +193,8 @@ def test_values_boundary_round_trips():
     np.testing.assert_allclose(fv.read_board_poses(values, 2, [0, 1]), boards, atol=ROUND_TRIP)
     np.testing.assert_allclose(fv.read_board_corners(values, 4), points[:4], atol=ROUND_TRIP)
     for a, b in zip(fv.read_intrinsics(values, 6), calib.intrinsics, strict=True):
-        np.testing.assert_allclose(dataclasses.astuple(a), dataclasses.astuple(b), atol=ROUND_TRIP)
+        assert a.lens == b.lens
+        np.testing.assert_allclose(dataclasses.astuple(a)[:-1], dataclasses.astuple(b)[:-1], atol=ROUND_TRIP)
 
 
 def test_a_users_iteration_callback_prints_while_gtsam_is_muted():

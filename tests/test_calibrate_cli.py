@@ -203,8 +203,9 @@ def test_opencv_stereo_pair(test_data, tmp_path, capsys):
     flags = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     mono_sample = [cv2.calibrateCamera(obj, sample[s], (640, 480), None, None, flags=flags)[0] for s in sample]
     mono_ours = [cv2.calibrateCamera(obj, ours[s], (640, 480), None, None, flags=flags)[0] for s in ours]
-    # lfgraph's E_mono is OpenCV's calibrateCamera on lfgraph's corners, and no worse than on the sample's corners
-    np.testing.assert_allclose(m["view_e_mono_px"], mono_ours, rtol=1e-6)
+    # lfgraph's E_mono is OpenCV's calibrateCamera on lfgraph's corners (its RMS recomputed in float64; OpenCV sums
+    # float32 points: 1e-5 relative), and no worse than on the sample's corners
+    np.testing.assert_allclose(m["view_e_mono_px"], mono_ours, rtol=1e-4)
     assert m["e_mono_px"] <= 1.1 * max(mono_sample)
     stereo_free = cv2.stereoCalibrate(obj, ours["left"], ours["right"], None, None, None, None, (640, 480),
                                       flags=flags)[0]

@@ -69,8 +69,9 @@ def test_multiview_json_reads_what_opencv_reads():
 
 @pytest.mark.parametrize("method", ["joint", "paper"])
 def test_real_stereo_points_against_opencv(opencv_stereo, method):
+    """The same lens model as OpenCV's stereoCalibrate (radtan k1, k2): the same minimum or better."""
     obs = load_detections(DATA, "opencv-multiview", (1, 2), SIZE, OBJ)
-    calib, report = calibrate(obs, CalibrateConfig(method=method))
+    calib, report = calibrate(obs, CalibrateConfig(method=method, lens="radtan"))
     if method == "joint":
         # the joint graph minimises the same rig reprojection error as stereoCalibrate: it must do at least as well
         assert report.rig_rms_px <= opencv_stereo["rms"] + RMS_TOLERANCE_PX
@@ -84,6 +85,17 @@ def test_real_stereo_points_against_opencv(opencv_stereo, method):
     else:
         assert report.rig_rms_px < opencv_stereo["rms"] * 1.1  # the paper's route is close, not optimal
     assert report.residuals_px.shape == obs.corners_px.shape and len(report.frame_rms_px) == 15
+
+
+def test_wide_stereo_gets_a_wide_lens_model_by_itself(opencv_stereo):
+    """These omnidirectional-test points leave OpenCV's radtan k1, k2 fit at ~2 px; the default lens choice finds the
+    fisheye model for both views and a rig 3x more consistent than stereoCalibrate's with radtan."""
+    obs = load_detections(DATA, "opencv-multiview", (1, 2), SIZE, OBJ)
+    calib, report = calibrate(obs)
+    assert [i.lens for i in calib.intrinsics] == ["fisheye", "fisheye"]
+    assert report.rig_rms_px < opencv_stereo["rms"] / 3
+    held = calib.metrics["lens_choice"]["heldout_px"]
+    assert all(f < r / 3 for f, r in zip(held["fisheye"], held["radtan"], strict=True))
 
 
 def test_npz_round_trip_and_cli(tmp_path, opencv_stereo, capsys):

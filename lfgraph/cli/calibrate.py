@@ -44,6 +44,7 @@ def _board_and_config(args: argparse.Namespace):
     from lfgraph.board import BoardSpec
     from lfgraph.grid import ViewGrid
     from lfgraph.pattern import CalibrateConfig
+    from lfgraph.pattern.lenses import resolve_lenses
 
     try:
         if args.detections is None:
@@ -67,7 +68,9 @@ def _board_and_config(args: argparse.Namespace):
             board = None
         grid = ViewGrid(args.grid[0], args.grid[1], args.reference)
         config = CalibrateConfig(method=args.method, init=args.init, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
-                                 robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm)
+                                 robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm,
+                                 lens=args.lens)
+        resolve_lenses(config.lens, grid)  # a bad --lens is refused before detection
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return board, grid, config
@@ -208,6 +211,9 @@ def add_parsers(sub: Any) -> None:
     cal.add_argument("--robust", default="none",
                      help="robust kernel NAME[:THRESHOLD_PX]: none, huber:1.0, cauchy:..., tukey:..., gm, dcs, ...")
     cal.add_argument("--tangential", action="store_true", help="estimate p1, p2 (held at 0 by default)")
+    cal.add_argument("--lens", default="auto", metavar="MODEL[,VIEW=MODEL...]",
+                     help="lens model: auto (default: per view, the model that predicts held-out frames best), "
+                          "radtan or fisheye; per view e.g. auto,r00_c02=fisheye")
     cal.add_argument("--board-sigma-mm", type=positive_float,
                      help="board flatness tolerance: estimate the corners' positions within it (default: rigid)")
     cal.add_argument("--focal-px", type=positive_float, help="design focal length for --init design")

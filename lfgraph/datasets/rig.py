@@ -22,7 +22,9 @@ class RigConfig:
         pitch_m: distance between adjacent views (metres), the same along rows and columns.
         image_size_px: (width, height) of every view.
         focal_px: design focal length (pixels); fx = fy before jitter.
-        k1, k2: design radial distortion shared by all lenses.
+        k1, k2: design radial distortion shared by all lenses (the lens model's own k1, k2).
+        lens: the lens model of every view (``radtan``, ``fisheye`` or ``unified``, see `lfgraph.camera`).
+        xi: the unified model's design xi (0 for the others).
         focal_jitter_px: std of each view's fx and fy about ``focal_px``.
         principal_jitter_px: std of each view's cx, cy about the image centre.
         distortion_jitter: std of each view's k1 and k2 about the design values.
@@ -43,9 +45,12 @@ class RigConfig:
     distortion_jitter: float = 0.01
     rot_jitter_deg: float = 0.3
     trans_jitter_mm: float = 0.15
+    lens: str = "radtan"
+    xi: float = 0.0
 
     def __post_init__(self) -> None:
         ViewGrid(self.rows, self.cols, self.reference)  # validates
+        Intrinsics(1.0, 1.0, 0.0, 0.0, xi=self.xi, lens=self.lens)  # validates the lens and xi
         if self.pitch_m <= 0 or self.focal_px <= 0 or min(self.image_size_px) <= 0:
             raise ValueError("pitch, focal length and image size must be positive")
 
@@ -81,7 +86,7 @@ def make_rig(config: RigConfig, rng: np.random.Generator) -> Calibration:
         cx = (w - 1) / 2 + config.principal_jitter_px * rng.standard_normal()
         cy = (h - 1) / 2 + config.principal_jitter_px * rng.standard_normal()
         k1, k2 = np.array([config.k1, config.k2]) + config.distortion_jitter * rng.standard_normal(2) * [1.0, 0.5]
-        intrinsics.append(Intrinsics(fx, fy, cx, cy, k1, k2))
+        intrinsics.append(Intrinsics(fx, fy, cx, cy, k1, k2, xi=config.xi, lens=config.lens))
     world_T_view = ideal_ref_T_view(grid, config.pitch_m)  # noqa: N806
     for v in range(n):
         rot = rotation_from_rotvec(np.radians(config.rot_jitter_deg) * rng.standard_normal(3))

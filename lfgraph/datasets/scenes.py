@@ -44,6 +44,15 @@ SCENES: dict[str, NamedScene] = {
                   principal_jitter_px=3.0),
         CheckerboardConfig(board=BoardSpec(7, 5, 0.015), frames=8, distance_m=(0.25, 0.45)),
         frames=3, scene_depth_m=(1.0, 3.0)),
+    "fisheye-1x3": NamedScene(
+        "fisheye-1x3",
+        "a line of 3 wide-angle (fisheye, Kannala-Brandt) views, 640x480 px, f = 260 px (~120 deg across the "
+        "diagonal), 40 mm pitch, 9x6-corner board with 30 mm squares, 24 frames",
+        RigConfig(rows=1, cols=3, reference=1, pitch_m=0.040, image_size_px=(640, 480), focal_px=260.0,
+                  k1=0.02, k2=-0.005, focal_jitter_px=2.0, principal_jitter_px=3.0, distortion_jitter=0.004,
+                  lens="fisheye"),
+        CheckerboardConfig(board=BoardSpec(9, 6, 0.030), frames=24, distance_m=(0.15, 0.35)),
+        frames=3, scene_depth_m=(1.0, 3.0)),
 }
 
 

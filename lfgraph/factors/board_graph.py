@@ -2,7 +2,9 @@
 
 Each frame's board is that frame's world. A corner j seen by view v in frame f projects through the camera at
 ``board_T_ref(f).compose(ref_T_view(v))`` (`gtsam_unstable.ProjectionFactorPPPCCal3DS2`: pose, transform, point,
-calibration), so one ``ref_T_view`` per view and one ``Cal3DS2`` per view are shared by every frame.
+calibration), so one ``ref_T_view`` per view and one calibration per view are shared by every frame. The factor
+follows each view's lens: `ProjectionFactorPPPCCal3DS2` (radtan) or `ProjectionFactorPPPCCal3Fisheye` (fisheye);
+GTSAM has no such factor for Cal3Unified.
 """
 
 from __future__ import annotations
@@ -15,30 +17,39 @@ import numpy as np
 
 from lfgraph.camera import Intrinsics
 from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, view_pose_key
-from lfgraph.factors.noise import FREE_SIGMA, GAUGE_SIGMA, MIN_SIGMA, calibration_noise, point_noise
+from lfgraph.factors.noise import FREE_SIGMA, GAUGE_SIGMA, MIN_SIGMA, lens_noise, point_noise
 from lfgraph.geometry import to_pose3
 
 RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
+BOARD_FACTORS = {"radtan": gtsam_unstable.ProjectionFactorPPPCCal3DS2,
+                 "fisheye": gtsam_unstable.ProjectionFactorPPPCCal3Fisheye}
+FIXED_RIG_FACTORS = {"radtan": gtsam.GenericProjectionFactorCal3DS2,
+                     "fisheye": gtsam.GenericProjectionFactorCal3Fisheye,
+                     "unified": gtsam.GenericProjectionFactorCal3Unified}
+CALIBRATION_PRIORS = {"radtan": gtsam.PriorFactorCal3DS2, "fisheye": gtsam.PriorFactorCal3Fisheye,
+                      "unified": gtsam.PriorFactorCal3Unified}
+BOARD_LENSES = tuple(BOARD_FACTORS)  # the lens models the joint board graph can estimate
 
 
 def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
-                           noise: gtsam.noiseModel.Base) -> int:
-    """One `ProjectionFactorPPPCCal3DS2` per valid corner observation.
+                           noise: gtsam.noiseModel.Base, lenses: Sequence[str] | None = None) -> int:
+    """One projection factor (`BOARD_FACTORS`, by the view's lens) per valid corner observation.
 
     Args:
         graph: extended in place.
         corners_px: (V, F, C, 2) observed corners, pixels.
         valid: (V, F, C) which observations exist.
         noise: measurement noise (possibly robust), shared by every factor.
+        lenses: each view's lens model; all radtan when None.
 
     Returns:
         the number of factors added.
     """
     vs, fs, cs = np.nonzero(valid)
     pts = corners_px[vs, fs, cs]
-    factor = gtsam_unstable.ProjectionFactorPPPCCal3DS2
+    factors = [BOARD_FACTORS[lens] for lens in (lenses or ("radtan",) * corners_px.shape[0])]
     for v, f, c, uv in zip(vs.tolist(), fs.tolist(), cs.tolist(), pts, strict=True):
-        graph.add(factor(uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c), calib_key(v)))
+        graph.add(factors[v](uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c), calib_key(v)))
     return len(vs)
 
 
@@ -47,16 +58,17 @@ def add_fixed_rig_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np
                                noise: gtsam.noiseModel.Base) -> int:
     """Corner observations through a *given* rig: only board poses (and corners) are unknown.
 
-    Uses `GenericProjectionFactorCal3DS2` with ``body_P_sensor = ref_T_view``, so the camera is again
-    ``board_T_ref.compose(ref_T_view)``. This is how a calibration from any route is scored as one rig.
+    Uses `GenericProjectionFactorCal3DS2` (or its Cal3Fisheye / Cal3Unified twin, by each view's lens) with
+    ``body_P_sensor = ref_T_view``, so the camera is again ``board_T_ref.compose(ref_T_view)``. This is how a
+    calibration from any route is scored as one rig.
     """
     cals = [intr.to_gtsam() for intr in intrinsics]
+    factors = [FIXED_RIG_FACTORS[intr.lens] for intr in intrinsics]
     bodies = [to_pose3(T) for T in ref_T_view]
     vs, fs, cs = np.nonzero(valid)
     pts = corners_px[vs, fs, cs]
-    factor = gtsam.GenericProjectionFactorCal3DS2
     for v, f, c, uv in zip(vs.tolist(), fs.tolist(), cs.tolist(), pts, strict=True):
-        graph.add(factor(uv, noise, board_pose_key(f), board_corner_key(c), cals[v], False, False, bodies[v]))
+        graph.add(factors[v](uv, noise, board_pose_key(f), board_corner_key(c), cals[v], False, False, bodies[v]))
     return len(vs)
 
 
@@ -89,19 +101,18 @@ WEAK_RADIAL_SIGMA = 0.1  # k1, k2
 
 def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[Intrinsics],
                         tangential: bool, weak: Sequence[bool] | None = None, image_width_px: float = 0.0) -> None:
-    """Hold what the model lacks: skew at 0 always; p1, p2 at 0 unless ``tangential``.
+    """Hold what the model lacks: skew at 0 always; p1, p2 at 0 unless ``tangential`` (radtan and unified).
 
     The other components get a ``FREE_SIGMA`` prior (no information), which keeps one factor per view — except for
-    views flagged ``weak``, whose fx, fy, cx, cy, k1, k2 get the ``WEAK_*`` prior around their start.
+    views flagged ``weak``, whose fx, fy, cx, cy and distortion get the ``WEAK_*`` prior around their start.
     """
     for v, intr in enumerate(intrinsics):
-        prior = intr.to_gtsam() if tangential else Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1,
-                                                               intr.k2).to_gtsam()
+        if not tangential and intr.lens != "fisheye":
+            intr = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1, intr.k2, xi=intr.xi, lens=intr.lens)
         if weak is not None and weak[v]:
             focal, principal, radial = WEAK_FOCAL_SIGMA_REL * intr.fx, WEAK_PRINCIPAL_SIGMA_REL * image_width_px, \
                 WEAK_RADIAL_SIGMA
         else:
             focal = principal = radial = FREE_SIGMA
-        noise = calibration_noise(focal, principal, radial=radial, tangential=FREE_SIGMA if tangential
-                                  else MIN_SIGMA, skew_px=MIN_SIGMA)
-        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, noise))
+        noise = lens_noise(intr.lens, focal, principal, radial, tangential=FREE_SIGMA if tangential else MIN_SIGMA)
+        graph.add(CALIBRATION_PRIORS[intr.lens](calib_key(v), intr.to_gtsam(), noise))

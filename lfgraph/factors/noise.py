@@ -94,20 +94,24 @@ def cal3ds2_noise(sigmas: Sequence[float]) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Diagonal.Sigmas(s)
 
 
-def calibration_noise(focal_px: float, principal_px: float, radial: float | Sequence[float],
-                      tangential: float = MIN_SIGMA, skew_px: float = MIN_SIGMA) -> gtsam.noiseModel.Base:
-    """Cal3DS2 prior noise in its tangent order (fx, fy, s, u0, v0, k1, k2, p1, p2).
+def lens_noise(lens: str, focal_px: float, principal_px: float, distortion: float,
+               tangential: float = MIN_SIGMA, skew_px: float = MIN_SIGMA) -> gtsam.noiseModel.Base:
+    """Prior noise of one lens model in its GTSAM tangent order: ``radtan`` (Cal3DS2: fx fy s cx cy k1 k2 p1 p2),
+    ``fisheye`` (Cal3Fisheye: fx fy s cx cy k1 k2 k3 k4) or ``unified`` (Cal3Unified: fx fy s cx cy k1 k2 p1 p2 xi).
 
     Args:
-        focal_px: sigma of fx and fy (pixels).
-        principal_px: sigma of cx and cy (pixels).
-        radial: sigma of k1 and k2 (one value or two).
-        tangential: sigma of p1, p2; the default holds them at their prior (0).
-        skew_px: sigma of the skew; the default holds it at 0 (the model has none).
+        focal_px, principal_px: sigma of fx and fy, of cx and cy (pixels).
+        distortion: sigma of the radial coefficients (k1, k2; k1..k4 for fisheye) and of xi.
+        tangential: sigma of p1, p2 (radtan and unified); the default holds them at their prior.
+        skew_px: sigma of the skew; the default holds it at 0 (the models have none).
     """
-    k = np.broadcast_to(np.asarray(radial, dtype=np.float64), (2,))
-    return gtsam.noiseModel.Diagonal.Sigmas(
-        _sigmas([focal_px, focal_px, skew_px, principal_px, principal_px, k[0], k[1], tangential, tangential]))
+    head = [focal_px, focal_px, skew_px, principal_px, principal_px]
+    if lens == "fisheye":
+        return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + [distortion] * 4))
+    tail = [distortion, distortion, tangential, tangential]
+    if lens == "unified":
+        return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail + [distortion]))
+    return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail))
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ def insert_view_poses(values: gtsam.Values, ref_T_view: np.ndarray) -> None:  # 
 
 
 def insert_intrinsics(values: gtsam.Values, intrinsics: Sequence[Intrinsics]) -> None:
-    """Per-view Cal3DS2 under `calib_key`."""
+    """Per-view calibration (Cal3DS2, Cal3Fisheye or Cal3Unified by the view's lens) under `calib_key`."""
     for v, intr in enumerate(intrinsics):
         values.insert(calib_key(v), intr.to_gtsam())
 
@@ -48,16 +48,27 @@ def read_view_poses(values: gtsam.Values, n_views: int) -> np.ndarray:
     return np.stack([from_pose3(values.atPose3(view_pose_key(v))) for v in range(n_views)])
 
 
+_READERS = {"fisheye": "atCal3Fisheye", "unified": "atCal3Unified"}
+
+
 def read_intrinsics(values: gtsam.Values, n_views: int, keep: Sequence[Intrinsics] | None = None,
-                    tangential: bool = True) -> tuple[Intrinsics, ...]:
-    """Per-view intrinsics from Cal3DS2.
+                    tangential: bool = True, lenses: Sequence[str] | None = None) -> tuple[Intrinsics, ...]:
+    """Per-view intrinsics from their GTSAM calibrations.
 
     Args:
         keep: when given, distortion (k1, k2, p1, p2) is taken from these instead (stages that hold it).
         tangential: False clears p1, p2 (held at 0 by priors; this removes their ~1e-13 round-off).
+        lenses: each view's lens model (`lfgraph.camera.LENSES`); all radtan (Cal3DS2) when None.
     """
     out = []
     for v in range(n_views):
+        lens = "radtan" if lenses is None else lenses[v]
+        if lens != "radtan":
+            intr = Intrinsics.from_gtsam(getattr(values, _READERS[lens])(calib_key(v)))
+            if not tangential and lens == "unified":
+                intr = intr.with_distortion(lens, xi=intr.xi, k1=intr.k1, k2=intr.k2)
+            out.append(intr)
+            continue
         cal = values.atCal3DS2(calib_key(v))
         if keep is not None:
             old = keep[v]

@@ -51,6 +51,7 @@ COLMAP_CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
 }
 _COLMAP_GRID_COMMENT = re.compile(r"^#\s*lfgraph grid:\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
@@ -68,6 +69,10 @@ def rotation_from_wxyz(wxyz: np.ndarray) -> np.ndarray:
 
 
 def colmap_files(calib: Calibration) -> dict[str, str]:
+    unified = [calib.grid.name(v) for v, i in enumerate(calib.intrinsics) if i.lens == "unified"]
+    if unified:
+        raise ValueError(f"COLMAP has no unified (omnidirectional) camera model, which views {', '.join(unified)} "
+                         f"use; export them to Kalibr (omni-radtan) instead")
     n = calib.num_views
     w, h = calib.image_size_px
     cameras = [
@@ -77,9 +82,10 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
         "# lfgraph: camera ID = view index + 1 (row-major); cx, cy in COLMAP's pixels (OpenCV's + 0.5)",
     ]
     for v, intr in enumerate(calib.intrinsics):
+        model = "OPENCV_FISHEYE" if intr.lens == "fisheye" else "OPENCV"
         params = [intr.fx, intr.fy, intr.cx + COLMAP_PIXEL_OFFSET_PX, intr.cy + COLMAP_PIXEL_OFFSET_PX,
-                  intr.k1, intr.k2, intr.p1, intr.p2]
-        cameras.append(f"{v + 1} OPENCV {w} {h} " + " ".join(num(p) for p in params))
+                  *intr.distortion.values()]
+        cameras.append(f"{v + 1} {model} {w} {h} " + " ".join(num(p) for p in params))
     ref = calib.grid.reference
     sensors = []
     for v in range(n):
@@ -181,10 +187,12 @@ def read(path: Path, grid: GridLike) -> Calibration:
         fx, fy = p.get("fx", p.get("f")), p.get("fy", p.get("f"))
         K = np.array([[fx, 0.0, p["cx"] - COLMAP_PIXEL_OFFSET_PX],  # noqa: N806
                       [0.0, fy, p["cy"] - COLMAP_PIXEL_OFFSET_PX], [0.0, 0.0, 1.0]])
-        dist = [p.get(k, 0.0) for k in ("k1", "k2", "p1", "p2")]
+        fisheye = model == "OPENCV_FISHEYE"
+        dist = [p.get(k, 0.0) for k in (("k1", "k2", "k3", "k4") if fisheye else ("k1", "k2", "p1", "p2"))]
         if cam_id in cameras:
             raise fail(cameras_path, f"camera {cam_id}", "appears twice")
-        cameras[cam_id] = (intrinsics(cameras_path, f"camera {cam_id}", K, dist), size)
+        cameras[cam_id] = (intrinsics(cameras_path, f"camera {cam_id}", K, dist, "fisheye" if fisheye else "radtan"),
+                           size)
     if not cameras:
         raise fail(cameras_path, "cameras", "holds no camera")
     ids = sorted(cameras)

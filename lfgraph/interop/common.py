@@ -170,9 +170,10 @@ def array(values: Any, shape: tuple[int, ...], path: PathLike, key: str) -> np.n
     return np.array([finite(v, path, key) for v in arr.ravel()]).reshape(shape)
 
 
-def intrinsics(path: PathLike, key: str, K: np.ndarray, dist: Sequence[float] | np.ndarray | None) -> Intrinsics:  # noqa: N803
+def intrinsics(path: PathLike, key: str, K: np.ndarray, dist: Sequence[float] | np.ndarray | None,  # noqa: N803
+               lens: str = "radtan") -> Intrinsics:
     try:
-        return Intrinsics.from_opencv(K, None if dist is None else np.asarray(dist, dtype=np.float64))
+        return Intrinsics.from_opencv(K, None if dist is None else np.asarray(dist, dtype=np.float64), lens)
     except ValueError as exc:
         raise fail(path, key, str(exc)) from None
 

@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 
 from lfgraph.calibration import Calibration
+from lfgraph.camera import Intrinsics
 from lfgraph.geometry import invert_T
 from lfgraph.interop.common import (
     GridLike,
@@ -40,7 +41,8 @@ from lfgraph.interop.common import (
 )
 from lfgraph.io_utils import write_text_atomic
 
-KALIBR_DISTORTION_MODELS = ("radtan", "none")
+KALIBR_DISTORTION_MODELS = ("radtan", "equidistant", "none")
+KALIBR_CAMERA_MODELS = ("pinhole", "omni")  # pinhole-radtan, pinhole-equi (lfgraph fisheye), omni-radtan (unified)
 _CAM_KEY = re.compile(r"cam(\d+)")
 
 
@@ -61,11 +63,13 @@ def camchain(calib: Calibration) -> dict[str, dict[str, Any]]:
             cn_T_cnm1 = calib.view_T_ref(v) @ calib.ref_T_view[v - 1]  # noqa: N806
             cn_T_cnm1[3] = [0.0, 0.0, 0.0, 1.0]
             cam["T_cn_cnm1"] = [_floats(row) for row in cn_T_cnm1]
+        fisheye, unified = intr.lens == "fisheye", intr.lens == "unified"
         cam |= {
-            "camera_model": "pinhole",
-            "intrinsics": _floats([intr.fx, intr.fy, intr.cx, intr.cy]),
-            "distortion_model": "radtan",
-            "distortion_coeffs": _floats([intr.k1, intr.k2, intr.p1, intr.p2]),
+            "camera_model": "omni" if unified else "pinhole",
+            "intrinsics": _floats(([intr.xi] if unified else []) + [intr.fx, intr.fy, intr.cx, intr.cy]),
+            "distortion_model": "equidistant" if fisheye else "radtan",
+            "distortion_coeffs": _floats([intr.k1, intr.k2, intr.k3, intr.k4] if fisheye
+                                         else [intr.k1, intr.k2, intr.p1, intr.p2]),
             "resolution": [int(w), int(h)],
             "rostopic": f"/lfgraph/{calib.grid.name(v)}/image_raw",
         }
@@ -108,19 +112,28 @@ def read(path: Path, grid: GridLike) -> Calibration:
     for i in range(n):
         cam = f"cam{i}"
         model = get(cam, "camera_model")
-        if model != "pinhole":
-            raise fail(path, f"{cam}.camera_model", f"must be 'pinhole', got {model!r}")
-        fu, fv, pu, pv = array(get(cam, "intrinsics"), (4,), path, f"{cam}.intrinsics")
-        dist_model = get(cam, "distortion_model")
-        if dist_model not in KALIBR_DISTORTION_MODELS:
-            raise fail(path, f"{cam}.distortion_model", f"must be one of {', '.join(KALIBR_DISTORTION_MODELS)} "
-                                                        f"(lfgraph models k1 k2 p1 p2), got {dist_model!r}")
-        if dist_model == "radtan":
-            dist = array(get(cam, "distortion_coeffs"), (4,), path, f"{cam}.distortion_coeffs")
+        if model not in KALIBR_CAMERA_MODELS:
+            raise fail(path, f"{cam}.camera_model", f"must be one of {', '.join(KALIBR_CAMERA_MODELS)}, got {model!r}")
+        xi = None
+        if model == "omni":
+            xi, fu, fv, pu, pv = array(get(cam, "intrinsics"), (5,), path, f"{cam}.intrinsics")
         else:
-            dist = np.zeros(4)
+            fu, fv, pu, pv = array(get(cam, "intrinsics"), (4,), path, f"{cam}.intrinsics")
+        dist_model = get(cam, "distortion_model")
+        if dist_model not in KALIBR_DISTORTION_MODELS or (xi is not None and dist_model == "equidistant"):
+            raise fail(path, f"{cam}.distortion_model", f"must be one of {', '.join(KALIBR_DISTORTION_MODELS)} "
+                                                        f"(omni with radtan or none), got {dist_model!r}")
+        dist = np.zeros(4) if dist_model == "none" else array(get(cam, "distortion_coeffs"), (4,), path,
+                                                              f"{cam}.distortion_coeffs")
         K = np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]])  # noqa: N806
-        views.append(intrinsics(path, f"{cam}.intrinsics", K, dist))
+        if xi is not None:
+            try:
+                views.append(Intrinsics(fu, fv, pu, pv, *dist, xi=xi, lens="unified"))
+            except ValueError as exc:
+                raise fail(path, f"{cam}.intrinsics", str(exc)) from None
+        else:
+            views.append(intrinsics(path, f"{cam}.intrinsics", K, dist,
+                                    "fisheye" if dist_model == "equidistant" else "radtan"))
         res = array(get(cam, "resolution"), (2,), path, f"{cam}.resolution")
         cam_size = (whole(res[0], path, f"{cam}.resolution"), whole(res[1], path, f"{cam}.resolution"))
         if size is None:

@@ -70,7 +70,14 @@ def rectified_projection(K_r: np.ndarray, P_lfgraph: np.ndarray) -> np.ndarray: 
     return np.column_stack([K_r, P_lfgraph[:, 3]])
 
 
+_CV_MODELS = {"radtan": "pinhole", "fisheye": "fisheye"}  # lfgraph lens -> the OpenCV module that reads it
+
+
 def write(calib: Calibration, path: Path) -> None:
+    unified = [calib.grid.name(v) for v, i in enumerate(calib.intrinsics) if i.lens not in _CV_MODELS]
+    if unified:
+        raise ValueError(f"{path}: OpenCV's main modules have no unified (omnidirectional) lens model, which views "
+                         f"{', '.join(unified)} use; export them to Kalibr (omni-radtan) instead")
     rect = stored_rectification(calib)  # RectificationError (a ValueError) naming the field when incomplete
     w, h = calib.image_size_px
     with atomic_path(path) as tmp:
@@ -80,7 +87,8 @@ def write(calib: Calibration, path: Path) -> None:
             raise OSError(f"{path}: cannot be written by cv2.FileStorage")
         try:
             fs.writeComment("lfgraph calibration: views row-major; x_view = R_i x_ref + T_i (metres); "
-                            "D_i = k1 k2 p1 p2 k3")
+                            "D_i = k1 k2 p1 p2 k3 (model_i pinhole, for cv2) or k1 k2 k3 k4 (model_i fisheye, for "
+                            "cv2.fisheye)")
             for key, value in (("grid_rows", calib.grid.rows), ("grid_cols", calib.grid.cols),
                                ("reference", calib.grid.reference), ("image_width", w), ("image_height", h),
                                ("num_views", calib.num_views)):
@@ -89,7 +97,8 @@ def write(calib: Calibration, path: Path) -> None:
                 intr = calib.intrinsics[i]
                 view_T_ref = calib.view_T_ref(i)  # noqa: N806
                 fs.write(f"K_{i}", intr.K)
-                fs.write(f"D_{i}", intr.dist_cv.reshape(1, 5))
+                fs.write(f"model_{i}", _CV_MODELS[intr.lens])
+                fs.write(f"D_{i}", intr.dist_cv.reshape(1, -1))
                 fs.write(f"R_{i}", view_T_ref[:3, :3])
                 fs.write(f"T_{i}", view_T_ref[:3, 3].reshape(3, 1))
             if rect is not None:
@@ -207,7 +216,11 @@ def read(path: Path, grid: GridLike) -> Calibration:
     for i in range(num_views):
         K = _matrix(entries, f"K_{i}", (3, 3), path)  # noqa: N806
         dist = _matrix(entries, f"D_{i}", None, path)  # 4, 5 or more coefficients; those past p2 must be 0
-        views.append(intrinsics(path, f"K_{i}, D_{i}", K, dist))
+        model = entries.get(f"model_{i}", "pinhole")
+        lens = {m: lens for lens, m in _CV_MODELS.items()}.get(model) if isinstance(model, str) else None
+        if lens is None:
+            raise fail(path, f"model_{i}", f"must be {' or '.join(_CV_MODELS.values())}, got {model!r}")
+        views.append(intrinsics(path, f"K_{i}, D_{i}", K, dist, lens))
         R = rotation(_matrix(entries, f"R_{i}", (3, 3), path), path, f"R_{i}")  # noqa: N806
         view_T_ref = make_T(R, _matrix(entries, f"T_{i}", (3, 1), path).ravel())  # noqa: N806
         if i == reference:

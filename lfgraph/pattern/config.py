@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -43,6 +43,9 @@ class CalibrateConfig:
         marginals: compute 1-sigma uncertainties (costs ~0.2 s for 4x4x40).
         graph_hooks: user functions called with a `lfgraph.factors.GraphContext` before the joint graph is
             optimised (add your own factors or priors; see `lfgraph.factors.hooks`).
+        lens: each view's lens model: ``"auto"`` (default: per view, the model that predicts held-out frames best),
+            ``"radtan"`` or ``"fisheye"`` for every view, or per view: ``"auto,r00_c02=fisheye"`` or a mapping
+            ``{"r00_c02": "fisheye"}`` (views by name or index; the others auto).
     """
 
     method: Method | str = Method.JOINT
@@ -56,6 +59,7 @@ class CalibrateConfig:
     max_iterations: int = 100
     marginals: bool = True
     graph_hooks: tuple[Callable, ...] = ()
+    lens: str | Mapping[str | int, str] = "auto"
 
     def __post_init__(self) -> None:
         for name, kind in (("method", Method), ("init", Init)):
@@ -65,6 +69,9 @@ class CalibrateConfig:
                 raise ValueError(f"unknown {name} {getattr(self, name)!r}; choose from {', '.join(kind)}") from None
         object.__setattr__(self, "robust", as_noise(self.robust))
         object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
+        if not isinstance(self.lens, str | Mapping):
+            raise TypeError(f"lens must be a model name or a mapping of views to models, got "
+                            f"{type(self.lens).__name__}")
         for name in ("board_sigma_mm", "focal_px", "pitch_mm"):
             value = getattr(self, name)
             if value is not None and not (np.isfinite(value) and value > 0):

@@ -9,6 +9,7 @@ import numpy as np
 from lfgraph.camera import Intrinsics
 from lfgraph.detections import BoardObservations
 from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.pattern.lenses import board_pose
 
 MIN_FRAMES_PER_VIEW = 3  # Zhang's method needs >= 3 board poses for fx, fy, cx, cy, k1, k2
 
@@ -47,22 +48,29 @@ def weak_views(obs: BoardObservations) -> np.ndarray:
     return (counts > 0) & (counts < MIN_FRAMES_PER_VIEW)
 
 
-def borrowed_intrinsics(obs: BoardObservations, view: int, known: dict[int, Intrinsics]) -> tuple[Intrinsics, str]:
-    """Starting intrinsics of a weakly seen view: the mean of its calibrated grid neighbours, else of every
-    calibrated view, else design values (focal length = the larger image side, centred principal point).
+_BORROWED = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "xi")  # tangential terms start at 0
+
+
+def borrowed_intrinsics(obs: BoardObservations, view: int, known: dict[int, Intrinsics],
+                        lens: str = "radtan") -> tuple[Intrinsics, str]:
+    """Starting intrinsics of a weakly seen view: the mean of its calibrated grid neighbours with the same lens
+    model, else of every calibrated view with it, else design values (focal length = the larger image side,
+    centred principal point, no distortion).
 
     Returns:
         the intrinsics and a phrase saying where they came from (for the warning).
     """
-    for pool, source in (([n for n in obs.grid.neighbours(view) if n in known], "its neighbours"),
-                         (sorted(known), "the other views")):
+    same = {n: i for n, i in known.items() if i.lens == lens}
+    for pool, source in (([n for n in obs.grid.neighbours(view) if n in same], "its neighbours"),
+                         (sorted(same), "the other views")):
         if pool:
-            fields = np.mean([[known[n].fx, known[n].fy, known[n].cx, known[n].cy, known[n].k1, known[n].k2]
-                              for n in pool], axis=0)
-            return Intrinsics(*(float(x) for x in fields)), f"{source} ({', '.join(obs.grid.name(n) for n in pool)})"
+            fields = np.mean([[getattr(same[n], k) for k in _BORROWED] for n in pool], axis=0)
+            return (Intrinsics(**dict(zip(_BORROWED, (float(x) for x in fields), strict=True)), lens=lens),
+                    f"{source} ({', '.join(obs.grid.name(n) for n in pool)})")
     w, h = obs.image_size_px
     f = float(max(w, h))
-    return Intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0), "design values (focal length = the larger image side)"
+    return (Intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0).with_distortion(lens),
+            "design values (focal length = the larger image side)")
 
 
 # ------------------------------------------------------------------------------------------------- helpers
@@ -87,6 +95,11 @@ def pnp_all(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...]) -> np.nd
     seen = obs.seen
     for v, f in zip(*np.nonzero(seen), strict=True):
         mask = obs.valid[v, f]
+        if intrinsics[v].lens != "radtan":  # PnP on undistorted corners, then the pixel error (any model)
+            pose = board_pose(intrinsics[v], obs.board.object_points()[mask], obs.corners_px[v, f][mask])
+            if pose is not None:
+                out[v, f] = pose
+            continue
         ok, rvec, tvec = cv2.solvePnP(masked_object_points(obs, mask), obs.corners_px[v, f][mask].astype(np.float32),
                                       intrinsics[v].K, intrinsics[v].dist_cv, flags=cv2.SOLVEPNP_ITERATIVE)
         if ok:

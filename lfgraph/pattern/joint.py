@@ -82,7 +82,8 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     valid[:, [f for f in range(obs.num_frames) if f not in frames]] = False
     noise = measurement_noise(settings.noise, settings.corner_sigma_px)
     graph = gtsam.NonlinearFactorGraph()
-    n_obs = board_graph.add_board_observations(graph, obs.corners_px, valid, noise)
+    lenses = tuple(i.lens for i in intrinsics)
+    n_obs = board_graph.add_board_observations(graph, obs.corners_px, valid, noise, lenses)
     obj = obs.board.object_points()
     board_sigma_m = board_graph.RIGID_BOARD_SIGMA_M if settings.board_sigma_mm is None \
         else settings.board_sigma_mm * 1e-3
@@ -99,13 +100,14 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     est = result.values
     n_views = obs.num_views
     # skew and (unless estimated) p1, p2 are pinned at 0 by priors: read_intrinsics clears their round-off
-    intr = read_intrinsics(est, n_views, tangential=settings.tangential)
+    intr = read_intrinsics(est, n_views, tangential=settings.tangential, lenses=lenses)
     poses = read_view_poses(est, n_views)
     poses[obs.grid.reference] = np.eye(4)  # the gauge prior holds it to 1e-8; make it exact for the file
     boards = read_board_poses(est, obs.num_frames, frames)
     corners = read_board_corners(est, len(obj))
     res = rig_residuals(intr, poses, boards, obs, corners)
-    n_params = n_views * (8 if settings.tangential else 6) + 6 * (n_views - 1) + 6 * len(frames)
+    n_params = sum(len(i.distortion) + 4 - (2 if i.lens != "fisheye" and not settings.tangential else 0)
+                   for i in intr) + 6 * (n_views - 1) + 6 * len(frames)
     dof = max(2 * n_obs - n_params, 1)
     noise_sigma = float(np.sqrt(np.nansum(res**2) / dof))
     sigmas = None

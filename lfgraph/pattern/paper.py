@@ -1,6 +1,7 @@
-"""The paper's pattern calibration (Section 3.2): per-view Zhang (``cv2.calibrateCamera``, k1 and k2)
--> **E_mono**; each view's pose relative to the reference from every frame both see (PnP averaged, then
-Levenberg–Marquardt with intrinsics fixed, ``cv2.stereoCalibrate(CALIB_FIX_INTRINSIC)``) -> **E_PnP**."""
+"""The paper's pattern calibration (Section 3.2): per-view Zhang (``cv2.calibrateCamera``, k1 and k2; for a fisheye
+view ``cv2.fisheye.calibrate``, k1..k4) -> **E_mono**; each view's pose relative to the reference from every frame
+both see (PnP averaged, then Levenberg–Marquardt with intrinsics fixed, ``cv2.stereoCalibrate(CALIB_FIX_INTRINSIC)``;
+for a pair with a non-radtan lens the same on corners undistorted by each view's model) -> **E_PnP**."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from lfgraph.camera import Intrinsics
 from lfgraph.detections import MIN_CORNERS_PER_BOARD, BoardObservations
-from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.geometry import invert_T, make_T
 from lfgraph.pattern.initial import (
     MIN_FRAMES_PER_VIEW,
     CalibrationInputError,
@@ -22,8 +23,7 @@ from lfgraph.pattern.initial import (
     relative_poses,
     weak_views,
 )
-
-MONO_FLAGS = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST  # the paper's model: k1, k2, no tangential, no skew
+from lfgraph.pattern.lenses import fit_mono
 
 
 @dataclass(frozen=True)
@@ -40,8 +40,10 @@ class PaperResult:
     warnings: tuple[str, ...]
 
 
-def calibrate_paper(obs: BoardObservations) -> PaperResult:
+def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = None) -> PaperResult:
     """The paper's Section 3.2: per-view Zhang (k1, k2) then relative poses by PnP + LM with intrinsics fixed.
+
+    ``lenses`` gives each view's model (radtan or fisheye; all radtan by default).
 
     A view that saw the board in fewer than `MIN_FRAMES_PER_VIEW` frames cannot be calibrated alone: the route
     skips its Zhang step (no E_mono), starts its intrinsics from its neighbours (`borrowed_intrinsics`) and its pose
@@ -61,23 +63,22 @@ def calibrate_paper(obs: BoardObservations) -> PaperResult:
     view_T_board = np.full((n_views, n_frames, 4, 4), np.nan)  # noqa: N806
     e_mono = np.full(n_views, np.nan)
     n_points = np.zeros(n_views)
+    lenses = lenses or ("radtan",) * n_views
     for v in np.nonzero(~weak)[0]:
-        frames = np.nonzero(seen[v])[0]
-        objs = [masked_object_points(obs, obs.valid[v, f]) for f in frames]
-        imgs = [obs.corners_px[v, f][obs.valid[v, f]].astype(np.float32) for f in frames]
         try:
-            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, obs.image_size_px, None, None,  # noqa: N806
-                                                             flags=MONO_FLAGS)
+            fit = fit_mono(obs, int(v), lenses[v])
         except cv2.error as exc:
-            raise CalibrationInputError(f"{obs.describe(v)}: OpenCV's calibrateCamera failed ({exc.err})") from None
-        known[int(v)] = Intrinsics.from_opencv(K, np.concatenate([dist.ravel()[:4], [0.0]]))
-        for f, r, t in zip(frames, rvecs, tvecs, strict=True):
-            view_T_board[v, f] = make_T(rotation_from_rotvec(r.ravel()), t.ravel())
-        e_mono[v] = rms
-        n_points[v] = sum(len(p) for p in imgs)
+            what = "fisheye.calibrate" if lenses[v] == "fisheye" else "calibrateCamera"
+            raise CalibrationInputError(f"{obs.describe(v)}: OpenCV's {what} failed ({exc.err})") from None
+        known[int(v)] = fit.intrinsics
+        for f, pose in fit.view_T_board.items():
+            view_T_board[v, f] = pose
+        e_mono[v] = fit.rms_px
+        n_points[v] = obs.valid[v].sum()
     warnings = []
     for v in np.nonzero(weak)[0]:
-        known[int(v)], source = borrowed_intrinsics(obs, int(v), {k: i for k, i in known.items() if not weak[k]})
+        known[int(v)], source = borrowed_intrinsics(obs, int(v), {k: i for k, i in known.items() if not weak[k]},
+                                                    lenses[v])
         view_T_board[v] = pnp_all(obs, (known[int(v)],) * n_views)[v]
         warnings.append(f"{obs.describe(int(v))} saw the board in only {int(seen[v].sum())} frame(s) (Zhang needs "
                         f"{MIN_FRAMES_PER_VIEW}): the paper route skips its own calibration; its intrinsics start from "
@@ -90,7 +91,6 @@ def calibrate_paper(obs: BoardObservations) -> PaperResult:
                                     f"show the board to these views together with others")
     e_pnp = np.full(n_views, np.nan)
     pnp_points = np.zeros(n_views)
-    ref_K, ref_d = intrinsics[ref].K, intrinsics[ref].dist_cv  # noqa: N806
     for v in range(n_views):
         if v == ref:
             continue
@@ -102,11 +102,18 @@ def calibrate_paper(obs: BoardObservations) -> PaperResult:
                             f"through view {parent[v]} and has no E_PnP")
             continue
         objs = [masked_object_points(obs, masks[i]) for i in keep]
-        ref_pts = [obs.corners_px[ref, frames[i]][masks[i]].astype(np.float32) for i in keep]
-        view_pts = [obs.corners_px[v, frames[i]][masks[i]].astype(np.float32) for i in keep]
+        pair = (intrinsics[ref], intrinsics[v])
+        radtan = all(i.lens == "radtan" for i in pair)
+        # a pair with another lens: the corners undistorted by each view's model, then the same LM with plain K
+        ref_pts, view_pts = ([(obs.corners_px[u, frames[i]][masks[i]] if radtan else
+                               intr.undistort_pixels(obs.corners_px[u, frames[i]][masks[i]])).astype(np.float32)
+                              for i in keep] for u, intr in zip((ref, v), pair, strict=True))
+        usable = [i for i in range(len(keep)) if np.isfinite(ref_pts[i]).all() and np.isfinite(view_pts[i]).all()]
+        objs, ref_pts, view_pts = ([x[i] for i in usable] for x in (objs, ref_pts, view_pts))
+        dists = [i.dist_cv if radtan else np.zeros(5) for i in pair]
         view_T_ref = invert_T(ref_T_view[v])  # noqa: N806
         rms, *_, R, T, _, _ = cv2.stereoCalibrate(  # noqa: N806
-            objs, ref_pts, view_pts, ref_K, ref_d, intrinsics[v].K, intrinsics[v].dist_cv, obs.image_size_px,
+            objs, ref_pts, view_pts, pair[0].K, dists[0], pair[1].K, dists[1], obs.image_size_px,
             view_T_ref[:3, :3].copy(), view_T_ref[:3, 3].copy(), flags=cv2.CALIB_FIX_INTRINSIC,
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
         ref_T_view[v] = invert_T(make_T(R, T.ravel()))

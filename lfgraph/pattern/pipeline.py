@@ -23,6 +23,7 @@ from lfgraph.pattern.initial import (
     weak_views,
 )
 from lfgraph.pattern.joint import calibrate_joint
+from lfgraph.pattern.lenses import AUTO, choose_lenses, radial_profile_warning, resolve_lenses
 from lfgraph.pattern.paper import calibrate_paper
 from lfgraph.pattern.scoring import (
     CalibrationReport,
@@ -72,10 +73,21 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     seconds: dict[str, float] = {}
     warnings: list[str] = list(order_warnings)
     n_views = obs.num_views
+    requested = resolve_lenses(config.lens, obs.grid)
+    lens_table = None
+    if AUTO in requested:
+        t0 = time.perf_counter()
+        choice = choose_lenses(obs, requested)
+        seconds["lens_choice"] = time.perf_counter() - t0
+        lenses = choice.lenses
+        lens_table = choice.table(obs.grid)
+        say.log(lens_table)
+    else:
+        lenses = requested
     paper = None
     if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()
-        paper = calibrate_paper(obs)
+        paper = calibrate_paper(obs, lenses)
         # one bad view-frame (a mis-detected board, another camera's image) skews the PnP average the rig starts
         # from and then the whole fit: view-frames whose relative pose contradicts the other frames' are dropped
         bad = inconsistent_view_frames(paper.view_T_board, obs.grid.reference)
@@ -87,7 +99,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
                 warnings.append(message)
                 say.log(message)
             check_observations(obs)
-            paper = calibrate_paper(obs)
+            paper = calibrate_paper(obs, lenses)
         seconds["paper"] = time.perf_counter() - t0
         warnings += paper.warnings
         say.log(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
@@ -106,6 +118,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
             start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
         else:
             start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
+            start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
         start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
         t0 = time.perf_counter()
         joint = calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration)
@@ -131,6 +144,10 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     if outliers:
         warnings.append("frames with outlying reprojection error (check these images for a mis-detected board): "
                         + ", ".join(f"{obs.frame_names[f]} ({frame_rms[f]:.3f} px)" for f in outliers))
+    for v in range(n_views):
+        message = radial_profile_warning(obs, v, intrinsics[v], res[v])
+        if message:
+            warnings.append(message)
     cells = coverage_map(obs)
     warnings += coverage_warnings(obs, cells)
     report = CalibrationReport(
@@ -144,5 +161,10 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         sigmas=None if joint is None else joint.sigmas,
         optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds,
         board_T_ref=boards, residuals_px=res)
-    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, report.metrics())
+    metrics = report.metrics()
+    if lens_table is not None:
+        metrics["lens_choice"] = {name: {lens: [None if not np.isfinite(x) else float(x) for x in values]
+                                         for lens, values in table.items()}
+                                  for name, table in (("fit_px", choice.fit_px), ("heldout_px", choice.heldout_px))}
+    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics)
     return calib, report
