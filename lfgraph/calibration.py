@@ -45,6 +45,8 @@ class Calibration:
         ref_T_view: (V, 4, 4) pose of each view in the reference view's frame (metres); identity for the reference.
         rectification: the stored rectification (see lfgraph.rectification), or None.
         metrics: figures of merit (``e_mono_px``, ``e_pnp_px``, ``rig_rms_px``, sigmas, ...), JSON-serialisable.
+        view_image_sizes_px: (V,) (width, height) per view for a rig of mixed image sizes; None when every view
+            has ``image_size_px`` (see `image_size`).
     """
 
     grid: ViewGrid
@@ -53,6 +55,11 @@ class Calibration:
     ref_T_view: np.ndarray
     rectification: Mapping[str, Any] | None = None
     metrics: Mapping[str, Any] | None = None
+    view_image_sizes_px: tuple[tuple[int, int], ...] | None = None
+
+    def image_size(self, view: int) -> tuple[int, int]:
+        """(width, height) of one view's images."""
+        return self.image_size_px if self.view_image_sizes_px is None else self.view_image_sizes_px[view]
 
     def __post_init__(self) -> None:
         n = self.grid.num_views
@@ -74,6 +81,12 @@ class Calibration:
         if w <= 0 or h <= 0:
             raise ValueError(f"image_size_px must be positive (width, height), got {self.image_size_px}")
         object.__setattr__(self, "image_size_px", (w, h))
+        if self.view_image_sizes_px is not None:
+            sizes = tuple((int(a), int(b)) for a, b in self.view_image_sizes_px)
+            if len(sizes) != n or any(a <= 0 or b <= 0 for a, b in sizes):
+                raise ValueError(f"view_image_sizes_px must hold {n} positive (width, height), got "
+                                 f"{self.view_image_sizes_px}")
+            object.__setattr__(self, "view_image_sizes_px", None if set(sizes) == {(w, h)} else sizes)
         object.__setattr__(self, "metrics", {**DEFAULT_METRICS, **dict(self.metrics or {})})
 
     @property
@@ -99,6 +112,7 @@ class Calibration:
                 "K": intr.K.tolist(),
                 "lens": intr.lens,
                 "distortion": intr.distortion,
+                **({"image_size_px": list(self.image_size(v))} if self.image_size(v) != self.image_size_px else {}),
                 "R_view_from_ref": view_T_ref[:3, :3].tolist(),
                 "t_view_from_ref_m": view_T_ref[:3, 3].tolist(),
             })
@@ -225,7 +239,7 @@ def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
         raise fail("views", f"must be a list, got {type(views).__name__}")
     if len(views) != grid.num_views:
         raise fail("views", f"has {len(views)} entries but the {grid} grid needs {grid.num_views}")
-    intrinsics, poses = [], []
+    intrinsics, poses, sizes = [], [], []
     for i, view in enumerate(views):
         w = f"views[{i}]"
         index = get(view, "index", w)
@@ -251,6 +265,11 @@ def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
             intrinsics.append(Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], **coeffs, lens=lens))
         except ValueError as exc:
             raise fail(f"{w}.distortion", str(exc)) from None
+        own = view.get("image_size_px", size)
+        if (not isinstance(own, list) or len(own) != 2
+                or not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in own)):
+            raise fail(f"{w}.image_size_px", f"must be [width, height] in positive whole pixels, got {own!r}")
+        sizes.append((own[0], own[1]))
         R = matrix(get(view, "R_view_from_ref", w), (3, 3), f"{w}.R_view_from_ref")  # noqa: N806
         if not is_rotation(R):
             raise fail(f"{w}.R_view_from_ref", "is not a rotation matrix (R^T R must be I and det R = +1)")
@@ -268,4 +287,4 @@ def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
         metrics = {}
     if not isinstance(metrics, dict):
         raise fail("metrics", f"must be an object, got {type(metrics).__name__}")
-    return Calibration(grid, (size[0], size[1]), tuple(intrinsics), np.stack(poses), rect, metrics)
+    return Calibration(grid, (size[0], size[1]), tuple(intrinsics), np.stack(poses), rect, metrics, tuple(sizes))

@@ -100,11 +100,12 @@ class BoardObservations:
     Attributes:
         board: the board (checkerboard or ChArUco), or a `PointBoard` for points detected by another tool.
         grid: the view grid.
-        image_size_px: (width, height) of every view.
+        image_size_px: (width, height) of the views (of every view unless ``view_sizes_px`` says otherwise).
         corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
         valid: (V, F, C) which corners were observed.
         frame_names: (F,) one name per frame (for messages).
         sources: (F,) per frame the files it came from (for messages); may be empty for synthetic corners.
+        view_sizes_px: (V,) (width, height) per view for rigs of mixed image sizes; None: all ``image_size_px``.
     """
 
     board: BoardSpec | PointBoard
@@ -114,9 +115,20 @@ class BoardObservations:
     valid: np.ndarray
     frame_names: tuple[str, ...]
     sources: tuple[tuple[str, ...], ...] = ()
+    view_sizes_px: tuple[tuple[int, int], ...] | None = None
+
+    def size_of(self, view: int) -> tuple[int, int]:
+        """(width, height) of one view's images."""
+        return self.image_size_px if self.view_sizes_px is None else self.view_sizes_px[view]
 
     def __post_init__(self) -> None:
         v, c = self.grid.num_views, self.board.num_corners
+        if self.view_sizes_px is not None:
+            sizes = tuple((int(w), int(h)) for w, h in self.view_sizes_px)
+            if len(sizes) != v or any(w <= 0 or h <= 0 for w, h in sizes):
+                raise ValueError(f"view_sizes_px must hold {v} positive (width, height), got {self.view_sizes_px}")
+            object.__setattr__(self, "view_sizes_px", None if len(set(sizes)) == 1 and sizes[0] == tuple(
+                self.image_size_px) else sizes)
         corners = np.asarray(self.corners_px, dtype=np.float64)
         if corners.ndim != 4 or corners.shape[0] != v or corners.shape[2:] != (c, 2):
             raise ValueError(f"corners_px must be (V={v}, F, C={c}, 2) for a {self.grid} grid and a {self.board} "
@@ -171,7 +183,7 @@ class BoardObservations:
         idx = np.asarray(frames, dtype=int)
         return BoardObservations(self.board, self.grid, self.image_size_px, self.corners_px[:, idx],
                                  self.valid[:, idx], tuple(self.frame_names[i] for i in idx),
-                                 tuple(self.sources[i] for i in idx) if self.sources else ())
+                                 tuple(self.sources[i] for i in idx) if self.sources else (), self.view_sizes_px)
 
 
 def observations_from_arrays(board: BoardSpec | PointBoard, grid: ViewGrid, image_size_px: tuple[int, int],

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -105,12 +106,38 @@ def _drop_unusable(board: PointBoard, valid: np.ndarray) -> tuple[np.ndarray, in
     return valid, dropped
 
 
-def _observations(board: PointBoard, grid: ViewGrid, image_size_px: tuple[int, int], points: np.ndarray,
+ImageSizes = tuple[int, int] | tuple[tuple[int, int], Mapping[str | int, tuple[int, int]]]
+
+
+def view_sizes(image_size_px: ImageSizes, grid: ViewGrid) -> tuple[tuple[int, int], list[tuple[int, int]]]:
+    """The rig's (width, height) and each view's, from one size or ``(default, {view name or index: size})``.
+
+    Raises:
+        PointsError: a per-view size for a view the grid does not have.
+    """
+    if len(image_size_px) == 2 and isinstance(image_size_px[1], Mapping):
+        default, per_view = image_size_px
+    else:
+        default, per_view = image_size_px, {}
+    default = (int(default[0]), int(default[1]))
+    sizes = [default] * grid.num_views
+    names = {grid.name(v): v for v in range(grid.num_views)}
+    for key, size in per_view.items():
+        v = key if isinstance(key, int) and not isinstance(key, bool) else names.get(str(key))
+        if v is None or not 0 <= v < grid.num_views:
+            raise PointsError(f"image size for {key!r}: no such view in the {grid} grid (views are named like "
+                              f"{grid.name(0)})")
+        sizes[v] = (int(size[0]), int(size[1]))
+    return default, sizes
+
+
+def _observations(board: PointBoard, grid: ViewGrid, image_size_px: ImageSizes, points: np.ndarray,
                   valid: np.ndarray, frame_names: tuple[str, ...], sources: tuple[str, ...]) -> BoardObservations:
     valid, _ = _drop_unusable(board, valid)
     per_frame = tuple(tuple(sources) for _ in frame_names)
-    return BoardObservations(board, grid, tuple(int(s) for s in image_size_px), np.where(valid[..., None], points,
-                             np.nan), valid, frame_names, per_frame)
+    default, sizes = view_sizes(image_size_px, grid)
+    return BoardObservations(board, grid, default, np.where(valid[..., None], points, np.nan), valid, frame_names,
+                             per_frame, tuple(sizes))
 
 
 def _read_node(node, path: Path, name: str, n_points: int) -> np.ndarray:
@@ -162,7 +189,7 @@ def _read_multiview_file(path: Path, n_points: int) -> dict[int, np.ndarray]:
 
 
 def read_opencv_multiview(folder: str | os.PathLike, board: PointBoard, grid: ViewGrid | tuple[int, int],
-                          image_size_px: tuple[int, int]) -> BoardObservations:
+                          image_size_px: ImageSizes) -> BoardObservations:
     """Read OpenCV's multi-view calibration points: one ``cam_*.json`` per view (see the module docstring).
 
     Frames are ``0 .. max N`` over all files; a frame no camera saw stays in the observations, unseen.
@@ -193,17 +220,18 @@ def read_opencv_multiview(folder: str | os.PathLike, board: PointBoard, grid: Vi
             points[v, f] = pts
     missing = np.all(points == -1.0, axis=-1)  # OpenCV's marker for a point not detected
     valid = np.all(np.isfinite(points), axis=-1) & ~missing
+    _, sizes = view_sizes(image_size_px, grid)
     for v, p in enumerate(files):
-        bad = _first_outside(points[v], valid[v], image_size_px)
+        bad = _first_outside(points[v], valid[v], sizes[v])
         if bad is not None:
             raise PointsError(_outside_message(f"{p}: node frame_{bad[0]}, point {bad[1]}", points[v][bad],
-                                               image_size_px))
+                                               sizes[v]))
     names = tuple(f"frame_{f}" for f in range(n_frames))
     return _observations(board, grid, image_size_px, points, valid, names, tuple(str(p) for p in files))
 
 
 def read_points_npz(path: str | os.PathLike, grid: ViewGrid | tuple[int, int],
-                    image_size_px: tuple[int, int]) -> BoardObservations:
+                    image_size_px: ImageSizes) -> BoardObservations:
     """Read the ``.npz`` of `NPZ_KEYS` (see the module docstring).
 
     Raises:
@@ -243,16 +271,18 @@ def read_points_npz(path: str | os.PathLike, grid: ViewGrid | tuple[int, int],
     if bad.any():
         v, f, j = (int(i[0]) for i in np.nonzero(bad))
         raise PointsError(f"{path}: image_points[{v}, {f}, {j}] is not finite but valid says it was observed")
-    bad = _first_outside(pts, valid, image_size_px)
-    if bad is not None:
-        raise PointsError(_outside_message(f"{path}: image_points[{bad[0]}, {bad[1]}, {bad[2]}]", pts[bad],
-                                           image_size_px))
+    _, sizes = view_sizes(image_size_px, grid)
+    for v in range(grid.num_views):
+        bad = _first_outside(pts[v], valid[v], sizes[v])
+        if bad is not None:
+            raise PointsError(_outside_message(f"{path}: image_points[{v}, {bad[0]}, {bad[1]}]", pts[v][bad],
+                                               sizes[v]))
     names = tuple(f"{f:03d}" for f in range(pts.shape[1]))
     return _observations(board, grid, image_size_px, pts, valid, names, (str(path),))
 
 
 def load_detections(path: str | os.PathLike, fmt: str, grid: ViewGrid | tuple[int, int],
-                    image_size_px: tuple[int, int], object_points: str | os.PathLike | None = None
+                    image_size_px: ImageSizes, object_points: str | os.PathLike | None = None
                     ) -> BoardObservations:
     """Detections in one of `DETECTION_FORMATS`; ``object_points`` (a ``.npy``) is needed by, and only by,
     ``opencv-multiview``."""

@@ -276,6 +276,10 @@ def check_rectifiable(calib: Calibration) -> None:
         RectificationError: naming the views or the view and its coefficients.
     """
     grid = calib.grid
+    if calib.view_image_sizes_px is not None:
+        kinds = ", ".join(sorted({f"{w}x{h}" for w, h in calib.view_image_sizes_px}))
+        raise RectificationError(f"the views have different image sizes ({kinds}); rectifying a rig of mixed sizes "
+                                 f"is not supported yet")
     centres = calib.ref_T_view[:, :3, 3]
     gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     neighbours = [gaps[a, b] for a in range(grid.num_views) for b in range(a + 1, grid.num_views)

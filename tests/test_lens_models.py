@@ -2,7 +2,6 @@
 (independent implementations), their inverses, and what each model refuses."""
 
 import cv2
-import gtsam
 import numpy as np
 import pytest
 

@@ -33,6 +33,23 @@ def image_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def image_sizes(text: str) -> tuple[tuple[int, int], dict[str, tuple[int, int]]]:
+    """``1920x1080,r00_c02=1280x720``: a default size, then per-view ones (views by name)."""
+    default, per_view = None, {}
+    for token in (t.strip() for t in text.split(",") if t.strip()):
+        if "=" in token:
+            name, _, size = token.partition("=")
+            per_view[name.strip()] = image_size(size.strip())
+        elif default is None:
+            default = image_size(token)
+        else:
+            raise argparse.ArgumentTypeError(f"image size: one default WIDTHxHEIGHT, then VIEW=WIDTHxHEIGHT, got "
+                                             f"{text!r}")
+    if default is None:
+        raise argparse.ArgumentTypeError(f"image size needs a default WIDTHxHEIGHT first, got {text!r}")
+    return default, per_view
+
+
 def grid_size(text: str) -> tuple[int, int]:
     from lfgraph.grid import parse_grid
 

@@ -18,7 +18,7 @@ from lfgraph.cli.args import (
     check_side_outputs,
     cli_observer,
     grid_size,
-    image_size,
+    image_sizes,
     jobs_default,
     positive_float,
     positive_int,
@@ -201,7 +201,9 @@ def add_parsers(sub: Any) -> None:
                           "with object_points (C, 3) m, image_points (V, F, C, 2) px, valid (V, F, C)")
     det.add_argument("--object-points", type=Path, metavar="OBJ.npy",
                      help="(C, 3) target points in metres, z = 0 (for --detections opencv-multiview)")
-    det.add_argument("--image-size", type=image_size, metavar="WxH", help="size of the images the points come from")
+    det.add_argument("--image-size", type=image_sizes, metavar="WxH[,VIEW=WxH...]",
+                     help="size of the images the points come from; views of another size after it, e.g. "
+                          "1920x1080,r00_c02=1280x720")
     cal.add_argument("--reference", type=int, default=0, help="reference view, row-major index (default 0)")
     cal.add_argument("--method", choices=("joint", "paper"), default="joint",
                      help="joint: one GTSAM graph over all views and frames (default); paper: per-view Zhang + "

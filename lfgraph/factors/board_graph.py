@@ -100,17 +100,19 @@ WEAK_RADIAL_SIGMA = 0.1  # k1, k2
 
 
 def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[Intrinsics],
-                        tangential: bool, weak: Sequence[bool] | None = None, image_width_px: float = 0.0) -> None:
+                        tangential: bool, weak: Sequence[bool] | None = None,
+                        image_width_px: float | Sequence[float] = 0.0) -> None:
     """Hold what the model lacks: skew at 0 always; p1, p2 at 0 unless ``tangential`` (radtan and unified).
 
     The other components get a ``FREE_SIGMA`` prior (no information), which keeps one factor per view — except for
     views flagged ``weak``, whose fx, fy, cx, cy and distortion get the ``WEAK_*`` prior around their start.
     """
+    widths = np.broadcast_to(np.asarray(image_width_px, dtype=np.float64), (len(intrinsics),))
     for v, intr in enumerate(intrinsics):
         if not tangential and intr.lens != "fisheye":
             intr = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1, intr.k2, xi=intr.xi, lens=intr.lens)
         if weak is not None and weak[v]:
-            focal, principal, radial = WEAK_FOCAL_SIGMA_REL * intr.fx, WEAK_PRINCIPAL_SIGMA_REL * image_width_px, \
+            focal, principal, radial = WEAK_FOCAL_SIGMA_REL * intr.fx, WEAK_PRINCIPAL_SIGMA_REL * widths[v], \
                 WEAK_RADIAL_SIGMA
         else:
             focal = principal = radial = FREE_SIGMA

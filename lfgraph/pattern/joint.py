@@ -89,7 +89,8 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
         else settings.board_sigma_mm * 1e-3
     board_graph.add_corner_priors(graph, obj, board_sigma_m)
     board_graph.add_gauge_prior(graph, obs.grid.reference)
-    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs), obs.image_size_px[0])
+    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs),
+                                   [obs.size_of(v)[0] for v in range(obs.num_views)])
     values = gtsam.Values()
     insert_intrinsics(values, intrinsics)
     insert_view_poses(values, ref_T_view)

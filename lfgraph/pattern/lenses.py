@@ -94,7 +94,7 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
     """
     frames = [int(f) for f in (np.nonzero(obs.seen[v])[0] if frames is None else frames)]
     objs, imgs = _view_points(obs, v, frames)
-    size = obs.image_size_px
+    size = obs.size_of(v)
     use_guess = guess is not None and guess.lens == lens
     if lens == FISHEYE:
         _, K, D, rvecs, tvecs = cv2.fisheye.calibrate(  # noqa: N806

@@ -166,5 +166,5 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         metrics["lens_choice"] = {name: {lens: [None if not np.isfinite(x) else float(x) for x in values]
                                          for lens, values in table.items()}
                                   for name, table in (("fit_px", choice.fit_px), ("heldout_px", choice.heldout_px))}
-    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics)
+    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics, obs.view_sizes_px)
     return calib, report
