@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 BENCHMARKS = ["cli_speed.py", "render.py", "detection.py", "calibration.py", "rectify.py", "refine.py", "sweep.py",
-              "middlebury_pairs.py", "ring.py", "real.py", "fleet.py", "targetless.py"]
+              "middlebury_pairs.py", "ring.py", "real.py", "opencv_multiview.py", "fleet.py", "targetless.py"]
 
 
 def main() -> int:

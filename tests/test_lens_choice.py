@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph import CalibrateConfig, Calibration, calibrate
+from lfgraph import Calibration, calibrate
 from lfgraph.camera import Intrinsics
 from lfgraph.cli import main
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
@@ -152,3 +152,12 @@ def test_unified_views_refuse_formats_without_the_model(tmp_path):
             export_calibration(calib, fmt, tmp_path / name)
     path = export_calibration(calib, "kalibr", tmp_path / "camchain.yaml")
     assert import_calibration(path, "kalibr", (1, 3)).intrinsics[2] == calib.intrinsics[2]
+
+
+def test_refine_refuses_wide_lens_views_by_name():
+    from lfgraph import refine
+
+    truth, _ = _synthetic("fisheye")
+    frames = [np.zeros((3, 480, 640), np.uint8)]
+    with pytest.raises(ValueError, match=r"r00_c00 \(fisheye\).*radtan lenses only"):
+        refine(truth, frames)

@@ -62,6 +62,14 @@ FOREIGN_RMS_PX = 1.0  # tracks that fit the input this badly, and refits of the 
 # a calibration of another camera (a knocked rig's refits predict better, even when the folds disagree)
 
 
+def check_radtan(calib: Calibration, what: str) -> None:
+    """Refuse views of another lens model than radtan, by name: the refinement's fast solvers model only radtan."""
+    other = [f"{calib.grid.name(v)} ({i.lens})" for v, i in enumerate(calib.intrinsics) if i.lens != "radtan"]
+    if other:
+        raise ValueError(f"{what}: views {', '.join(other)} have a wide-angle lens model; refinement handles radtan "
+                         f"lenses only so far")
+
+
 def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
            observer: Observer | None = None) -> tuple[Calibration, RefinementReport]:
     """Refine a calibration from ordinary (textured) captures, frame after frame.
@@ -84,8 +92,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         ``verdicts``).
 
     Raises:
-        ValueError: a frame whose shape, dtype or size does not match the calibration (named), no frame, or no
-            track survives the filters (too little texture).
+        ValueError: a frame whose shape, dtype or size does not match the calibration (named), no frame, no
+            track survives the filters (too little texture), or a view with a non-radtan lens model.
         TypeError: ``calib``, ``config`` or ``frames`` of the wrong kind (named).
     """
     if not isinstance(calib, Calibration):
@@ -93,6 +101,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     if config is not None and not isinstance(config, RefineConfig):
         raise TypeError(f"refine: config must be a lfgraph.RefineConfig, got {type(config).__name__}")
     check_frames_argument(frames, "refine")
+    check_radtan(calib, "refine")
     config = config or RefineConfig()
     obs = resolve(observer)
     # A frame's KLT does not depend on the calibration: it runs in a worker thread (OpenCV releases the GIL) while

@@ -1,0 +1,121 @@
+"""OpenCV's own multi-camera test data (wide lenses, a fisheye, mixed image sizes): lfgraph's default `calibrate`
+(lens model chosen per view) against OpenCV 5's ``cv2.calibrateMultiview`` with the flags OpenCV's tests use, on rig
+RMS, the reference poses of OpenCV's tests and time. Needs ``../shared/data/opencv_multiview``.
+
+    .venv/bin/python benchmarks/opencv_multiview.py
+
+The reference poses are OpenCV's own results on these files (its README); the criteria are its tests'
+(each camera within 1 degree and 1 cm; RMS <= 0.3 px for OneLine, <= 1 px for the others).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import lfgraph as lf
+from lfgraph.points_io import PointBoard, read_opencv_multiview
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_multiview"
+ANGLE_TOL_DEG, POSITION_TOL_M = 1.0, 0.01  # OpenCV's validateCameraPose
+OBJ = np.array([[(2 * j + i % 2) * 0.04, i * 0.04, 0.0] for i in range(11) for j in range(8)])
+
+# name, folder, cameras, image sizes, frames used, OpenCV models, RMS bar, reference (R, T) of cameras 1..
+SETS = [
+    ("OneLine", "3cams-one-line", ["cam_0", "cam_1", "cam_3"], [(1920, 1080)] * 3, 96, ["pinhole"] * 3, 0.3,
+     {1: ([0.9996914489704484, -0.01160060078752197, -0.02196435559568884, 0.012283315339906, 0.9994374509454836,
+           0.03120739995344806, 0.02158997497973892, -0.03146756598408248, 0.9992715673286274],
+          [0.5078811293323259, 0.002753469433719865, 0.02413521839310227]),
+      2: ([0.9988848194142131, -0.0255827884561986, -0.03968171466355882, 0.0261796234191418, 0.999550713317242,
+           0.0145944792515729, 0.03929051872229011, -0.0156170561181697, 0.9991057815350362],
+          [1.007213763725429, 0.01645068247976361, 0.05394643957910365])}),
+    ("CamsToFloor", "3cams-to-floor", ["cam_0", "cam_1", "cam_2"], [(1920, 1080), (1920, 1080), (1280, 720)], 125,
+     ["pinhole"] * 3, 1.0,
+     {1: ([-0.05217184989559624, 0.6470741242690249, -0.7606399777686852, -0.526982982144755, 0.6291523784496631,
+           0.5713634755748329, 0.8482729717539585, 0.4306534133065782, 0.3081730082260634],
+          [1.064278166833888, -0.7727142268275895, 1.140555926119704]),
+      2: ([0.001580678474783847, -0.62542080411436, 0.7802860496231537, 0.4843796328138114, 0.683118871472744,
+           0.5465573883435866, -0.8748564869569847, 0.3770907387072139, 0.304020890746888],
+          [-0.9391478506021244, -1.048084838193036, 1.3973875466639])}),
+    ("hetero1", "3cams-hetero", ["cam_7", "cam_4"], [(1920, 1080), (2048, 2048)], 127, ["pinhole", "fisheye"], 1.0,
+     {1: ([0.9923998627583629, 0.1102270543935739, 0.05470382872247866, -0.05295473891691575, -0.01873572048960163,
+           0.9984211377990636, 0.1110779367085268, -0.9937298270945939, -0.01275628155556733],
+          [0.5132123397314717, -0.345554256449513, 0.7851208074917889])}),
+]
+
+
+def pose_error(view_T_ref: np.ndarray, R: list[float], T: list[float]) -> tuple[float, float]:  # noqa: N803
+    """OpenCV's validateCameraPose: rotation angle (deg) and camera-centre distance (m)."""
+    Rg, Tg = np.reshape(R, (3, 3)), np.asarray(T)  # noqa: N806
+    angle = np.degrees(np.arccos(np.clip((np.trace(Rg.T @ view_T_ref[:3, :3]) - 1) / 2, -1, 1)))
+    return float(angle), float(np.linalg.norm(Rg.T @ Tg - view_T_ref[:3, :3].T @ view_T_ref[:3, 3]))
+
+
+def opencv(obs: lf.BoardObservations, models: list[str]) -> tuple[float, list[np.ndarray], float]:
+    """cv2.calibrateMultiview as OpenCV's tests call it: rational model for pinholes, fisheye flags for fisheyes."""
+    n_views, n_frames = obs.num_views, obs.num_frames
+    mask = obs.seen.astype(np.uint8)
+    # cv2.fisheye needs each view as (1, N, 3) / (1, N, 2) (OpenCV 5.0: (N, 1, .) fails in arithm_op)
+    obj = [OBJ.astype(np.float32).reshape(1, -1, 3)] * n_frames
+    img = [[obs.corners_px[v, f].astype(np.float32).reshape(1, -1, 2) if mask[v, f]
+            else np.zeros((1, 0, 2), np.float32) for f in range(n_frames)] for v in range(n_views)]
+    kinds = np.array([[cv2.CALIB_MODEL_FISHEYE if m == "fisheye" else cv2.CALIB_MODEL_PINHOLE] for m in models],
+                     np.uint8)
+    flags = np.array([[cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW if m == "fisheye"
+                       else cv2.CALIB_RATIONAL_MODEL] for m in models], np.int32)
+    t0 = time.perf_counter()
+    out = cv2.calibrateMultiview(obj, img, [obs.size_of(v) for v in range(n_views)], mask, kinds, None, None, None,
+                                 None, flagsForIntrinsics=flags)
+    seconds = time.perf_counter() - t0
+    rms, _, _, Rs, Ts = out[:5]  # noqa: N806
+    poses = []
+    for R, T in zip(Rs, Ts, strict=True):  # noqa: N806
+        Rm = cv2.Rodrigues(np.asarray(R, np.float64))[0] if np.size(R) == 3 else np.asarray(R)  # noqa: N806
+        M = np.eye(4)  # noqa: N806
+        M[:3, :3], M[:3, 3] = Rm, np.ravel(T)
+        poses.append(M)
+    return float(rms), poses, seconds
+
+
+def main() -> int:
+    if not DATA.is_dir():
+        print(f"skipped: {DATA} is not there")
+        return 0
+    rows = []
+    for name, folder, cams, sizes, frames, models, bar, ref in SETS:
+        with tempfile.TemporaryDirectory() as tmp:
+            for k, cam in enumerate(cams):
+                (Path(tmp) / f"cam_{k}.json").symlink_to(DATA / folder / f"{cam}.json")
+            grid = lf.ViewGrid(1, len(cams), 0)
+            obs = read_opencv_multiview(tmp, PointBoard(OBJ, "obj"), grid,
+                                        (sizes[0], dict(enumerate(sizes)))).subset_frames(np.arange(frames))
+        t0 = time.perf_counter()
+        calib, report = lf.calibrate(obs)
+        lf_s = time.perf_counter() - t0
+        cv_rms, cv_poses, cv_s = opencv(obs, models)
+        for who, rms, pose_of, secs, lenses in (
+                ("lfgraph", report.rig_rms_px, calib.view_T_ref, lf_s, "/".join(i.lens for i in calib.intrinsics)),
+                ("OpenCV", cv_rms, lambda v, p=cv_poses: p[v], cv_s, "/".join(
+                    "fisheye" if m == "fisheye" else "rational" for m in models))):
+            errs = [pose_error(pose_of(v), *ref[v]) for v in sorted(ref)]
+            ok = rms <= bar and all(a <= ANGLE_TOL_DEG and d <= POSITION_TOL_M for a, d in errs)
+            rows.append([name, who, lenses, f"{rms:.3f}", f"{bar:g}",
+                         " ".join(f"{a:.3f}" for a, _ in errs), " ".join(f"{1e3 * d:.1f}" for _, d in errs),
+                         "PASS" if ok else "FAIL", f"{secs:.1f}"])
+    headers = ["set", "tool", "lens models", "rig RMS px", "bar", "rot err deg", "pos err mm", "criteria", "time s"]
+    widths = [max(len(str(r[i])) for r in [headers, *rows]) for i in range(len(headers))]
+    print("  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True)))
+    for r in rows:
+        print("  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=True)))
+    print("rot/pos err: against the reference poses of OpenCV's tests (OpenCV's own results on these files); "
+          "criteria: 1 deg, 10 mm and the RMS bar")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
