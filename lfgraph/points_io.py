@@ -121,12 +121,11 @@ def view_sizes(image_size_px: ImageSizes, grid: ViewGrid) -> tuple[tuple[int, in
         default, per_view = image_size_px, {}
     default = (int(default[0]), int(default[1]))
     sizes = [default] * grid.num_views
-    names = {grid.name(v): v for v in range(grid.num_views)}
     for key, size in per_view.items():
-        v = key if isinstance(key, int) and not isinstance(key, bool) else names.get(str(key))
-        if v is None or not 0 <= v < grid.num_views:
-            raise PointsError(f"image size for {key!r}: no such view in the {grid} grid (views are named like "
-                              f"{grid.name(0)})")
+        try:
+            v = grid.find(key, "image size")
+        except ValueError as exc:
+            raise PointsError(str(exc)) from None
         sizes[v] = (int(size[0]), int(size[1]))
     return default, sizes
 

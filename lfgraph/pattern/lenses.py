@@ -52,12 +52,11 @@ def resolve_lenses(spec: str | Mapping[str | int, str], grid: ViewGrid) -> tuple
     if default not in choices:
         raise LensSpecError(f"unknown lens {default!r}; choose from {', '.join(choices)}")
     out = [default] * grid.num_views
-    names = {grid.name(v): v for v in range(grid.num_views)}
     for key, lens in per_view.items():
-        v = key if isinstance(key, int) and not isinstance(key, bool) else names.get(str(key))
-        if v is None or not 0 <= v < grid.num_views:
-            raise LensSpecError(f"lens for {key!r}: no such view in the {grid} grid (views are named like "
-                                f"{grid.name(0)})")
+        try:
+            v = grid.find(key, "lens")
+        except ValueError as exc:
+            raise LensSpecError(str(exc)) from None
         if lens not in choices:
             raise LensSpecError(f"lens for {key}: unknown model {lens!r}; choose from {', '.join(choices)}")
         out[v] = lens
