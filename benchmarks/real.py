@@ -57,7 +57,7 @@ from lfgraph.detections import MIN_CORNERS_PER_BOARD, BoardObservations
 from lfgraph.geometry import invert_T, make_T, rotation_angle_deg
 from lfgraph.grid import ViewGrid
 from lfgraph.pattern.initial import initial_board_T_ref, pnp_all
-from lfgraph.pattern.paper import MONO_FLAGS
+from lfgraph.pattern.lenses import MONO_FLAGS
 from lfgraph.pattern.scoring import fit_board_poses, rig_residuals, rms_px
 from lfgraph.peers import calibrate_multiview
 
