@@ -15,6 +15,9 @@ CHARUCO_FLAGS = ("legacy", "inverted")
 _DICTIONARIES = {name.upper(): name for name in dir(cv2.aruco) if name.startswith("DICT_")}
 
 
+MIN_SQUARE_M, MAX_SQUARE_M = 1e-5, 10.0  # 0.01 mm .. 10 m: anything else is a unit mistake
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """A checkerboard given as OpenCV's ``patternSize``, or a ChArUco board (a checkerboard with ArUco markers).
@@ -51,10 +54,17 @@ class BoardSpec:
     inverted: bool = False
 
     def __post_init__(self) -> None:
-        if self.cols < 2 or self.rows < 2:
-            raise ValueError(f"a checkerboard needs at least 2x2 inner corners, got {self.cols}x{self.rows}")
-        if not (np.isfinite(self.square_m) and self.square_m > 0):
-            raise ValueError(f"square size must be a positive length in metres, got {self.square_m}")
+        for name in ("cols", "rows"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer):
+                raise ValueError(f"board {name} must be a whole number of inner corners, got {value!r}")
+        least = 3 if self.kind == "chessboard" else 2  # OpenCV's chessboard finder needs more than 2 each way
+        if self.cols < least or self.rows < least:
+            raise ValueError(f"a {self.kind} board needs at least {least}x{least} inner corners, got "
+                             f"{self.cols}x{self.rows}")
+        if not (isinstance(self.square_m, int | float | np.floating) and MIN_SQUARE_M <= self.square_m <= MAX_SQUARE_M):
+            raise ValueError(f"square size must be between {1e3 * MIN_SQUARE_M:g} mm and {MAX_SQUARE_M:g} m, got "
+                             f"{self.square_m!r} m")
         if self.kind not in BOARD_KINDS:
             raise ValueError(f"board kind must be one of {', '.join(BOARD_KINDS)}, got {self.kind!r}")
         if self.kind == "chessboard":
@@ -85,6 +95,8 @@ class BoardSpec:
         Raises:
             ValueError: a malformed string, an unknown dictionary or flag, a missing or too large marker.
         """
+        if not isinstance(pattern, str):
+            raise TypeError(f"board pattern must be a string such as '11x8', got {type(pattern).__name__}")
         parts = [p.strip() for p in pattern.split(":")]
         if parts[0].lower() != "charuco":
             m = _BOARD_RE.match(pattern)

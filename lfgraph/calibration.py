@@ -16,7 +16,7 @@ import numpy as np
 from lfgraph.camera import DISTORTION_KEYS, LENSES, RADTAN, Intrinsics
 from lfgraph.geometry import invert_T, is_rotation, make_T
 from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import write_text_atomic
+from lfgraph.io_utils import input_problem, write_text_atomic
 
 FORMAT_NAME = "lfgraph.calibration"
 FORMAT_VERSION = 1
@@ -77,6 +77,9 @@ class Calibration:
         poses = poses.copy()
         poses.setflags(write=False)
         object.__setattr__(self, "ref_T_view", poses)
+        if len(self.image_size_px) != 2 or not all(
+                isinstance(x, int | np.integer) and not isinstance(x, bool) for x in self.image_size_px):
+            raise ValueError(f"image_size_px must be (width, height) in whole pixels, got {self.image_size_px}")
         w, h = (int(x) for x in self.image_size_px)
         if w <= 0 or h <= 0:
             raise ValueError(f"image_size_px must be positive (width, height), got {self.image_size_px}")
@@ -164,6 +167,9 @@ class Calibration:
                 a view count that does not match the grid, ... — the message names the file and the field.
         """
         p = Path(path)
+        problem = input_problem(p)
+        if problem:
+            raise CalibrationFileError(p, "file", problem)
         try:
             text = p.read_text(encoding="utf-8")
         except FileNotFoundError:
@@ -179,6 +185,8 @@ class Calibration:
         except json.JSONDecodeError as exc:
             raise CalibrationFileError(p, "JSON", f"not valid JSON (line {exc.lineno}, column {exc.colno}: "
                                                   f"{exc.msg})") from None
+        except RecursionError:
+            raise CalibrationFileError(p, "JSON", "is nested too deeply to be a calibration") from None
         return _parse(data, p)
 
 

@@ -321,7 +321,14 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
 
     Raises:
         CaptureError: an unreadable image or one of a different size (names the file).
+        TypeError: ``capture`` or ``board`` of the wrong kind (named).
     """
+    if not isinstance(capture, CaptureSet):
+        raise TypeError(f"detect_capture: capture must be a lfgraph capture (lfgraph.open_capture), got "
+                        f"{type(capture).__name__}")
+    if not isinstance(board, BoardSpec):
+        raise TypeError(f"detect_capture: board must be a lfgraph.BoardSpec (e.g. BoardSpec.parse('11x8', 20)), got "
+                        f"{type(board).__name__}")
     shape = (capture.grid.num_views, len(capture), board.num_corners, 2)
     cache_path = capture.root / CACHE_NAME
     key = _cache_key(capture, board) if cache else ""

@@ -134,6 +134,9 @@ def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSetti
     """
     from lfgraph.rectification import compute_rectification, stored_rectification
 
+    if settings is not None and not isinstance(settings, MatchSettings):
+        raise TypeError(f"check: settings must be a lfgraph MatchSettings, got {type(settings).__name__}")
+
     if not isinstance(calib, Calibration):
         raise TypeError(f"check: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
     check_frames_argument(frames, "check")

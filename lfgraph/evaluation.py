@@ -46,7 +46,12 @@ def evaluate_calibration(estimate: Calibration, truth: Calibration) -> Calibrati
 
     Raises:
         ValueError: different grids or image sizes (the message says which).
+        TypeError: an argument that is not a `Calibration` (load files with ``Calibration.load``).
     """
+    for name, value in (("estimate", estimate), ("truth", truth)):
+        if not isinstance(value, Calibration):
+            raise TypeError(f"evaluate: {name} must be a lfgraph.Calibration (load a file with "
+                            f"lfgraph.Calibration.load), got {type(value).__name__}")
     if (estimate.grid.rows, estimate.grid.cols) != (truth.grid.rows, truth.grid.cols):
         raise ValueError(f"the calibration is a {estimate.grid} grid but the truth is {truth.grid}")
     if estimate.image_size_px != truth.image_size_px:

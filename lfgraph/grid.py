@@ -5,7 +5,12 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+import numpy as np
+
 _GRID_RE = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
+
+
+MAX_VIEWS = 1_000_000  # more views than any camera array: a typing mistake (and memory for every per-view array)
 
 
 def parse_grid(text: str) -> tuple[int, int]:
@@ -21,6 +26,8 @@ def parse_grid(text: str) -> tuple[int, int]:
     rows, cols = int(m.group(1)), int(m.group(2))
     if rows < 1 or cols < 1:
         raise ValueError(f"a grid needs at least 1x1 views, got {rows}x{cols}")
+    if rows * cols > MAX_VIEWS:
+        raise ValueError(f"a {rows}x{cols} grid has more than {MAX_VIEWS} views; check --grid")
     return rows, cols
 
 
@@ -36,6 +43,12 @@ class ViewGrid:
     reference: int = 0
 
     def __post_init__(self) -> None:
+        for name in ("rows", "cols", "reference"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer):
+                raise ValueError(f"grid {name} must be a whole number, got {value!r}")
+        if self.rows * self.cols > MAX_VIEWS:
+            raise ValueError(f"a {self.rows}x{self.cols} grid has more than {MAX_VIEWS} views")
         if self.rows < 1 or self.cols < 1:
             raise ValueError(f"grid dimensions must be >= 1, got {self.rows}x{self.cols}")
         if not 0 <= self.reference < self.rows * self.cols:

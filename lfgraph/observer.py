@@ -122,4 +122,7 @@ class Observers(BaseObserver):
 
 def resolve(observer: Observer | None) -> Observer:
     """The observer to call: the given one, or one that logs through `logging`."""
+    if observer is not None and not isinstance(observer, Observer):
+        raise TypeError(f"observer must be an lfgraph Observer (log, iteration, ...; e.g. lfgraph.viz.RerunLogger or "
+                        f"a BaseObserver subclass), got {type(observer).__name__}")
     return BaseObserver() if observer is None else observer

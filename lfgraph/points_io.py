@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import numpy as np
 from lfgraph.charuco import is_spread
 from lfgraph.detections import MIN_CORNERS_PER_BOARD, BoardObservations, PointBoard
 from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import atomic_path
+from lfgraph.io_utils import atomic_path, input_problem
 
 DETECTION_FORMATS = ("opencv-multiview", "npz")
 MULTIVIEW_GLOB = "cam_*.json"
@@ -58,6 +59,9 @@ def load_object_points(path: str | os.PathLike) -> PointBoard:
         PointsError: an unreadable file, a wrong shape, non-finite or non-planar points (names the file).
     """
     path = Path(path)
+    problem = input_problem(path)
+    if problem:
+        raise PointsError(f"{path}: {problem}")
     try:
         pts = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
@@ -68,13 +72,19 @@ def load_object_points(path: str | os.PathLike) -> PointBoard:
         board = PointBoard(pts, path.name)
     except ValueError as exc:
         raise PointsError(str(exc)) from None
+    return check_metres(board, pts, str(path))
+
+
+def check_metres(board: PointBoard, pts: np.ndarray, where: str) -> PointBoard:
+    """Refuse object points that span more than `MAX_TARGET_SPAN_M` (millimetres taken for metres); warn when
+    neighbours are more than `SUSPECT_SPACING_M` apart."""
     span = float(np.max(np.ptp(np.asarray(pts, dtype=float).reshape(-1, 3), axis=0)))
     if span > MAX_TARGET_SPAN_M:
-        raise PointsError(f"{path}: the object points span {span:g} m, larger than any calibration target: they look "
-                          f"like millimetres; object points must be in metres (divide by 1000)")
+        raise PointsError(f"{where}: the object points span {span:g} m, larger than any calibration target: they "
+                          f"look like millimetres; object points must be in metres (divide by 1000)")
     if board.spacing_m > SUSPECT_SPACING_M:
         log.warning("%s: neighbouring object points are %g m apart; object points must be in metres (millimetres "
-                    "give a rig %gx too large)", path, board.spacing_m, 1000)
+                    "give a rig %gx too large)", where, board.spacing_m, 1000)
     return board
 
 
@@ -163,7 +173,19 @@ def _read_node(node, path: Path, name: str, n_points: int) -> np.ndarray:
 
 
 def _read_multiview_file(path: Path, n_points: int) -> dict[int, np.ndarray]:
+    import json
+
     import cv2
+
+    problem = input_problem(path)
+    if problem:
+        raise PointsError(f"{path}: {problem}")
+    try:  # OpenCV's JSON reader crashes the process on deeply nested input: Python's parser vets it first
+        json.loads(path.read_text(encoding="utf-8"))
+    except RecursionError:
+        raise PointsError(f"{path}: nested too deeply to be OpenCV FileStorage JSON") from None
+    except (ValueError, OSError, UnicodeDecodeError):
+        pass  # OpenCV's own reader gives the message (its JSON dialect is not always strict JSON)
 
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_FORMAT_JSON)
@@ -239,6 +261,9 @@ def read_points_npz(path: str | os.PathLike, grid: ViewGrid | tuple[int, int],
     """
     path = Path(path)
     grid = _grid(grid)
+    problem = input_problem(path)
+    if problem:
+        raise PointsError(f"{path}: {problem}")
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in NPZ_KEYS if k not in data.files]
@@ -246,7 +271,7 @@ def read_points_npz(path: str | os.PathLike, grid: ViewGrid | tuple[int, int],
                 raise PointsError(f"{path}: missing {', '.join(missing)} (an lfgraph points .npz holds "
                                   f"{', '.join(NPZ_KEYS)})")
             arrays = {k: np.asarray(data[k]) for k in NPZ_KEYS}
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         if isinstance(exc, PointsError):
             raise
         raise PointsError(f"{path}: cannot read as a numpy .npz archive ({exc})") from None
@@ -254,6 +279,7 @@ def read_points_npz(path: str | os.PathLike, grid: ViewGrid | tuple[int, int],
         board = PointBoard(arrays["object_points"], f"{path.name}: object_points")
     except ValueError as exc:
         raise PointsError(f"{path}: {exc}") from None
+    check_metres(board, arrays["object_points"], f"{path}: object_points")
     pts, valid = arrays["image_points"], arrays["valid"]
     c = board.num_corners
     if pts.dtype.kind not in "fiu" or pts.ndim != 4 or pts.shape[2:] != (c, 2):

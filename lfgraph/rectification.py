@@ -300,9 +300,13 @@ def check_rectifiable(calib: Calibration) -> None:
                                          f"centre; check the calibration")
             continue
         r_max = float(np.hypot(max(intr.cx, w - 1 - intr.cx) / intr.fx, max(intr.cy, h - 1 - intr.cy) / intr.fy))
-        r2 = np.linspace(0.0, r_max**2, 64)
-        slope = 1 + 3 * intr.k1 * r2 + 5 * intr.k2 * r2**2
-        factor = 1 + intr.k1 * r2 + intr.k2 * r2**2
+        with np.errstate(over="ignore", invalid="ignore"):
+            r2 = np.linspace(0.0, np.square(r_max), 64)
+            slope = 1 + 3 * intr.k1 * r2 + 5 * intr.k2 * r2**2
+            factor = 1 + intr.k1 * r2 + intr.k2 * r2**2
+        if not np.isfinite(r_max) or not np.all(np.isfinite(factor)):
+            raise RectificationError(f"view {grid.name(v)}: its focal length (fx {intr.fx:g}, fy {intr.fy:g} px) puts "
+                                     f"the image corners at infinite angles; check the calibration")
         if not LENS_SCALE_RANGE[0] <= factor[-1] <= LENS_SCALE_RANGE[1]:
             raise RectificationError(
                 f"view {grid.name(v)}: its lens model (k1 {intr.k1:g}, k2 {intr.k2:g}) scales the image corner's "
@@ -320,7 +324,10 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
     Raises:
         RectificationError: unknown crop mode, a grid of one view, views with no common region, views at one
             position, a lens model that folds over inside the image (`check_rectifiable`).
+        TypeError: ``calib`` is not a `Calibration`.
     """
+    if not isinstance(calib, Calibration):
+        raise TypeError(f"rectify: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
     if crop not in CROPS:
         raise RectificationError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
     grid = calib.grid

@@ -86,7 +86,7 @@ def test_unknown_scene_and_bad_board_write_nothing(tmp_path, capsys):
     assert main(["synth", "checkerboard", str(tmp_path / "a"), "--scene", "paper-9x9"]) == EXIT_BAD_INPUT
     assert "unknown scene 'paper-9x9'" in capsys.readouterr().err
     assert main(["synth", "checkerboard", str(tmp_path / "b"), "--scene", "small-2x2", "--board", "1x4"]) == 1
-    assert "at least 2x2 inner corners" in capsys.readouterr().err
+    assert "at least 3x3 inner corners" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 

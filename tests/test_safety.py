@@ -114,9 +114,17 @@ def test_synth_never_mixes_two_data_sets_and_non_regular_outputs_are_refused(tmp
     assert link.is_symlink() and target.read_text() == "{}" and fifo.is_fifo()
 
 
-def test_an_internal_failure_is_said_as_such_not_as_bad_input(boards, tmp_path, capsys):
-    """Issue 27: GTSAM's IndeterminateSystemException reached the user raw, as exit 1 "bad input"."""
+def test_an_internal_failure_is_said_as_such_not_as_bad_input(boards, tmp_path, capsys, monkeypatch):
+    """Issue 27: GTSAM's IndeterminateSystemException reached the user raw, as exit 1 "bad input". The threshold that
+    caused it (tukey:0.0001) is now refused before the work; a failure inside lfgraph is still exit 4."""
     code, text = run(["calibrate", boards, *SMALL, "--robust", "tukey:0.0001", "-o", tmp_path / "c.json"], capsys)
+    assert code in (EXIT_BAD_INPUT, EXIT_USAGE) and "threshold must be a number from" in text
+
+    def broken(*_args, **_kwargs):
+        raise RuntimeError("Indeterminant linear system detected while working near variable 7")
+
+    monkeypatch.setattr("lfgraph.pattern.pipeline.calibrate_joint", broken)  # lfgraph's own code, not a library
+    code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path / "c.json"], capsys)
     assert code == EXIT_INTERNAL and "internal error" in text and "report" in text
     assert not (tmp_path / "c.json").exists()
 

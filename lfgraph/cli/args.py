@@ -10,6 +10,8 @@ from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager, contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
 
+from lfgraph.io_utils import OutputError, check_replaceable
+
 EXIT_OK, EXIT_BAD_INPUT, EXIT_USAGE, EXIT_DRIFT, EXIT_INTERNAL = 0, 1, 2, 3, 4
 
 
@@ -159,7 +161,7 @@ def check_side_outputs(args: argparse.Namespace, inputs: Iterable[Path] = (), ou
         if root is not None and Path(root).is_dir() and _inside(plots, Path(root)):
             raise ValueError(f"--plots {plots}: lies inside the input {root}; figures there would become part of "
                              f"the capture. Give a folder outside it")
-        for p in (*inputs, *outputs):
+        for p in (*inputs, *outputs, *([Path(save)] if save else [])):
             if _same_file(plots, p):
                 raise ValueError(f"--plots {plots}: is {p}, which this command reads or writes")
 
@@ -204,11 +206,11 @@ def check_output_file(output: Path, inputs: Iterable[Path] = (), overwritable: I
     for source in inputs:
         if _same_file(output, Path(source)):
             raise ValueError(f"{flag} {output}: is the input {source}; refusing to overwrite it, write elsewhere")
-    if output.is_symlink():
-        raise ValueError(f"{flag} {output}: is a symbolic link (to {os.readlink(output)}); the atomic write would "
-                         f"replace the link, not its target: give the target's own path or a new file")
-    if output.exists() and not output.is_dir() and not output.is_file():
-        raise ValueError(f"{flag} {output}: is not a regular file (a device, FIFO or socket); refusing to replace it")
+    if output.is_symlink() or (output.exists() and not output.is_dir() and not output.is_file()):
+        try:
+            check_replaceable(output)
+        except OutputError as exc:
+            raise ValueError(f"{flag} {exc}") from None
     folder = output.parent
     if not folder.exists():
         raise UsageError(f"{flag} {output}: folder {folder} does not exist")
@@ -237,6 +239,26 @@ def check_output_folder(path: Path, input_root: Path | None = None, flag: str = 
         existing = existing.parent
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
         raise UsageError(f"{flag} {path}: {existing} is not a writable folder")
+
+
+def _finite(obj: object) -> object:
+    """``obj`` with every non-finite float (and numpy scalar) turned into None, containers recursed."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if hasattr(obj, "tolist") and not isinstance(obj, str | bytes):  # numpy arrays and scalars
+        return _finite(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def json_text(obj: object, indent: int | None = 1) -> str:
+    """What ``--json`` prints: strict JSON (no NaN or Infinity; such numbers become null)."""
+    import json
+
+    return json.dumps(_finite(obj), indent=indent, allow_nan=False)
 
 
 def jobs_default() -> int:

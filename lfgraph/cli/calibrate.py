@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ from lfgraph.cli.args import (
     grid_size,
     image_sizes,
     jobs_default,
+    json_text,
     positive_float,
     positive_int,
     reports_to_stderr,
@@ -33,7 +33,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     calib = Calibration.load(args.calibration)
     if args.json:
-        print(json.dumps({"file": str(args.calibration), **calib.summary_dict()}, indent=1))
+        print(json_text({"file": str(args.calibration), **calib.summary_dict()}, indent=1))
         return EXIT_OK
     print(f"{args.calibration}:")
     print(calibration_summary(calib))
@@ -154,7 +154,6 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    import json
 
     from lfgraph.calibration import Calibration
     from lfgraph.evaluation import evaluate_calibration
@@ -164,7 +163,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     truth = Calibration.load(args.truth)
     errors = evaluate_calibration(estimate, truth)
     if args.json:
-        print(json.dumps(errors.summary(), indent=1))
+        print(json_text(errors.summary(), indent=1))
     else:
         print(f"{args.calibration} against {args.truth}:")
         print(evaluation_table(errors, "truth"))

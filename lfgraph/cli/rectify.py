@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from lfgraph.cli.args import (
     check_rerun,
     check_side_outputs,
     jobs_default,
+    json_text,
     positive_float,
     positive_int,
     reports_to_stderr,
@@ -136,9 +136,13 @@ def cmd_check(args: argparse.Namespace) -> int:
     check_compatible(calib, capture.grid, capture.image_size_px, str(args.input))
     report = check(calib, capture.frames(args.max_frames), config=config)
     drifted = report.drifted(args.max_px)
-    verdict = "DRIFT" if drifted else "OK"
+    judged = [v for v in report.verdicts if v.verdict not in ("REFERENCE",)]
+    uncertain = [v.name for v in judged if v.verdict == "UNCERTAIN"]
+    # no view confirmed OK (every one UNCERTAIN, or no verdict at all): the frames cannot tell, which is not "OK"
+    undecided = not drifted and (not judged or len(uncertain) == len(judged))
+    verdict = "DRIFT" if drifted else "UNCERTAIN" if undecided else "OK"
     if args.json:
-        print(json.dumps({"calibration": str(args.calibration), "capture": str(args.input), "max_px": args.max_px,
+        print(json_text({"calibration": str(args.calibration), "capture": str(args.input), "max_px": args.max_px,
                           "verdict": verdict, **report.to_dict(calib),
                           "depth_error_m": {"depths_m": depths, "per_view": report.depth_errors(calib, depths)}},
                          indent=1))
@@ -150,7 +154,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"DRIFT: {names} moved by more than --tolerance-px {args.max_px:g} px; run lfgraph refine "
               "(or re-calibrate)")
         return EXIT_DRIFT
-    uncertain = [v.name for v in report.verdicts if v.verdict == "UNCERTAIN"]
+    if undecided:
+        print("UNCERTAIN: the frames cannot tell whether any view drifted (no view could be confirmed OK); check with "
+              "more textured frames, or check that this calibration belongs to this camera")
+        return EXIT_OK
     print(f"OK: no view drifted by more than --tolerance-px {args.max_px:g} px at infinity"
           + (f" (UNCERTAIN, the frames cannot tell: {', '.join(uncertain)})" if uncertain else ""))
     return EXIT_OK
@@ -171,7 +178,8 @@ def add_parsers(sub: Any) -> None:
     rc.set_defaults(func=cmd_rectify)
 
     ck = sub.add_parser("check", help="drift check: does the calibration still fit an ordinary capture? "
-                                      "(exit 3 when a view drifted)")
+                                      "(exit 3 when a view drifted; prints UNCERTAIN, exit 0, when no view can be "
+                                      "confirmed OK)")
     ck.add_argument("calibration", type=Path, help="calibration.json")
     ck.add_argument("input", type=Path, help="capture folder of any textured scene")
     ck.add_argument("--tolerance-px", "--max-px", dest="max_px", type=positive_float, default=0.1,

@@ -15,6 +15,7 @@ from lfgraph.cli.args import (
     check_rerun,
     check_side_outputs,
     cli_observer,
+    json_text,
     positive_float,
     positive_int,
     reports_to_stderr,
@@ -73,10 +74,8 @@ def _refine(args: argparse.Namespace) -> int:
         if logger is not None:
             logger.refinement_result(calib, refined, report)
     if args.json:
-        import json
-
-        print(json.dumps({"calibration": str(args.calibration), "capture": str(args.input), "output": str(args.output),
-                          **report.metrics()}, indent=1, default=float))
+        print(json_text({"calibration": str(args.calibration), "capture": str(args.input), "output": str(args.output),
+                          **report.metrics()}, indent=1))
         return EXIT_OK
     print(refinement_text(calib, refined, report))
     counts = report.verdict_counts()

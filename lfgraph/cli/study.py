@@ -10,11 +10,13 @@ from lfgraph.cli.args import (
     EXIT_OK,
     UsageError,
     add_rerun_args,
+    check_output_file,
     check_rerun,
     check_side_outputs,
     floats,
     ints,
     jobs_default,
+    json_text,
     non_negative,
     positive_float,
     positive_int,
@@ -22,11 +24,11 @@ from lfgraph.cli.args import (
     rerun_session,
 )
 
+MAX_STUDY_SIGMA_PX = 10.0  # corner noise of a calibration study
 PLOT_DEPTHS = 100  # depths sampled for the --plot curve (the table has --steps)
 
 
 def cmd_depth_error(args: argparse.Namespace) -> int:
-    import json
 
     import numpy as np
 
@@ -36,10 +38,13 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
     near, far = args.range_m
     if not 0 < near <= far:
         raise UsageError(f"--range-m needs 0 < NEAR <= FAR, got {near} {far}")
+    if args.plot is not None:  # the figure goes to PLOT.png and PLOT.pdf: both follow -o's rule, before any work
+        for sfx in FIGURE_SUFFIXES:
+            check_output_file(args.plot.with_suffix(sfx), flag="--plot")
     depths = np.linspace(near, far, args.steps)
     errors = depth_error_m(args.focal_px, args.baseline_m, args.error_px, depths)
     if args.json:
-        print(json.dumps({"focal_px": args.focal_px, "baseline_m": args.baseline_m, "error_px": args.error_px,
+        print(json_text({"focal_px": args.focal_px, "baseline_m": args.baseline_m, "error_px": args.error_px,
                           "depth_m": depths.tolist(),
                           "depth_error_m": [None if not np.isfinite(e) else float(e) for e in errors]}))
     else:
@@ -76,6 +81,8 @@ def _study_common(args: argparse.Namespace) -> None:
         raise UsageError(f"-o {args.output}: the study writes a CSV there and its figures beside it as "
                          f"{args.output.stem}.png and .pdf; give the CSV a .csv name")
     figures = [args.output.with_name(args.output.stem + sfx) for sfx in FIGURE_SUFFIXES]
+    for path in (args.output, *figures):
+        check_output_file(path)
     check_side_outputs(args, outputs=[args.output, *figures])
 
 
@@ -161,6 +168,9 @@ def cmd_study_calibration(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if max(args.frames) > named.checkerboard.frames:
         raise UsageError(f"--frames up to {named.checkerboard.frames} for {args.scene}, got {max(args.frames)}")
+    if max(args.sigma_px) > MAX_STUDY_SIGMA_PX:
+        raise UsageError(f"--sigma-px up to {MAX_STUDY_SIGMA_PX:g} px (corner noise beyond it hides the board), got "
+                         f"{max(args.sigma_px):g}")
     trials = [CalibrationTrial(args.scene, f, s, args.seed + i) for f in args.frames for s in args.sigma_px
               for i in range(args.trials)]
     print(f"calibration study on {args.scene}: {len(trials)} trials, executor {args.executor}")

@@ -33,6 +33,8 @@ _KERNELS: dict[str, Callable[[float], object]] = {
 DEFAULT_THRESHOLDS = {"huber": 1.345, "cauchy": 0.1, "tukey": 4.685, "gm": 1.0, "gemanmcclure": 1.0, "dcs": 1.0,
                       "welsch": 2.985, "fair": 1.3998}
 KERNEL_NAMES = ("none", *_KERNELS)
+# thresholds outside this make every residual an outlier or none (GTSAM's solve then becomes indeterminate)
+KERNEL_THRESHOLD_RANGE = (1e-3, 1e3)
 
 
 def _sigmas(values: Sequence[float]) -> np.ndarray:
@@ -126,6 +128,8 @@ class RobustKernel:
     threshold: float | None = None
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str):
+            raise TypeError(f"RobustKernel name must be a string such as 'huber', got {type(self.name).__name__}")
         name = self.name.strip().lower()
         if name not in KERNEL_NAMES:
             raise ValueError(f"unknown robust kernel {self.name!r}; choose from {', '.join(KERNEL_NAMES)} "
@@ -135,8 +139,10 @@ class RobustKernel:
             object.__setattr__(self, "threshold", None)
             return
         threshold = DEFAULT_THRESHOLDS[name] if self.threshold is None else self.threshold
-        if not (isinstance(threshold, int | float) and np.isfinite(threshold) and threshold > 0):
-            raise ValueError(f"robust kernel threshold must be a positive number, got {threshold!r} for {name}")
+        if not (isinstance(threshold, int | float) and KERNEL_THRESHOLD_RANGE[0] <= threshold
+                <= KERNEL_THRESHOLD_RANGE[1]):
+            raise ValueError(f"robust kernel threshold must be a number from {KERNEL_THRESHOLD_RANGE[0]:g} to "
+                             f"{KERNEL_THRESHOLD_RANGE[1]:g} (in measurement sigmas), got {threshold!r} for {name}")
         object.__setattr__(self, "threshold", float(threshold))
 
     @classmethod
@@ -146,6 +152,8 @@ class RobustKernel:
         Raises:
             ValueError: unknown kernel name or a threshold that is not a positive number.
         """
+        if spec is not None and not isinstance(spec, str):
+            raise TypeError(f"a robust kernel spec is a string such as 'huber:1.345', got {type(spec).__name__}")
         if spec is None or spec.strip().lower() in ("", "none"):
             return cls("none")
         name, _, value = spec.strip().partition(":")

@@ -39,6 +39,7 @@ from lfgraph.interop.common import (
     required_grid,
     whole,
 )
+from lfgraph.io_utils import default_mode
 
 COLMAP_PIXEL_OFFSET_PX = 0.5  # COLMAP's centre of the top-left pixel is (0.5, 0.5), OpenCV's (0, 0)
 QUATERNION_NORM_TOLERANCE = 1e-3  # |q| may differ from 1 by this (rounded text) before a quaternion is refused
@@ -133,6 +134,8 @@ def write(calib: Calibration, path: Path) -> None:
     try:
         for name, text in colmap_files(calib).items():
             (tmp / name).write_text(text, encoding="utf-8")
+        # mkdtemp makes a 0700 folder; the model gets the mode mkdir would give (or the replaced folder's)
+        os.chmod(tmp, final.stat().st_mode & 0o777 if final.is_dir() else default_mode(0o777))
         if final.is_dir():
             old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
             os.replace(final, old)  # onto an empty folder: allowed by rename(2)

@@ -25,6 +25,7 @@ from lfgraph.calibration import REFERENCE_POSE_TOLERANCE, Calibration, Calibrati
 from lfgraph.camera import Intrinsics
 from lfgraph.geometry import invert_T, is_rotation, make_T
 from lfgraph.grid import ViewGrid
+from lfgraph.io_utils import input_problem
 
 MM_PER_M = 1000.0
 HOMOGENEOUS_ROW_TOLERANCE = 1e-9  # the last row of a 4x4 transform must be [0, 0, 0, 1] to this
@@ -46,10 +47,9 @@ def fail(path: PathLike | None, key: str, problem: str) -> CalibrationFileError:
 
 
 def read_text(path: Path) -> str:
-    if not path.exists():
-        raise fail(path, "file", "does not exist")
-    if path.is_dir():
-        raise fail(path, "file", "is a folder, expected a file")
+    problem = input_problem(path)
+    if problem:
+        raise fail(path, "file", problem)
     try:
         return path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:

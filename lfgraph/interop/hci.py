@@ -39,7 +39,7 @@ PARAMETERS_FILE = "parameters.cfg"
 
 def read(path: Path, grid: GridLike) -> Calibration:
     path = in_folder(path, PARAMETERS_FILE)
-    parser = configparser.ConfigParser()
+    parser = configparser.ConfigParser(interpolation=None)  # a '%' in a value is text
     try:
         parser.read_string(read_text(path), source=str(path))
     except configparser.Error as exc:

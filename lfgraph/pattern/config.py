@@ -69,13 +69,16 @@ class CalibrateConfig:
                 raise ValueError(f"unknown {name} {getattr(self, name)!r}; choose from {', '.join(kind)}") from None
         object.__setattr__(self, "robust", as_noise(self.robust))
         object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
+        for hook in self.graph_hooks:
+            if not callable(hook):
+                raise TypeError(f"graph_hooks must hold functions taking a GraphContext, got {hook!r}")
         if not isinstance(self.lens, str | Mapping):
             raise TypeError(f"lens must be a model name or a mapping of views to models, got "
                             f"{type(self.lens).__name__}")
-        for name in ("board_sigma_mm", "focal_px", "pitch_mm"):
+        for name, largest in (("board_sigma_mm", 100.0), ("focal_px", 1e6), ("pitch_mm", 1e6)):
             value = getattr(self, name)
-            if value is not None and not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be positive, got {value}")
+            if value is not None and not (np.isfinite(value) and 0 < value <= largest):
+                raise ValueError(f"{name} must be positive and at most {largest:g}, got {value}")
         if not (np.isfinite(self.corner_sigma_px) and self.corner_sigma_px > 0):
             raise ValueError(f"corner_sigma_px must be positive, got {self.corner_sigma_px}")
 

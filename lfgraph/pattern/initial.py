@@ -137,6 +137,27 @@ def relative_poses(view_T_board: np.ndarray, reference: int) -> tuple[np.ndarray
     return ref_T_view, parent
 
 
+DUPLICATE_TOLERANCE_PX = 1e-3  # a board whose corners all match an earlier frame's to this is the same picture
+
+
+def duplicate_view_frames(obs: BoardObservations) -> list[tuple[int, int, int]]:
+    """(view, frame, earlier frame) of each view-frame whose board repeats an earlier frame's corner for corner (a
+    copied image): it adds no new board pose, only weight, and a set of copies would let Zhang's method "fit" a
+    single pose."""
+    out = []
+    for v in range(obs.num_views):
+        frames = np.nonzero(obs.seen[v])[0]
+        kept: list[int] = []
+        for f in frames:
+            same = next((g for g in kept if np.array_equal(obs.valid[v, f], obs.valid[v, g]) and np.nanmax(
+                np.abs(obs.corners_px[v, f] - obs.corners_px[v, g])) <= DUPLICATE_TOLERANCE_PX), None)
+            if same is None:
+                kept.append(int(f))
+            else:
+                out.append((v, int(f), same))
+    return out
+
+
 def drop_view_frames(obs: BoardObservations, pairs: list[tuple[int, int]]) -> BoardObservations:
     """``obs`` with the boards of the given (view, frame) pairs marked not observed."""
     import dataclasses

@@ -18,6 +18,7 @@ from lfgraph.pattern.initial import (
     check_observations,
     design_initial,
     drop_view_frames,
+    duplicate_view_frames,
     inconsistent_view_frames,
     initial_board_T_ref,
     weak_views,
@@ -62,6 +63,16 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     say = resolve(observer)
     method, init = config.method, config.init
     check_observations(obs)
+    duplicates = duplicate_view_frames(obs)
+    duplicate_warnings = []
+    if duplicates:
+        obs = drop_view_frames(obs, [(v, f) for v, f, _ in duplicates])
+        duplicate_warnings.append("boards identical to an earlier frame's (copied images?) were left out: "
+                                  + ", ".join(f"{obs.describe(v, f)} = frame {obs.frame_names[g]}"
+                                              for v, f, g in duplicates[:10])
+                                  + (f" and {len(duplicates) - 10} more" if len(duplicates) > 10 else ""))
+        say.log(duplicate_warnings[0])
+        check_observations(obs)
     order_warnings: tuple[str, ...] = ()
     if obs.board.is_symmetric:
         # the detector cannot tell a board turned by 180° from the original; the rig's geometry can
@@ -71,7 +82,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
             say.log(f"symmetric board: corner order reversed in {int(order.reversed.sum())} view-frame(s) so that "
                     f"every view agrees with the rig")
     seconds: dict[str, float] = {}
-    warnings: list[str] = list(order_warnings)
+    warnings: list[str] = duplicate_warnings + list(order_warnings)
     n_views = obs.num_views
     requested = resolve_lenses(config.lens, obs.grid)
     lens_table = None

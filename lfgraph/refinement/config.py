@@ -70,6 +70,9 @@ def schedule_name(stages: tuple[Stage, ...]) -> str:
     return ",".join(stages)
 
 
+DRIFT_SIGMA_RANGE = (1e-3, 1e4)  # deg, mm or px: below, a group is held (numerically, not by choice); above, free
+
+
 @dataclass(frozen=True)
 class DriftModel:
     """How far a calibrated view may plausibly have moved since calibration: the 1-sigma of the drift prior, per
@@ -95,8 +98,9 @@ class DriftModel:
     def __post_init__(self) -> None:
         for name in ("roll_deg", "pan_tilt_deg", "position_mm", "focal_px", "principal_px"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
-                raise ValueError(f"drift sigma {name} must be a positive number, got {value!r}")
+            if not (isinstance(value, int | float) and DRIFT_SIGMA_RANGE[0] <= value <= DRIFT_SIGMA_RANGE[1]):
+                raise ValueError(f"drift sigma {name} must be a number from {DRIFT_SIGMA_RANGE[0]:g} to "
+                                 f"{DRIFT_SIGMA_RANGE[1]:g}, got {value!r}")
 
     @classmethod
     def parse(cls, spec: str | None) -> DriftModel:
@@ -193,6 +197,8 @@ class RefineConfig:
     tolerance_px: float = 0.1
 
     def __post_init__(self) -> None:
+        if not isinstance(self.match, MatchSettings):
+            raise TypeError(f"RefineConfig.match must be a lfgraph MatchSettings, got {type(self.match).__name__}")
         stages = parse_stages(self.stages)
         object.__setattr__(self, "stages", stages)
         if self.triangulation_filter is None:  # the paper's schedule comes with the paper's filter

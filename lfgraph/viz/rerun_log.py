@@ -39,6 +39,7 @@ import rerun as rr
 
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
+from lfgraph.io_utils import check_replaceable
 from lfgraph.observer import BaseObserver, StageEnd
 from lfgraph.viz.blueprint import (
     APP_ID,
@@ -483,6 +484,7 @@ class RerunLogger(BaseObserver):
                                    "incomplete")
         if self._tmp is not None:
             if success:
+                check_replaceable(self._final)
                 os.replace(self._tmp, self._final)
             else:
                 self._tmp.unlink(missing_ok=True)
