@@ -80,7 +80,7 @@ def test_plots_and_save_may_not_be_one_path(tmp_path, capsys):
 def test_a_fifo_as_input_is_refused_not_read(tmp_path):
     fifo = tmp_path / "c.json"
     os.mkfifo(fifo)
-    code = ("import lfgraph as lf\ntry:\n    lf.Calibration.load(%r)\nexcept ValueError as e:\n    print(e)" % str(fifo))
+    code = f"import lfgraph as lf\ntry:\n    lf.Calibration.load({str(fifo)!r})\nexcept ValueError as e:\n    print(e)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=HANG_S)
     assert "not a regular file" in out.stdout
 
