@@ -161,3 +161,34 @@ def test_refine_refuses_wide_lens_views_by_name():
     frames = [np.zeros((3, 480, 640), np.uint8)]
     with pytest.raises(ValueError, match=r"r00_c00 \(fisheye\).*radtan lenses only"):
         refine(truth, frames)
+
+
+ROWS_ALIGNED_PX = 0.05  # issue 25: a far board's corners on one rectified row in every view
+LUT_PX = 1.0 / 32 + 0.01  # OpenCV's fixed-point maps keep 1/32 px; bilinear sampling of the map adds a little
+
+
+def test_fisheye_views_rectify_rows_aligned_and_their_maps_agree():
+    from lfgraph.rectification import build_maps, compute_rectification, rectify_points
+
+    truth, _ = _synthetic("fisheye")
+    rect = compute_rectification(truth)
+    maps = build_maps(truth, rect)
+    rng = np.random.default_rng(5)
+    far = np.column_stack([rng.uniform(-0.3, 0.3, 200), rng.uniform(-0.2, 0.2, 200), np.full(200, 1.0)]) * 1e4
+    rect_px, src_px = [], []
+    for v in range(truth.num_views):
+        view_T_ref = truth.view_T_ref(v)  # noqa: N806
+        px = truth.intrinsics[v].project(far @ view_T_ref[:3, :3].T + view_T_ref[:3, 3])
+        rect_px.append(rectify_points(truth, rect, v, px))
+        src_px.append(px)
+    rect_px = np.stack(rect_px)
+    w, h = rect.image_size_px
+    inside = np.all((rect_px[..., 0] > 1) & (rect_px[..., 0] < w - 2) & (rect_px[..., 1] > 1)
+                    & (rect_px[..., 1] < h - 2), axis=0)
+    assert inside.sum() > 50
+    assert np.max(np.ptp(rect_px[:, inside, 1], axis=0)) < ROWS_ALIGNED_PX
+    for v in range(truth.num_views):  # the look-up table sends each rectified point back to its source pixel
+        fx, fy = cv2.convertMaps(maps.map_xy[v], maps.map_frac[v], cv2.CV_32FC1)
+        p = rect_px[v, inside].astype(np.float32).reshape(-1, 1, 2)
+        back = np.stack([cv2.remap(m, p[..., 0], p[..., 1], cv2.INTER_LINEAR)[:, 0] for m in (fx, fy)], axis=1)
+        assert np.max(np.abs(back - src_px[v][inside])) < LUT_PX
