@@ -763,6 +763,17 @@ def rc_is(code: int, why: str):
     return check
 
 
+def not_ok_verdict(why: str):
+    """``check --json``: DRIFT (exit 3) or UNCERTAIN (exit 0, "no view could be confirmed OK"), never OK."""
+    def check(case: Case, d: Path, res: Result) -> tuple[bool, str]:
+        try:
+            verdict = json.loads(res.stdout).get("verdict")
+        except (ValueError, AttributeError):
+            verdict = None
+        return (res.rc == 3 or verdict == "UNCERTAIN"), f"exit {res.rc}, verdict {verdict} ({why}: expected not OK)"
+    return check
+
+
 def all_of(*checks):
     def check(case: Case, d: Path, res: Result) -> tuple[bool, str]:
         notes = []
@@ -1072,7 +1083,7 @@ def build_cases() -> list[Case]:
         cli(f"check-cal-{key}", "check", f"calibration: {desc}", ["check", "c.json", "sc_still", "--json"],
             chain(use("sc_still"), setup), exp, ok_codes=(0, 3),
             check=all_of(strict_json_stdout(), rc_is(0, "the rig did not move") if good_geometry else
-                         rc_is(3, "the calibration is absurd for these images")))
+                         not_ok_verdict("the calibration is absurd for these images")))
         cli(f"refine-cal-{key}", "refine", f"calibration: {desc}", ["refine", "c.json", "sc", "-o", "r.json",
                                                                    "--quiet"],
             chain(use("sc"), setup), exp,

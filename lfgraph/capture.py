@@ -85,6 +85,9 @@ def tile_mosaic(images: np.ndarray, grid: ViewGrid) -> np.ndarray:
     return tiles.reshape(grid.rows * h, grid.cols * w, *images.shape[3:])
 
 
+MIN_IMAGE_SIDE_PX = 8  # smaller "views" cannot hold a board (OpenCV's detector asserts on them)
+
+
 @dataclass(frozen=True)
 class CaptureSet:
     """A capture on disk: paths only, images are read one frame at a time.
@@ -107,6 +110,13 @@ class CaptureSet:
     files: tuple[tuple[Path | None, ...], ...]
     image_size_px: tuple[int, int]
     notes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        w, h = self.image_size_px
+        if min(w, h) < MIN_IMAGE_SIDE_PX:
+            first = next((p for views in self.files for p in views if p is not None), self.root)
+            raise CaptureError(f"{first}: the views are {w}x{h} px; a view needs at least {MIN_IMAGE_SIDE_PX} px on "
+                               f"each side to show a board or a scene")
 
     def __len__(self) -> int:
         return len(self.frame_names)

@@ -121,7 +121,7 @@ def test_robust_kernel_resists_a_corrupted_frame_and_the_frame_is_flagged():
     bad_frame = int(np.nonzero(obs.seen[1])[0][2])
     corners[1, bad_frame] += np.array([4.0, -3.0])  # a view's corners mis-assigned by a few pixels in one frame
     bad = dataclasses.replace(obs, corners_px=corners)
-    plain, plain_report = calibrate(bad)
+    plain, plain_report = calibrate(bad, CalibrateConfig(screen=False))  # least squares over every observation
     robust, _ = calibrate(bad, CalibrateConfig(robust="cauchy:0.3"))
     assert bad_frame in plain_report.outlier_frames
     assert any("outlying" in w for w in plain_report.warnings)
@@ -129,6 +129,11 @@ def test_robust_kernel_resists_a_corrupted_frame_and_the_frame_is_flagged():
     e_robust = evaluate_calibration(robust, calib).summary()
     assert e_robust["rms_position_mm"] < 0.5 * e_plain["rms_position_mm"]
     assert e_robust["rms_cx_px"] < e_plain["rms_cx_px"]
+    # the default screens: the bad view-frame is dropped by name and the rig is as good as the robust kernel's
+    screened, report = calibrate(bad)
+    assert any(f"frame {obs.frame_names[bad_frame]}" in w and "dropped" in w for w in report.warnings)
+    e_screened = evaluate_calibration(screened, calib).summary()
+    assert e_screened["rms_position_mm"] < 0.5 * e_plain["rms_position_mm"]
 
 
 def test_coverage_warning_names_the_empty_region():

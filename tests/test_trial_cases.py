@@ -181,3 +181,43 @@ def test_an_absurd_grid_is_refused_before_any_array(capsys, tmp_path):
     code, text = run(["calibrate", tmp_path, "--grid", "99999999999999999999x2", "--board", "7x5", "--square-mm", "15",
                       "-o", tmp_path / "c.json"], capsys)
     assert code != EXIT_OK and "views" in text and "Traceback" not in text
+
+
+@pytest.mark.parametrize("swap", [(1, 2), (0, 3)])
+def test_a_frame_with_views_swapped_drops_those_views(rig, swap):
+    """Two views swapped in one frame of eight wrote fx 200 px off, exit 0 (the relative-pose consensus cannot see
+    a 10 mm swap through PnP noise; plain least squares smeared it over every view). The robust screening fit finds
+    both view-frames and drops them by name."""
+    calib, truth, corners, valid = rig
+    c = corners.copy()
+    a, b = swap
+    c[a, 3], c[b, 3] = corners[b, 3], corners[a, 3]
+    obs = observations_from_arrays(truth.board, calib.grid, calib.image_size_px, c, valid)
+    est, report = lf.calibrate(obs, lf.CalibrateConfig(lens="radtan"))
+    dropped = [w for w in report.warnings if "dropped from the calibration" in w]
+    views = {int(w.split("view ")[1].split(" ")[0]) for w in dropped}
+    # only frame 003 is touched; with the reference in the swap, its partners in that frame go instead of it
+    assert dropped and all("003" in w for w in dropped) and (views == set(swap) if 0 not in swap else 3 in views)
+    errors = lf.evaluate(est, calib)
+    assert np.max(np.abs(errors.intrinsics[:, 0])) < 2.0  # fx within 2 px (a swapped frame kept: 200 px)
+
+
+def test_synth_overwrite_keeps_files_it_did_not_write(tmp_path, capsys):
+    out = tmp_path / "set"
+    args = ["synth", "checkerboard", out, "--scene", "small-2x2", "--frames", "2", "--jobs", "1", "--quiet"]
+    assert run(args, capsys)[0] == EXIT_OK
+    (out / "thesis.txt").write_text("mine")
+    code, text = run([*args, "--overwrite"], capsys)
+    assert code != EXIT_OK and "thesis.txt" in text and (out / "thesis.txt").read_text() == "mine"
+
+
+def test_views_too_small_for_a_board_are_refused(tmp_path, capsys):
+    import cv2
+
+    frame = tmp_path / "cap" / "000"
+    frame.mkdir(parents=True)
+    for name in ("r00_c00", "r00_c01", "r01_c00", "r01_c01"):
+        cv2.imwrite(str(frame / f"{name}.png"), np.zeros((1, 1), np.uint8))
+    code, text = run(["calibrate", tmp_path / "cap", "--grid", "2x2", "--board", "7x5", "--square-mm", "15",
+                      "--quiet", "-o", tmp_path / "o.json"], capsys)
+    assert code == 1 and "at least 8 px" in text and not (tmp_path / "o.json").exists()

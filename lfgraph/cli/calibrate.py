@@ -69,7 +69,7 @@ def _board_and_config(args: argparse.Namespace):
         grid = ViewGrid(args.grid[0], args.grid[1], args.reference)
         config = CalibrateConfig(method=args.method, init=args.init, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
                                  robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm,
-                                 lens=args.lens)
+                                 lens=args.lens, screen=not args.no_screen)
         resolve_lenses(config.lens, grid)  # a bad --lens is refused before detection
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -212,6 +212,9 @@ def add_parsers(sub: Any) -> None:
     cal.add_argument("--robust", default="none",
                      help="robust kernel NAME[:THRESHOLD_PX]: none, huber:1.0, cauchy:..., tukey:..., gm, dcs, ...")
     cal.add_argument("--tangential", action="store_true", help="estimate p1, p2 (held at 0 by default)")
+    cal.add_argument("--no-screen", action="store_true",
+                     help="fit every observation by least squares (by default a robust Cauchy fit first drops the "
+                          "view-frames the rig cannot explain, naming them)")
     cal.add_argument("--lens", default="auto", metavar="MODEL[,VIEW=MODEL...]",
                      help="lens model: auto (default: per view, the model that predicts held-out frames best), "
                           "radtan or fisheye; per view e.g. auto,r00_c02=fisheye")

@@ -30,6 +30,10 @@ def _synth_rig(args: argparse.Namespace, named):
     return rig
 
 
+# what a synthetic set holds besides its frame folders (000, 001, ...): --overwrite removes only these
+SYNTH_FILES = frozenset({"truth.json", "truth_corners.npz", "original.json", ".lfgraph-detections.npz"})
+
+
 def _prepare_out(args: argparse.Namespace) -> None:
     """Refuse, before rendering, an output that exists and is not an empty folder: rendering into an old capture
     kept its other frames and files (a mix of two data sets). ``--overwrite`` empties a folder that holds an earlier
@@ -49,6 +53,10 @@ def _prepare_out(args: argparse.Namespace) -> None:
     if not (out / "truth.json").is_file():
         raise UsageError(f"{out} holds files that are not a synthetic set (no truth.json); --overwrite only empties a "
                          f"folder an earlier `lfgraph synth` wrote")
+    foreign = sorted(c.name for c in out.iterdir() if not (c.name in SYNTH_FILES or (c.is_dir() and c.name.isdigit())))
+    if foreign:
+        raise UsageError(f"{out} holds files `lfgraph synth` did not write ({', '.join(foreign[:5])}"
+                         f"{', ...' if len(foreign) > 5 else ''}); --overwrite would delete them: move them first")
     for child in out.iterdir():
         if child.is_dir() and not child.is_symlink():
             shutil.rmtree(child)

@@ -43,6 +43,8 @@ class CalibrateConfig:
         marginals: compute 1-sigma uncertainties (costs ~0.2 s for 4x4x40).
         graph_hooks: user functions called with a `lfgraph.factors.GraphContext` before the joint graph is
             optimised (add your own factors or priors; see `lfgraph.factors.hooks`).
+        screen: without a ``robust`` kernel, first a robust (Cauchy, 1 px) fit that drops the view-frames the rig
+            cannot explain (swapped or mis-detected images), by name; False fits every observation by least squares.
         lens: each view's lens model: ``"auto"`` (default: per view, the model that predicts held-out frames best),
             ``"radtan"`` or ``"fisheye"`` for every view, or per view: ``"auto,r00_c02=fisheye"`` or a mapping
             ``{"r00_c02": "fisheye"}`` (views by name or index; the others auto).
@@ -60,6 +62,7 @@ class CalibrateConfig:
     marginals: bool = True
     graph_hooks: tuple[Callable, ...] = ()
     lens: str | Mapping[str | int, str] = "auto"
+    screen: bool = True
 
     def __post_init__(self) -> None:
         for name, kind in (("method", Method), ("init", Init)):

@@ -181,8 +181,8 @@ def inconsistent_view_frames(view_T_board: np.ndarray, reference: int) -> list[t
     estimate of ``ref_T_view`` (PnP in both views); the medoid of those is the consensus, and a frame whose
     estimate lies beyond `CONSENSUS_MAD_FACTOR` robust sigmas of the others *and* beyond 1 degree or 5 % of the
     baseline is inconsistent (a mis-detected board, or an image of another camera). The view is blamed; when one
-    frame is inconsistent for at least two views and for half of those that share it, the reference view's board
-    in that frame is blamed instead.
+    frame is inconsistent for every view (two or more) that shares it with the reference, the reference view's board
+    in that frame is blamed instead (two views swapped in one frame blame those two, not the reference).
 
     Returns:
         (view, frame, rotation off (deg), position off (m)) of each view-frame to drop.
@@ -218,7 +218,7 @@ def inconsistent_view_frames(view_T_board: np.ndarray, reference: int) -> list[t
     for item in flagged:
         per_frame.setdefault(item[1], []).append(item)
     for f, items in sorted(per_frame.items()):
-        if len(items) >= 2 and 2 * len(items) >= shared_count[f]:
+        if len(items) >= 2 and len(items) == shared_count[f]:
             worst = max(items, key=lambda x: x[3])
             out.append((reference, f, worst[2], worst[3]))
         else:

@@ -4,6 +4,7 @@ the rig fixed, so inconsistency between views cannot hide in per-view figures)."
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -12,6 +13,7 @@ from lfgraph.board_order import order_symmetric_boards
 from lfgraph.calibration import Calibration
 from lfgraph.detections import BoardObservations
 from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
+from lfgraph.factors.noise import RobustKernel
 from lfgraph.observer import Observer, resolve
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
 from lfgraph.pattern.initial import (
@@ -35,6 +37,39 @@ from lfgraph.pattern.scoring import (
     rig_residuals,
     rms_px,
 )
+
+SCREEN_KERNEL = RobustKernel("cauchy", 1.0)  # the screening fit's kernel, threshold in px (corner sigma 1 px)
+OUTLIER_VIEW_FRAME_FACTOR = 5.0  # a view-frame the robust rig misses by this many times the median view-frame RMS ...
+OUTLIER_VIEW_FRAME_MIN_PX = 1.0  # ... and by at least this much is dropped
+
+
+def screen_view_frames(obs: BoardObservations, intrinsics: tuple, ref_T_view: np.ndarray,  # noqa: N803
+                       board_T_ref: np.ndarray, config: CalibrateConfig, say: Observer  # noqa: N803
+                       ) -> tuple[BoardObservations, tuple, np.ndarray, np.ndarray, list[str]]:
+    """The robust screening fit (`SCREEN_KERNEL`, no marginals) and the view-frames it cannot explain.
+
+    Returns:
+        the observations without those view-frames, the robust fit's intrinsics, poses and board poses (NaN for
+        frames no view sees any more) as the start of the final fit, and one warning per dropped view-frame.
+    """
+    screen = calibrate_joint(obs, intrinsics, ref_T_view, board_T_ref,
+                             dataclasses.replace(config, robust=SCREEN_KERNEL, marginals=False))
+    res = rig_residuals(screen.intrinsics, screen.ref_T_view, screen.board_T_ref, obs, screen.object_points_m)
+    vf = np.asarray(rms_px(res, axis=2))
+    with np.errstate(invalid="ignore"):
+        bad = vf > max(OUTLIER_VIEW_FRAME_FACTOR * float(np.nanmedian(vf)), OUTLIER_VIEW_FRAME_MIN_PX)
+    pairs = [(int(v), int(f)) for v, f in zip(*np.nonzero(bad), strict=True)]
+    messages = [f"{obs.describe(v, f)}: the rig misses its board by {vf[v, f]:.2f} px RMS (the median view-frame: "
+                f"{np.nanmedian(vf):.2f} px): dropped from the calibration (a swapped or mis-detected image?)"
+                for v, f in pairs]
+    for m in messages:
+        say.log(m)
+    boards = screen.board_T_ref.copy()
+    if pairs:
+        obs = drop_view_frames(obs, pairs)
+        check_observations(obs)
+        boards[~obs.seen.any(axis=0)] = np.nan
+    return obs, screen.intrinsics, screen.ref_T_view, boards, messages
 
 
 def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
@@ -132,6 +167,13 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
             start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
         start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
         t0 = time.perf_counter()
+        if config.screen and isinstance(config.noise, RobustKernel) and config.noise.name == "none":
+            # robust by default: a Cauchy fit finds view-frames the rig cannot explain (swapped or mislabelled
+            # images, a mis-detected board), which plain least squares would smear over every view; they are
+            # dropped by name and the least-squares fit (the reported one) starts from the robust result
+            obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
+                obs, start_intr, start_poses, start_boards, config, say)
+            warnings += dropped
         joint = calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration)
         seconds["joint"] = time.perf_counter() - t0
         opt = joint.optimization
