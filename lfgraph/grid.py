@@ -78,14 +78,15 @@ class ViewGrid:
         r, c = self.position(view)
         return f"r{r:02d}_c{c:02d}"
 
-    def find(self, key: object, what: str) -> int:
-        """The index of a view given by name (``r01_c02``) or index; ValueError naming ``what`` it was for."""
+    def find(self, key: object, what: str, error: type[ValueError] = ValueError) -> int:
+        """The index of a view given by name (``r01_c02``) or index; ``error`` (a ValueError) naming ``what`` it was
+        for."""
         if isinstance(key, int) and not isinstance(key, bool):
             v = key
         else:
             v = next((i for i in range(self.num_views) if self.name(i) == str(key)), None)
         if v is None or not 0 <= v < self.num_views:
-            raise ValueError(f"{what} for {key!r}: no such view in the {self} grid (views are named like "
+            raise error(f"{what} for {key!r}: no such view in the {self} grid (views are named like "
                              f"{self.name(0)})")
         return v
 

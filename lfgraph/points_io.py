@@ -132,10 +132,7 @@ def view_sizes(image_size_px: ImageSizes, grid: ViewGrid) -> tuple[tuple[int, in
     default = (int(default[0]), int(default[1]))
     sizes = [default] * grid.num_views
     for key, size in per_view.items():
-        try:
-            v = grid.find(key, "image size")
-        except ValueError as exc:
-            raise PointsError(str(exc)) from None
+        v = grid.find(key, "image size", PointsError)
         sizes[v] = (int(size[0]), int(size[1]))
     return default, sizes
 

@@ -53,10 +53,7 @@ def resolve_lenses(spec: str | Mapping[str | int, str], grid: ViewGrid) -> tuple
         raise LensSpecError(f"unknown lens {default!r}; choose from {', '.join(choices)}")
     out = [default] * grid.num_views
     for key, lens in per_view.items():
-        try:
-            v = grid.find(key, "lens")
-        except ValueError as exc:
-            raise LensSpecError(str(exc)) from None
+        v = grid.find(key, "lens", LensSpecError)
         if lens not in choices:
             raise LensSpecError(f"lens for {key}: unknown model {lens!r}; choose from {', '.join(choices)}")
         out[v] = lens
