@@ -237,6 +237,9 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
                               time.perf_counter() - start, tuple(history))
 
 
+PSEUDO_INVERSE_RCOND = 1e-10  # landmark-block eigenvalues below this fraction of the largest carry no information
+
+
 def marginal_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                         landmark_char: str) -> tuple[np.ndarray, SchurLayout]:
     """The (C, C) joint marginal covariance of every non-landmark variable at ``values`` (the inverse of the
@@ -256,7 +259,13 @@ def problem_covariance(problem, state) -> np.ndarray:
         n_c = sys_.H.shape[0]
         S = sys_.H.copy()  # noqa: N806
         if sys_.V.shape[0]:
-            vw = _times_w(inv3(sys_.V), sys_.W).reshape(-1, n_c)
+            inv = inv3(sys_.V, strict=False)
+            # a landmark block singular in floating point (a far landmark on a short baseline: its depth direction
+            # carries ~no information, and its Jacobian none either) is marginalised by its pseudo-inverse
+            flat = np.all(inv == 0.0, axis=(1, 2)) & np.any(sys_.V != 0.0, axis=(1, 2))
+            if flat.any():
+                inv[flat] = np.linalg.pinv(sys_.V[flat], rcond=PSEUDO_INVERSE_RCOND, hermitian=True)
+            vw = _times_w(inv, sys_.W).reshape(-1, n_c)
             S -= sys_.W.reshape(-1, n_c).T @ vw
         Ls = np.linalg.cholesky(S)  # noqa: N806  (raises when indeterminate)
         inv_l = np.linalg.solve(Ls, np.eye(n_c))

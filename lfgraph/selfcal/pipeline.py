@@ -57,6 +57,21 @@ def per_coordinate_rms(errors: np.ndarray, landmarks: int, views: int) -> float:
     return float(np.sqrt(np.sum(e**2) / dof)) if dof > 0 else float("nan")
 
 
+def _measured_noise(errors: np.ndarray, landmarks: int, views: int) -> float:
+    """`per_coordinate_rms`, never below `NOISE_FLOOR_PX`; no degrees of freedom left is a clear error (a NaN here
+    used to reach the noise model as "sigmas must be positive and finite, got [nan]").
+
+    Raises:
+        SelfCalibrationError: too few tracks survive to measure the noise.
+    """
+    measured = per_coordinate_rms(errors, landmarks, views)
+    if not np.isfinite(measured):
+        raise SelfCalibrationError(
+            f"self-calibration: only {landmarks} tracks ({int(np.isfinite(errors).sum())} observations) survive, too "
+            f"few to measure the track noise for {views} views; add frames of a textured scene at several depths")
+    return max(measured, NOISE_FLOOR_PX)
+
+
 def _clean(calib: Calibration, tracks: PooledTracks, points: np.ndarray,
            design: Design) -> tuple[PooledTracks, np.ndarray]:
     """Drop landmarks behind a view, seen from one centre only, or so far that their disparity across the whole
@@ -166,7 +181,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
     # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-    noise = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
+    noise = _measured_noise(errors, tracks.num_tracks, grid.num_views)
     free = frozenset(stages[-1].free)
     if any("distortion" in st for st in config.stages):
         # distortion the stages held (tracks short of the corners) is free here, pulled to the design values with
@@ -184,7 +199,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         tracks, points = _clean(calib, tracks, points, design)
         errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
         stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
-        measured = max(per_coordinate_rms(errors, tracks.num_tracks, grid.num_views), NOISE_FLOOR_PX)
+        measured = _measured_noise(errors, tracks.num_tracks, grid.num_views)
         if abs(measured / noise - 1.0) < NOISE_AGREEMENT and len(points) == graph_landmarks(values):
             break
         noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
