@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -182,6 +183,15 @@ class LensChoice:
     lenses: tuple[str, ...]
     fit_px: dict[str, np.ndarray]
     heldout_px: dict[str, np.ndarray]
+
+    def metrics(self) -> dict[str, Any]:
+        """``{"lens_choice": {"fit_px": ..., "heldout_px": ...}}`` for ``calibration.json`` (None where not computed);
+        empty when no model was chosen (all named)."""
+        if not self.heldout_px:
+            return {}
+        return {"lens_choice": {name: {lens: [None if not np.isfinite(x) else float(x) for x in values]
+                                       for lens, values in table.items()}
+                                for name, table in (("fit_px", self.fit_px), ("heldout_px", self.heldout_px))}}
 
     def table(self, grid: ViewGrid) -> str:
         """The comparison as printed by ``calibrate``."""

@@ -26,7 +26,7 @@ from lfgraph.pattern.initial import (
     weak_views,
 )
 from lfgraph.pattern.joint import calibrate_joint
-from lfgraph.pattern.lenses import AUTO, choose_lenses, radial_profile_warning, resolve_lenses
+from lfgraph.pattern.lenses import AUTO, LensChoice, choose_lenses, radial_profile_warning, resolve_lenses
 from lfgraph.pattern.paper import calibrate_paper
 from lfgraph.pattern.scoring import (
     CalibrationReport,
@@ -41,6 +41,30 @@ from lfgraph.pattern.scoring import (
 SCREEN_KERNEL = RobustKernel("cauchy", 1.0)  # the screening fit's kernel, threshold in px (corner sigma 1 px)
 OUTLIER_VIEW_FRAME_FACTOR = 5.0  # a view-frame the robust rig misses by this many times the median view-frame RMS ...
 OUTLIER_VIEW_FRAME_MIN_PX = 1.0  # ... and by at least this much is dropped
+
+
+def _without_copies(obs: BoardObservations, say: Observer) -> tuple[BoardObservations, list[str]]:
+    """``obs`` without boards that repeat an earlier frame's (`duplicate_view_frames`), and the warning naming them."""
+    duplicates = duplicate_view_frames(obs)
+    if not duplicates:
+        return obs, []
+    obs = drop_view_frames(obs, [(v, f) for v, f, _ in duplicates])
+    message = ("boards identical to an earlier frame's (copied images?) were left out: "
+               + ", ".join(f"{obs.describe(v, f)} = frame {obs.frame_names[g]}" for v, f, g in duplicates[:10])
+               + (f" and {len(duplicates) - 10} more" if len(duplicates) > 10 else ""))
+    say.log(message)
+    check_observations(obs)
+    return obs, [message]
+
+
+def _lens_choice(obs: BoardObservations, config: CalibrateConfig, say: Observer) -> LensChoice:
+    """Each view's lens model: as named in ``config.lens``, the ``auto`` ones chosen (and the table logged)."""
+    requested = resolve_lenses(config.lens, obs.grid)
+    if AUTO not in requested:
+        return LensChoice(requested, {}, {})
+    choice = choose_lenses(obs, requested)
+    say.log(choice.table(obs.grid))
+    return choice
 
 
 def screen_view_frames(obs: BoardObservations, intrinsics: tuple, ref_T_view: np.ndarray,  # noqa: N803
@@ -98,16 +122,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     say = resolve(observer)
     method, init = config.method, config.init
     check_observations(obs)
-    duplicates = duplicate_view_frames(obs)
-    duplicate_warnings = []
-    if duplicates:
-        obs = drop_view_frames(obs, [(v, f) for v, f, _ in duplicates])
-        duplicate_warnings.append("boards identical to an earlier frame's (copied images?) were left out: "
-                                  + ", ".join(f"{obs.describe(v, f)} = frame {obs.frame_names[g]}"
-                                              for v, f, g in duplicates[:10])
-                                  + (f" and {len(duplicates) - 10} more" if len(duplicates) > 10 else ""))
-        say.log(duplicate_warnings[0])
-        check_observations(obs)
+    obs, duplicate_warnings = _without_copies(obs, say)
     order_warnings: tuple[str, ...] = ()
     if obs.board.is_symmetric:
         # the detector cannot tell a board turned by 180° from the original; the rig's geometry can
@@ -119,17 +134,10 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     seconds: dict[str, float] = {}
     warnings: list[str] = duplicate_warnings + list(order_warnings)
     n_views = obs.num_views
-    requested = resolve_lenses(config.lens, obs.grid)
-    lens_table = None
-    if AUTO in requested:
-        t0 = time.perf_counter()
-        choice = choose_lenses(obs, requested)
-        seconds["lens_choice"] = time.perf_counter() - t0
-        lenses = choice.lenses
-        lens_table = choice.table(obs.grid)
-        say.log(lens_table)
-    else:
-        lenses = requested
+    t0 = time.perf_counter()
+    choice = _lens_choice(obs, config, say)
+    lenses = choice.lenses
+    seconds["lens_choice"] = time.perf_counter() - t0
     paper = None
     if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()
@@ -214,10 +222,6 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         sigmas=None if joint is None else joint.sigmas,
         optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds,
         board_T_ref=boards, residuals_px=res)
-    metrics = report.metrics()
-    if lens_table is not None:
-        metrics["lens_choice"] = {name: {lens: [None if not np.isfinite(x) else float(x) for x in values]
-                                         for lens, values in table.items()}
-                                  for name, table in (("fit_px", choice.fit_px), ("heldout_px", choice.heldout_px))}
+    metrics = {**report.metrics(), **choice.metrics()}
     calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics, obs.view_sizes_px)
     return calib, report
