@@ -16,6 +16,7 @@ import numpy as np
 from lfgraph.alignment import PointAlignmentReport, align_points
 from lfgraph.calibration import Calibration
 from lfgraph.capture import check_frame_array, check_frames_argument
+from lfgraph.observer import SilentObserver
 from lfgraph.rectification import Rectification
 from lfgraph.refinement.matching import MatchSettings, Tracks, track_chain
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
@@ -164,7 +165,7 @@ def input_transfer_sigma_px(calib: Calibration) -> np.ndarray | None:
 def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.ndarray],
                   settings: MatchSettings | None = None, config: RefineConfig | None = None) -> DriftReport:
     """Run the drift check over (V, H, W) grayscale frames."""
-    from lfgraph.refinement.assess import _Silent, assess
+    from lfgraph.refinement.assess import assess
     from lfgraph.refinement.config import RefineConfig
     from lfgraph.refinement.tracks import pooled_filter, track_coverage
 
@@ -201,7 +202,7 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     heldout = (float("nan"), float("nan"))
     notes: list[str] = []
     try:
-        result = assess(calib, px, ok, config, _Silent(), track_coverage(calib, px, ok), n_frames, frame_of)
+        result = assess(calib, px, ok, config, SilentObserver(), track_coverage(calib, px, ok), n_frames, frame_of)
         verdicts, sigma = result.verdicts, result.sigma_px
         heldout = (result.heldout_before_px, result.heldout_after_px)
     except (RuntimeError, ValueError) as exc:  # too few tracks for a graph: no verdict rather than a wrong one

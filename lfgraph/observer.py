@@ -89,6 +89,13 @@ class BaseObserver:
         pass
 
 
+class SilentObserver(BaseObserver):
+    """Hears nothing, logs nothing: for fits whose stages are not the result (held-out refits, screening passes)."""
+
+    def log(self, message: str) -> None:
+        pass
+
+
 class Observers(BaseObserver):
     """Several observers as one (each gets every call, in order)."""
 

@@ -11,6 +11,10 @@ from dataclasses import dataclass
 
 import gtsam
 
+from lfgraph.optimization_result import OptimizationResult
+from lfgraph.schur import optimize_schur
+from lfgraph.schur_system import NotReducible
+
 IterationCallback = Callable[[int, float, float], None]  # (iteration, error before, error after)
 
 
@@ -32,19 +36,6 @@ class OptimizerSettings:
     absolute_error_tol: float = 1e-12
     error_tol: float = 0.0
     landmark_iterations: int = 0
-
-
-@dataclass(frozen=True)
-class OptimizationResult:
-    """What an optimisation did. ``values`` must not be modified (copy before inserting)."""
-
-    values: gtsam.Values
-    initial_error: float
-    final_error: float
-    iterations: int
-    converged: bool
-    seconds: float
-    error_history: tuple[float, ...]
 
 
 @contextmanager
@@ -112,8 +103,6 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
     params.iterationHook = hook
     start = time.perf_counter()
     if eliminate is not None:
-        from lfgraph.schur import optimize_schur
-        from lfgraph.schur_system import NotReducible
 
         try:
             with gtsam_quiet():

@@ -210,7 +210,8 @@ def add_parsers(sub: Any) -> None:
     cal.add_argument("--init", choices=("paper", "design"), default="paper",
                      help="start of the joint route: the paper route (default) or design values")
     cal.add_argument("--robust", default="none",
-                     help="robust kernel NAME[:THRESHOLD_PX]: none, huber:1.0, cauchy:..., tukey:..., gm, dcs, ...")
+                     help="robust kernel NAME[:THRESHOLD] in px (or NAME:Ksigma in corner sigmas; a bare NAME takes "
+                          "its usual constant in sigmas): none, huber:1.0, cauchy, tukey:5, gm, dcs, ...")
     cal.add_argument("--tangential", action="store_true", help="estimate p1, p2 (held at 0 by default)")
     cal.add_argument("--no-screen", action="store_true",
                      help="fit every observation by least squares (by default a robust Cauchy fit first drops the "

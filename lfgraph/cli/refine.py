@@ -95,8 +95,9 @@ def add_parsers(sub: Any) -> None:
     rf.add_argument("--stages", default="default",
                     help="schedule: default (points,poses,clean), paper (points,intrinsics,all) or a comma list of "
                          "points, intrinsics, poses, all, clean")
-    rf.add_argument("--robust", default="none", help="robust kernel NAME[:THRESHOLD_PX] (none, huber:1.345, "
-                                                     "cauchy:..., tukey:..., gm:..., dcs:...)")
+    rf.add_argument("--robust", default="none", help="robust kernel NAME[:THRESHOLD] in px, or NAME:Ksigma in "
+                                                     "measurement sigmas; a bare NAME takes its usual constant in "
+                                                     "sigmas (none, huber, cauchy:0.2, tukey:0.5, gm, dcs, ...)")
     rf.add_argument("--triangulation-filter", choices=("median", "worst", "none"),
                     help="median: the paper's (default with --stages paper); worst: drop outlying tracks (default)")
     rf.add_argument("--max-frames", type=positive_int, help="use at most this many frames")

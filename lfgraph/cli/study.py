@@ -224,7 +224,8 @@ def add_parsers(sub: Any) -> None:
                     help="translation shake levels paired with --rot-deg, mm per axis (default 0,1,2,5)")
     ss.add_argument("--frames", type=positive_int, default=1, help="scene frames per trial (default 1)")
     ss.add_argument("--stages", default="paper,default", help="schedules to compare (default paper,default)")
-    ss.add_argument("--robust", default="none", help="robust kernels to compare, e.g. none,huber:1.345,cauchy:1.0")
+    ss.add_argument("--robust", default="none",
+                    help="robust kernels to compare (thresholds in px, or Ksigma), e.g. none,huber,cauchy:0.2")
     add_rerun_args(ss)
     ss.set_defaults(func=cmd_study_shake)
 

@@ -33,8 +33,9 @@ class CalibrateConfig:
         method: ``joint`` (default) or ``paper``.
         init: start of the joint route: ``paper`` or ``design``.
         focal_px, pitch_mm: design values for ``init="design"`` (default: the larger image side; PnP-averaged poses).
-        robust: the corner noise model: a kernel name (``"huber:1.0"``, ``"none"``), a `RobustKernel`, a
-            ``gtsam.noiseModel.mEstimator`` object or a full ``gtsam`` noise model (thresholds in sigmas).
+        robust: the corner noise model: a kernel name (``"huber:1.0"``: threshold in pixels; ``"cauchy"``: its usual
+            constant in sigmas; ``"none"``), a `RobustKernel`, a ``gtsam.noiseModel.mEstimator`` object (threshold
+            in corner sigmas) or a full ``gtsam`` noise model.
         corner_sigma_px: the measurement model's corner noise; sets the scale of robust thresholds and of the
             board prior's weight. Reported uncertainties are rescaled by the noise estimated from the residuals.
         tangential: estimate p1, p2 (held at 0 otherwise, the paper's model).

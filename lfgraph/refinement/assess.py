@@ -24,7 +24,9 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.factors.scene_graph import rotation_gauge
+from lfgraph.observer import SilentObserver
 from lfgraph.refinement.config import RefineConfig
+from lfgraph.refinement.fit import fit_auto
 from lfgraph.refinement.posterior import (
     GROUPS,
     ROTATION,
@@ -180,28 +182,6 @@ def combine(calib: Calibration, refined: Calibration, views: set[int]) -> Calibr
     return calib.replace(ref_T_view=poses, intrinsics=tuple(intr))
 
 
-class _Silent:
-    """Observer for the held-out refits: their stages are not the result, so nobody hears them."""
-
-    def log(self, message: str) -> None:
-        pass
-
-    def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
-        pass
-
-    def frame(self, index: int, images: np.ndarray) -> None:
-        pass
-
-    def stage_start(self, name: str, measurements: int) -> None:
-        pass
-
-    def stage_end(self, event) -> None:
-        pass
-
-    def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
-        pass
-
-
 @dataclass(frozen=True)
 class Assessment:
     """The accepted calibration and how it was decided.
@@ -283,7 +263,6 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     """MAP fit, posterior, fold refits (held-out tracks and the jackknife), significance, verdicts (see the
     module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames.
     ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
-    from lfgraph.refinement.fit import fit_auto
 
     obs = observer
     fit = fit_auto(calib, pixels, valid, config, obs, sigma_estimate=sigma_estimate)
@@ -310,7 +289,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
             if not test.any() or not train.any():
                 continue
             try:
-                fk = fit_auto(calib, px[:, train], ok[:, train], config, _Silent(), fit.held, fit.sigma_px)
+                fk = fit_auto(calib, px[:, train], ok[:, train], config, SilentObserver(), fit.held, fit.sigma_px)
             except (RuntimeError, ValueError):
                 continue
             fold_calibs.append(fk.calib)

@@ -131,9 +131,11 @@ class RefineConfig:
     Attributes:
         stages: the schedule: a `Stage` sequence, ``"default"`` (points, poses, clean), ``"paper"`` (points,
             intrinsics, all) or a comma list.
-        robust: the measurement noise model of every stage: a kernel name (``"huber:1.345"``, ``"cauchy:0.5"``,
+        robust: the measurement noise model of every stage: a kernel name (``"huber:0.2"`` — thresholds in
+            pixels —, ``"cauchy"`` — its usual constant, in measurement sigmas —, ``"huber:1.345sigma"``,
             ``"none"``), a `RobustKernel`, any ``gtsam.noiseModel.mEstimator`` object (wrapped around the isotropic
-            ``measurement_sigma_px``), or a full ``gtsam`` noise model (used as it is). Thresholds are in sigmas.
+            ``measurement_sigma_px``: its threshold is then in sigmas), or a full ``gtsam`` noise model (used as it
+            is). Every one runs on the bulk solver (`lfgraph.bulk_noise`).
         clean_robust: the ``clean`` stage's own noise model; None (default) uses ``robust``.
         measurement_sigma_px: the feature position noise per coordinate (px); None (default): estimated from the
             residuals of a first fit (floored at ``MIN_MEASUREMENT_SIGMA_PX``), so the priors weigh what they should.

@@ -12,7 +12,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import describe_noise
 from lfgraph.geometry import rotation_angle_deg
-from lfgraph.observer import Observer, StageEnd, resolve
+from lfgraph.observer import Observer, SilentObserver, StageEnd, resolve
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.report import StageReport
@@ -191,9 +191,9 @@ def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: 
     if sigma_px is not None:
         return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
                           sigma_px=sigma_px)
-    from lfgraph.refinement.assess import _Silent  # the observer hears the pass that counts, once
 
-    fit = fit_tracks(calib, pixels, valid, config, _Silent(), priors=priors, held_views=held_views,
+    # the sigma-estimating pass is not heard: the observer hears the pass that counts, once
+    fit = fit_tracks(calib, pixels, valid, config, SilentObserver(), priors=priors, held_views=held_views,
                      sigma_px=FIRST_PASS_SIGMA_PX)
     sigma = fit_sigma(fit)
     if not np.isfinite(sigma):

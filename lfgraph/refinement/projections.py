@@ -7,6 +7,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from lfgraph.bulk_noise import BulkNoise, NotBulk
 from lfgraph.camera import distort_xy, distortion_jacobian
 from lfgraph.schur_system import (
     NotReducible,
@@ -20,29 +21,35 @@ from lfgraph.schur_system import (
 
 class ProjectionProblem:
     """Landmarks seen by views with constant intrinsics (GTSAM's ``GenericProjectionFactorCal3DS2`` /
-    ``TriangulationFactorCal3DS2`` with an isotropic Gaussian noise), evaluated in bulk in numpy, plus a small GTSAM
-    graph of everything else on the camera variables (pose priors, gauges). The state is (camera `gtsam.Values`,
-    (N, 3) landmarks).
+    ``TriangulationFactorCal3DS2``), evaluated in bulk in numpy, plus a small GTSAM graph of everything else on the
+    camera variables (pose priors, gauges). The state is (camera `gtsam.Values`, (N, 3) landmarks).
 
-    The residual and Jacobians are GTSAM's: ``h(x) - z`` whitened by ``1/sigma``, the pose perturbed on the right
-    (``pose * Exp([w, v])``), the Cal3DS2 model fx, fy, cx, cy, k1, k2, p1, p2 without skew.
+    The residual and Jacobians are GTSAM's: ``h(x) - z`` whitened by the noise model (a robust model's weights
+    applied as GTSAM applies them: `lfgraph.bulk_noise`), the pose perturbed on the right (``pose * Exp([w, v])``),
+    the Cal3DS2 model fx, fy, cx, cy, k1, k2, p1, p2 without skew.
 
     Args:
         graph: the other factors (on camera keys only); values: their variables (the camera state).
         view, landmark: (M,) view and landmark index of each observation; uv: (M, 2) pixels.
-        sigma: pixel sigma; intrinsics: (V, 8) fx, fy, cx, cy, k1, k2, p1, p2.
+        noise: the measurement noise model of every observation (a 2-D Gaussian, optionally robust);
+        intrinsics: (V, 8) fx, fy, cx, cy, k1, k2, p1, p2.
         pose_keys: (V,) key of each view's pose in ``values`` (poses free), or None with ``fixed_poses`` (V, 4, 4).
 
     Raises:
-        NotReducible: an observation behind its camera at the start, or a view observed twice by one landmark.
+        NotReducible: an observation behind its camera at the start, a view observed twice by one landmark, or a
+            noise model that is not a 2-D Gaussian (robust or not).
     """
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, view: np.ndarray,
-                 landmark: np.ndarray, uv: np.ndarray, sigma: float, intrinsics: np.ndarray, n_landmarks: int,
-                 pose_keys: list[int] | None = None, fixed_poses: np.ndarray | None = None):
+                 landmark: np.ndarray, uv: np.ndarray, noise: gtsam.noiseModel.Base, intrinsics: np.ndarray,
+                 n_landmarks: int, pose_keys: list[int] | None = None, fixed_poses: np.ndarray | None = None):
         self.graph = graph
         self.view, self.landmark = np.asarray(view, dtype=np.int64), np.asarray(landmark, dtype=np.int64)
-        self.uv, self.sigma = np.asarray(uv, dtype=np.float64), float(sigma)
+        self.uv = np.asarray(uv, dtype=np.float64)
+        try:
+            self.noise = BulkNoise(noise)
+        except NotBulk as e:
+            raise NotReducible(str(e)) from None
         self.intr = np.asarray(intrinsics, dtype=np.float64)
         self.n_views, self.n_landmarks = len(self.intr), int(n_landmarks)
         self.layout = schur_layout(values, "\0") if values.size() else None
@@ -96,17 +103,23 @@ class ProjectionProblem:
         x, y = pc[:, 0] / z, pc[:, 1] / z
         fx, fy, cx, cy, k1, k2, p1, p2 = self.obs_intr
         xd, yd = distort_xy(x, y, k1, k2, p1, p2)
-        e = np.stack([fx * xd + cx - self.uv[:, 0], fy * yd + cy - self.uv[:, 1]], axis=1) / self.sigma
+        e = self.noise.whiten(np.stack([fx * xd + cx - self.uv[:, 0], fy * yd + cy - self.uv[:, 1]], axis=1))
         if not jacobians:
             return e
         d00, d01, d11 = distortion_jacobian(x, y, k1, k2, p1, p2)
-        s = 1.0 / self.sigma
+        s = 1.0 / self.noise.isotropic_sigma if self.noise.isotropic_sigma is not None else 1.0
         a00, a01, a10, a11 = s * fx * d00, s * fx * d01, s * fy * d01, s * fy * d11  # d pixel / d (x, y)
         iz = 1.0 / z
         # d pixel / d pc = A [[1/z, 0, -x/z], [0, 1/z, -y/z]]
         jpc = np.empty((len(z), 2, 3))
         jpc[:, 0, 0], jpc[:, 0, 1], jpc[:, 0, 2] = a00 * iz, a01 * iz, -(a00 * x + a01 * y) * iz
         jpc[:, 1, 0], jpc[:, 1, 1], jpc[:, 1, 2] = a10 * iz, a11 * iz, -(a10 * x + a11 * y) * iz
+        if self.noise.isotropic_sigma is None:
+            jpc = self.noise.whiten(jpc)
+        sw = self.noise.sqrt_weights(e)
+        if sw is not None:  # GTSAM's robust reweighting of the whitened rows (the error keeps the loss)
+            e = e * sw
+            jpc *= sw[:, :, None]
         # d pc / d P = R^T: jl[a, j] = sum_k jpc[a, k] R[j, k]
         if self.full:
             jl = np.matmul(jpc.reshape(self.n_views, -1, 3), np.swapaxes(R, 1, 2)).reshape(-1, 2, 3)
@@ -127,7 +140,7 @@ class ProjectionProblem:
         if e is None:
             return float("inf")
         other = float(self.graph.error(state[0])) if self.graph.size() else 0.0
-        return 0.5 * float(np.sum(e * e)) + other
+        return self.noise.cost(e) + other
 
     def system(self, state) -> ReducedSystem:
         out = self._residuals(state, True)

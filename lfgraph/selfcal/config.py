@@ -122,7 +122,8 @@ class SelfCalConfig:
             half way out) or no distortion, and the final stage frees both with their design tolerances.
         track_sigma_px: the assumed tracking noise of the early stages; the final stage uses the noise measured
             from the residuals, so the reported sigmas follow the data.
-        robust: the measurement kernel of the early stages (the final stage is plain least squares on the tracks
+        robust: the measurement kernel of the early stages, scaled by each stage's own residual sigma (default
+            Huber at 2 of those sigmas; the final stage is plain least squares on the tracks
             that survive the outlier filter, so the marginals are Gaussian).
         tracks_per_frame: at most this many tracks kept per frame, spread over an 8x8 grid of image cells.
         max_frames: use at most this many frames.
@@ -144,7 +145,7 @@ class SelfCalConfig:
     position_tolerance_mm: float = POSITION_TOLERANCE_MM
     stages: tuple[tuple[str, ...], ...] = DEFAULT_STAGES
     track_sigma_px: float = 0.1
-    robust: NoiseSpec = "huber:2.0"
+    robust: NoiseSpec = "huber:2sigma"
     tracks_per_frame: int = TRACKS_PER_FRAME
     max_frames: int | None = None
     min_frames: int = 3
