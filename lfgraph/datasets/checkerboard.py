@@ -7,7 +7,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -16,7 +16,7 @@ import numpy as np
 from lfgraph.board import BoardSpec
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics, in_image, transform_points
-from lfgraph.datasets.board_render import ViewRays, render_checkerboard_view
+from lfgraph.datasets.board_render import CheckerboardConfig, ViewRays, render_checkerboard_view
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
@@ -28,48 +28,6 @@ MAX_POSE_TRIES = 2000
 # paper-4x4; noise-free renders (long runs of one grey) keep the default.
 NOISY_PNG_PARAMS = (cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE,
                     cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY)
-
-
-@dataclass(frozen=True)
-class CheckerboardConfig:
-    """How the board is shown to the array and how images look.
-
-    Attributes:
-        board: the checkerboard.
-        frames: number of captures.
-        distance_m: (near, far) distance of the board centre from the reference view.
-        max_tilt_deg: largest tilt of the board away from fronto-parallel.
-        max_roll_deg: largest in-plane rotation (kept modest so the corner order stays unambiguous).
-        coverage_cells: the reference image is cut into this many cells per side; frames cycle through them so the
-            board centres cover the whole field of view.
-        blur_sigma_px: Gaussian blur of the rendered image (0 = none).
-        noise_sigma: sensor noise, grey levels std (0 = none).
-        background_level: grey level behind the board.
-        supersample: N for the N sub-rows (N x N samples where they do not apply) of edge pixels at a corner
-            (pixels crossed by one edge take their exact area).
-        margin_px: a board counts as visible in a view when its whole printed outline is this far inside.
-    """
-
-    board: BoardSpec = field(default_factory=lambda: BoardSpec(11, 8, 0.020))
-    frames: int = 40
-    distance_m: tuple[float, float] = (0.35, 0.9)
-    max_tilt_deg: float = 40.0
-    max_roll_deg: float = 20.0
-    coverage_cells: int = 3
-    blur_sigma_px: float = 0.8
-    noise_sigma: float = 1.0
-    background_level: float = 120.0
-    supersample: int = 8
-    margin_px: float = 3.0
-
-    def __post_init__(self) -> None:
-        near, far = self.distance_m
-        if not (0 < near <= far):
-            raise ValueError(f"distance range must satisfy 0 < near <= far, got {self.distance_m}")
-        if self.frames < 1 or self.supersample < 1 or self.coverage_cells < 1:
-            raise ValueError("frames, supersample and coverage_cells must be >= 1")
-        if not 0 <= self.max_tilt_deg < 80:
-            raise ValueError(f"max_tilt_deg must be in [0, 80), got {self.max_tilt_deg}")
 
 
 @dataclass(frozen=True)
