@@ -124,7 +124,7 @@ def tracks_for(rig: str, frames: int, config: SelfCalConfig, cache: Path, seed: 
     design = design_of(rig)
     capture = open_capture(root, design.grid)
     t = pool_tracks(capture.frames(limit=frames), design.grid, design.image_size_px, config.tracks_per_frame,
-                    config.match)
+                    config.tracker)
     p = t.patches
     np.savez_compressed(path, pixels=t.pixels, valid=t.valid, frame=t.frame, seen=t.frames_seen, used=t.frames_used,
                         ref=p.ref, ref_origin=p.ref_origin, views=p.views, origin=p.origin, inside=p.inside)

@@ -43,6 +43,11 @@ _EXPORTS = {
     "RefineConfig": "lfgraph.refinement.config",
     "Stage": "lfgraph.refinement.config",
     "TriangulationFilter": "lfgraph.refinement.config",
+    "DriftModel": "lfgraph.refinement.config",
+    "Tracker": "lfgraph.refinement.matching",
+    "ChainTracker": "lfgraph.refinement.matching",
+    "MatchSettings": "lfgraph.refinement.matching",
+    "Tracks": "lfgraph.refinement.matching",
     "RefinementReport": "lfgraph.refinement.report",
     "check": "lfgraph.drift",
     "DriftReport": "lfgraph.drift",
@@ -54,14 +59,16 @@ _EXPORTS = {
     "BaseObserver": "lfgraph.observer",
     "Observers": "lfgraph.observer",
     "StageEnd": "lfgraph.observer",
+    "SilentObserver": "lfgraph.observer",
 }
 _SUBMODULES = ("viz", "factors", "datasets", "pattern", "refinement")
 
 __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
-           "CaptureSet", "DriftReport", "GraphContext", "Init", "Intrinsics", "Method", "Observer", "Observers",
-           "PointBoard", "RefineConfig", "RefinementReport", "RobustKernel", "Stage", "StageEnd",
-           "TriangulationFilter", "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "load_detections",
+           "CaptureSet", "ChainTracker", "DriftModel", "DriftReport", "GraphContext", "Init", "Intrinsics",
+           "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
+           "RobustKernel", "SilentObserver", "Stage", "StageEnd", "Tracker", "Tracks", "TriangulationFilter",
+           "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "load_detections",
            "open_capture", "rectify", "refine", "viz", "factors", "datasets", "pattern", "refinement"]
 
 
@@ -90,13 +97,14 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.factors.hooks import GraphContext
     from lfgraph.factors.noise import RobustKernel
     from lfgraph.grid import ViewGrid
-    from lfgraph.observer import BaseObserver, Observer, Observers, StageEnd
+    from lfgraph.observer import BaseObserver, Observer, Observers, SilentObserver, StageEnd
     from lfgraph.pattern.config import CalibrateConfig, Init, Method
     from lfgraph.pattern.initial import CalibrationInputError
     from lfgraph.pattern.pipeline import calibrate
     from lfgraph.pattern.scoring import CalibrationReport
     from lfgraph.points_io import load_detections
     from lfgraph.rectification import rectify
-    from lfgraph.refinement.config import RefineConfig, Stage, TriangulationFilter
+    from lfgraph.refinement.config import DriftModel, RefineConfig, Stage, TriangulationFilter
+    from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, Tracks
     from lfgraph.refinement.report import RefinementReport
     from lfgraph.refinement.schedule import refine

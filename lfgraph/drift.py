@@ -18,7 +18,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.capture import check_frame_array, check_frames_argument
 from lfgraph.observer import SilentObserver
 from lfgraph.rectification import Rectification
-from lfgraph.refinement.matching import MatchSettings, Tracks, track_chain
+from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracks
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
 
 if TYPE_CHECKING:
@@ -131,7 +131,9 @@ def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSetti
     Args:
         calib: the calibration to check.
         frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size.
-        config: the refinement options of the test (drift priors, significance, folds); default `RefineConfig()`.
+        settings: options of the default tracker; None: the tracker of ``config`` (`ChainTracker` by default).
+        config: the refinement options of the test (drift priors, significance, folds, ``tracker``); default
+            `RefineConfig()`.
     """
     from lfgraph.rectification import compute_rectification, stored_rectification
 
@@ -170,10 +172,11 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     from lfgraph.refinement.tracks import pooled_filter, track_coverage
 
     config = config or RefineConfig()
+    tracker = config.tracker if settings is None else ChainTracker(settings)
     pixels, valid, frame_ids, counts, n_frames = [], [], [], {}, 0
     for f, images in enumerate(frames):
         check_frame_array(images, f, calib.grid, calib.image_size_px)
-        tracks = track_chain(images, calib.grid, settings)
+        tracks = tracker.track(images, calib.grid)
         res = reprojection_residuals(calib, tracks)
         keep = worst_error_filter(res, TRACK_OUTLIER_FACTOR, TRACK_OUTLIER_MIN_PX)
         tracks_counts = {**tracks.counts, "triangulation": int(keep.sum())}

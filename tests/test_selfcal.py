@@ -264,7 +264,7 @@ def test_retrack_with_the_true_geometry_removes_the_window_scale_bias(rendered):
     from lfgraph.selfcal.retrack import retrack
 
     truth, frames, _ = rendered
-    tracks = pool_tracks(frames, truth.grid, truth.image_size_px, 150, SelfCalConfig().match)
+    tracks = pool_tracks(frames, truth.grid, truth.image_size_px, 150, SelfCalConfig().tracker)
     assert tracks.patches is not None
     ref = truth.grid.reference
     exact = np.full(tracks.pixels.shape, np.nan)

@@ -9,7 +9,7 @@ from enum import StrEnum
 import numpy as np
 
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
-from lfgraph.refinement.matching import MatchSettings
+from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 
 
 class Stage(StrEnum):
@@ -174,7 +174,9 @@ class RefineConfig:
             weakly determined: on the Middlebury ring, views with 3-9 observations drifted by 10-35 degrees).
         graph_hooks: user functions called with a `lfgraph.factors.GraphContext` after each stage's graph is built
             and before it is optimised: add factors or priors of your own (see `lfgraph.factors.hooks`).
-        match: feature tracking options.
+        match: the options of the default tracker (`ChainTracker`).
+        tracker: what tracks features through the grid (`lfgraph.refinement.matching.Tracker`: an object with
+            ``track(images, grid) -> Tracks``); None (default): ``ChainTracker(match)``, the paper's chain KLT.
     """
 
     stages: tuple[Stage, ...] | str = "default"
@@ -191,6 +193,7 @@ class RefineConfig:
     min_view_observations: int = 30
     graph_hooks: tuple[Callable, ...] = ()
     match: MatchSettings = field(default_factory=MatchSettings)
+    tracker: Tracker | None = None
     drift: DriftModel = field(default_factory=DriftModel)
     priors: bool = True
     folds: int = 3
@@ -201,6 +204,8 @@ class RefineConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.match, MatchSettings):
             raise TypeError(f"RefineConfig.match must be a lfgraph MatchSettings, got {type(self.match).__name__}")
+        object.__setattr__(self, "tracker", ChainTracker(self.match) if self.tracker is None
+                           else as_tracker(self.tracker, "RefineConfig.tracker"))
         stages = parse_stages(self.stages)
         object.__setattr__(self, "stages", stages)
         if self.triangulation_filter is None:  # the paper's schedule comes with the paper's filter

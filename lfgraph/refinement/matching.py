@@ -4,6 +4,7 @@ view along the paper's chain, the duplicate filter, and fundamental-matrix RANSA
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -197,3 +198,41 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
     out = pts[:, keep].copy()
     out[~valid] = np.nan
     return Tracks(out, valid, counts)
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    """What tracks features through a grid: ``track(images, grid) -> Tracks``.
+
+    ``images`` is one frame, (V, H, W) uint8 grayscale views in the grid's row-major order; the result holds (V, N, 2)
+    positions (NaN where a view does not see a track) and the counts after each of its filters. `ChainTracker` (the
+    paper's chain KLT) is the default of `lfgraph.RefineConfig`, `lfgraph.check` and `lfgraph.SelfCalConfig`;
+    give ``tracker=`` another object with this method (a learned matcher, an oracle for a study) to swap it
+    everywhere at once. It must be picklable to run in a process pool (studies, fleets).
+    """
+
+    def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks: ...
+
+
+@dataclass(frozen=True)
+class ChainTracker:
+    """The paper's tracker (`track_chain`): Shi–Tomasi in the reference view, pyramidal KLT along the grid's chain,
+    the forward-backward, duplicate and F-RANSAC filters, with these `MatchSettings`."""
+
+    settings: MatchSettings = field(default_factory=MatchSettings)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.settings, MatchSettings):
+            raise TypeError(f"ChainTracker settings must be a lfgraph MatchSettings, got "
+                            f"{type(self.settings).__name__}")
+
+    def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks:
+        return track_chain(images, grid, self.settings)
+
+
+def as_tracker(tracker: object, what: str) -> Tracker:
+    """``tracker`` checked to be a `Tracker` (a clear TypeError naming ``what`` otherwise)."""
+    if not isinstance(tracker, Tracker):
+        raise TypeError(f"{what} must have a track(images, grid) method returning Tracks (a lfgraph Tracker such as "
+                        f"ChainTracker), got {type(tracker).__name__}")
+    return tracker

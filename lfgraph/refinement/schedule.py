@@ -22,7 +22,7 @@ from lfgraph.observer import Observer, resolve
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, fit_sigma
-from lfgraph.refinement.matching import Tracks, track_chain
+from lfgraph.refinement.matching import Tracker, Tracks
 from lfgraph.refinement.report import RefinementReport
 from lfgraph.refinement.tracks import (
     COVERAGE_CELLS,
@@ -51,10 +51,10 @@ def with_reference(calib: Calibration, reference: int) -> Calibration:
                          rectification=None)
 
 
-def _timed_track_chain(images: np.ndarray, grid, settings) -> tuple[Tracks, float]:
-    """`track_chain` and its wall seconds (it runs in `refine`'s worker thread)."""
+def _timed_track(images: np.ndarray, grid, tracker: Tracker) -> tuple[Tracks, float]:
+    """The tracker's tracks and its wall seconds (it runs in `refine`'s worker thread)."""
     t0 = time.perf_counter()
-    tracks = track_chain(images, grid, settings)
+    tracks = tracker.track(images, grid)
     return tracks, time.perf_counter() - t0
 
 
@@ -135,7 +135,7 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
             stop = f"max frames ({config.max_frames})"
             break
         check_frame_array(images, f, calib.grid, (w, h))
-        tracking = klt.submit(_timed_track_chain, images, calib.grid, config.match)
+        tracking = klt.submit(_timed_track, images, calib.grid, config.tracker)
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
             # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below

@@ -12,7 +12,7 @@ from lfgraph.camera import Intrinsics
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.factors.selfcal_graph import GROUPS, DesignSigmas
 from lfgraph.grid import ViewGrid
-from lfgraph.refinement.matching import MatchSettings
+from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 from lfgraph.selfcal.defaults import (
     FOCAL_TOLERANCE,
     K1_TOLERANCE,
@@ -129,7 +129,9 @@ class SelfCalConfig:
         max_frames: use at most this many frames.
         min_frames: refuse with fewer usable frames.
         max_iterations: Levenberg–Marquardt cap per stage.
-        match: feature tracking options (`lfgraph.refinement.matching.MatchSettings`); every view must see a track.
+        match: options of the default tracker (`lfgraph.refinement.matching.MatchSettings`); every view must see a
+            track.
+        tracker: what tracks features (`lfgraph.refinement.matching.Tracker`); None: ``ChainTracker(match)``.
         graph_hooks: user functions called with a `lfgraph.factors.GraphContext` (kind ``"selfcal"``) before each
             stage's graph is optimised.
         retrack: before the final stage, track every feature again from the reference view with the window warped
@@ -151,6 +153,7 @@ class SelfCalConfig:
     min_frames: int = 3
     max_iterations: int = 50
     match: MatchSettings = field(default_factory=lambda: SELFCAL_MATCH)
+    tracker: Tracker | None = None
     graph_hooks: tuple[Callable, ...] = ()
     retrack: bool = True
 
@@ -170,6 +173,10 @@ class SelfCalConfig:
         object.__setattr__(self, "stages", stages)
         object.__setattr__(self, "robust", as_noise(self.robust))
         object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
+        if not isinstance(self.match, MatchSettings):
+            raise TypeError(f"SelfCalConfig.match must be a lfgraph MatchSettings, got {type(self.match).__name__}")
+        object.__setattr__(self, "tracker", ChainTracker(self.match) if self.tracker is None
+                           else as_tracker(self.tracker, "SelfCalConfig.tracker"))
         for name in ("tracks_per_frame", "min_frames", "max_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

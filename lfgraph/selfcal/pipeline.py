@@ -247,7 +247,7 @@ def calibrate_scene(frames: Iterable[np.ndarray], design: Design, config: SelfCa
     """
     config = config or SelfCalConfig()
     t0 = time.perf_counter()
-    tracks = pool_tracks(frames, design.grid, design.image_size_px, config.tracks_per_frame, config.match,
+    tracks = pool_tracks(frames, design.grid, design.image_size_px, config.tracks_per_frame, config.tracker,
                          config.max_frames, keep_patches=config.retrack)
     seconds = time.perf_counter() - t0
     calib, report = calibrate_tracks(tracks, design, config, observer)

@@ -10,7 +10,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
-from lfgraph.refinement.matching import MatchSettings, track_chain
+from lfgraph.refinement.matching import Tracker
 from lfgraph.selfcal.retrack import Patches, cut_patches
 
 SPREAD_CELLS = 8  # tracks are thinned per cell of an 8x8 grid of the reference image
@@ -79,7 +79,7 @@ def spread(points_px: np.ndarray, image_size_px: tuple[int, int], limit: int, rn
 
 
 def pool_tracks(frames: Iterable[np.ndarray], grid: ViewGrid, image_size_px: tuple[int, int], per_frame: int,
-                match: MatchSettings, max_frames: int | None = None, seed: int = 0,
+                tracker: Tracker, max_frames: int | None = None, seed: int = 0,
                 keep_patches: bool = True) -> PooledTracks:
     """Track every frame through the grid and keep at most ``per_frame`` tracks of each, spread over the image
     (with the image patches around them when ``keep_patches``, for `lfgraph.selfcal.retrack`).
@@ -98,7 +98,7 @@ def pool_tracks(frames: Iterable[np.ndarray], grid: ViewGrid, image_size_px: tup
         if images.shape[:1] != (grid.num_views,) or images.shape[1:3] != (h, w):
             raise ValueError(f"frame {f}: expected {grid.num_views} views of {w}x{h} px, got {images.shape}")
         seen += 1
-        tracks = track_chain(images, grid, match)
+        tracks = tracker.track(images, grid)
         if tracks.num_tracks == 0:
             continue
         keep = spread(tracks.points_px[grid.reference], image_size_px, per_frame, rng)
