@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.evaluation import INFINITY_SAMPLES, transfer_error_at_infinity  # noqa: F401  (re-exported: its home before)
 from lfgraph.grid import ViewGrid
-from lfgraph.rectification import INFINITY_SAMPLES, Rectification, rectify_points
+from lfgraph.rectification import Rectification, rectify_points
 from lfgraph.refinement.triangulate import triangulate_dlt
 
 
@@ -193,36 +194,3 @@ def align_points(calib: Calibration, rect: Rectification, pixels: np.ndarray,
     # the parallax alone, laid on the ideal positions: its "misalignment" is what the rig geometry explains
     explained = point_alignment(grid, rect, parallax, ok)
     return PointAlignmentReport(before, after, compensated, explained)
-
-
-def transfer_error_at_infinity(estimate: Calibration, truth: Calibration,
-                               samples: int = INFINITY_SAMPLES) -> np.ndarray:
-    """(V,) RMS over reference pixels of |q_est - q_true|: a reference-view pixel sent to infinite depth and projected
-    into view i with the estimated and with the true cameras — the error that disparity and refocusing see.
-
-    Both calibrations are taken relative to their own reference view (which must be the same view).
-    """
-    if (estimate.grid.rows, estimate.grid.cols, estimate.grid.reference) != \
-            (truth.grid.rows, truth.grid.cols, truth.grid.reference):
-        raise ValueError(f"grids differ: {estimate.grid} (reference {estimate.grid.reference}) vs {truth.grid} "
-                         f"(reference {truth.grid.reference})")
-    w, h = truth.image_size_px
-    ref = truth.grid.reference
-    xs = np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples)
-    ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)
-    gx, gy = np.meshgrid(xs, ys)
-    px = np.column_stack([gx.ravel(), gy.ravel()])
-    out = np.zeros(truth.num_views)
-
-    def project_all(calib: Calibration) -> np.ndarray:
-        rel = np.linalg.inv(calib.ref_T_view[ref])[None] @ calib.ref_T_view
-        xy = calib.intrinsics[ref].undistort(px)
-        rays = np.column_stack([xy, np.ones(len(xy))])
-        return np.stack([calib.intrinsics[i].project(rays @ rel[i][:3, :3]) for i in range(calib.num_views)])
-
-    q_est, q_true = project_all(estimate), project_all(truth)
-    d = np.linalg.norm(q_est - q_true, axis=-1)
-    for i in range(truth.num_views):
-        di = d[i][np.isfinite(d[i])]
-        out[i] = np.sqrt(np.mean(di**2)) if di.size else np.nan
-    return out

@@ -103,6 +103,16 @@ class Calibration:
     def replace(self, **changes: Any) -> Calibration:
         return dataclasses.replace(self, **changes)
 
+    def with_reference(self, reference: int) -> Calibration:
+        """The same array expressed relative to another reference view (index ``reference``); the stored
+        rectification, which belongs to the old reference, is dropped."""
+        if not (isinstance(reference, int | np.integer) and 0 <= reference < self.num_views):
+            raise ValueError(f"reference must be a view index from 0 to {self.num_views - 1}, got {reference!r}")
+        poses = np.linalg.inv(self.ref_T_view[reference])[None] @ self.ref_T_view
+        poses[reference] = np.eye(4)
+        return self.replace(grid=ViewGrid(self.grid.rows, self.grid.cols, int(reference)), ref_T_view=poses,
+                            rectification=None)
+
     # ------------------------------------------------------------------------------------------ JSON
     def to_dict(self) -> dict[str, Any]:
         views = []

@@ -19,13 +19,11 @@ from lfgraph.capture import check_frame_array, check_frames_argument
 from lfgraph.observer import SilentObserver
 from lfgraph.rectification import Rectification
 from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracks
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 
 if TYPE_CHECKING:
     from lfgraph.refinement.config import RefineConfig
 
-TRACK_OUTLIER_FACTOR = 4.0  # a track whose largest residual exceeds 4x the median track's is a mismatch
-TRACK_OUTLIER_MIN_PX = 0.5  # ... and exceeds this (so a perfect calibration does not reject its noise)
 # (the same rule as the refinement's `worst` triangulation filter)
 
 
@@ -141,7 +139,8 @@ def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSetti
         raise TypeError(f"check: settings must be a lfgraph MatchSettings, got {type(settings).__name__}")
 
     if not isinstance(calib, Calibration):
-        raise TypeError(f"check: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
+        raise TypeError(f"check: calib must be a lfgraph.Calibration "
+                        f"(load a file with lfgraph.Calibration.load), got {type(calib).__name__}")
     check_frames_argument(frames, "check")
     rect = stored_rectification(calib) or compute_rectification(calib)
     return check_capture(calib, rect, frames, settings, config)
@@ -178,7 +177,7 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
         check_frame_array(images, f, calib.grid, calib.image_size_px)
         tracks = tracker.track(images, calib.grid)
         res = reprojection_residuals(calib, tracks)
-        keep = worst_error_filter(res, TRACK_OUTLIER_FACTOR, TRACK_OUTLIER_MIN_PX)
+        keep = drop_mismatches(res)
         tracks_counts = {**tracks.counts, "triangulation": int(keep.sum())}
         for k, n in tracks_counts.items():
             counts[k] = counts.get(k, 0) + n

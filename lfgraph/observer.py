@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from lfgraph.calibration import Calibration
 
 LOG = logging.getLogger("lfgraph")
+WARNING_PREFIX = "warning: "  # a progress line that is a warning (logged at WARNING by `BaseObserver`)
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,11 @@ class BaseObserver:
     """No-op implementations of every `Observer` method, and `log` through `logging`: subclass and override."""
 
     def log(self, message: str) -> None:
-        LOG.info(message)
+        """Through `logging` (logger ``lfgraph``): a line starting ``warning:`` at WARNING, the rest at INFO."""
+        if message.startswith(WARNING_PREFIX):
+            LOG.warning(message[len(WARNING_PREFIX):])
+        else:
+            LOG.info(message)
 
     def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
         pass

@@ -40,7 +40,6 @@ from lfgraph.grid import ViewGrid
 
 CROPS = ("valid", "full")
 VALID_GRID_STEP_PX = 4  # the common valid region is found on a grid of this step (then shrunk by one step)
-INFINITY_SAMPLES = 24  # directions per image side for the misalignment-at-infinity metric
 
 
 class RectificationError(ValueError):
@@ -327,7 +326,8 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
         TypeError: ``calib`` is not a `Calibration`.
     """
     if not isinstance(calib, Calibration):
-        raise TypeError(f"rectify: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
+        raise TypeError(f"rectify: calib must be a lfgraph.Calibration "
+                        f"(load a file with lfgraph.Calibration.load), got {type(calib).__name__}")
     if crop not in CROPS:
         raise RectificationError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
     grid = calib.grid

@@ -31,8 +31,10 @@ from threadpoolctl import ThreadpoolController
 
 from lfgraph.optimization_result import OptimizationResult
 from lfgraph.schur_system import (
+    NotReducible,
     ReducedSystem,
     SchurLayout,
+    camera_block,
     full_step,
     inv3,
     landmark_blocks,
@@ -280,3 +282,48 @@ def problem_covariance(problem, state) -> np.ndarray:
         Ls = np.linalg.cholesky(S)  # noqa: N806  (raises when indeterminate)
         inv_l = np.linalg.solve(Ls, np.eye(n_c))
         return inv_l.T @ inv_l
+
+
+class CameraMarginals:
+    """The marginal covariances of camera variables (poses, intrinsics), the one posterior path of refine, check and
+    calibrate-scene: the inverse of the reduced camera system — of a bulk ``problem`` at ``state`` (its projections
+    as the fit ran them) or of a GTSAM ``graph`` at ``values`` — and GTSAM's own `Marginals` of the graph where the
+    reduction cannot (a factor it does not reduce, a system singular in floating point: GTSAM eliminates with
+    pivoting). ``build`` makes that graph and its values only when needed (a bulk problem has none).
+
+    Raises:
+        RuntimeError: GTSAM's `Marginals` failed too (an undetermined parameter), or no graph to fall back on.
+    """
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph | None = None, values: gtsam.Values | None = None,
+                 landmark_char: str = "l", problem=None, state=None, build=None):
+        self._cov = self._layout = self._marginals = None
+        try:
+            if problem is not None:
+                self._cov, self._layout = problem_covariance(problem, state), problem.layout
+            elif graph is not None:
+                self._cov, self._layout = marginal_covariance(graph, values, landmark_char)
+        except (NotReducible, np.linalg.LinAlgError):
+            self._cov = None
+        if self._cov is None:
+            if graph is None and build is not None:
+                graph, values = build()
+            if graph is None:
+                raise RuntimeError("the reduced system is indeterminate and there is no graph to fall back on")
+            self._marginals = gtsam.Marginals(graph, values)  # (callers silence GTSAM's prints: gtsam_quiet)
+
+    def block(self, a: int, b: int | None = None) -> np.ndarray:
+        """The covariance block of keys ``a`` and ``b`` (``b`` None: ``a``'s own marginal), tangent order."""
+        b = a if b is None else b
+        if self._cov is not None:
+            return self._cov[camera_block(self._layout, a), camera_block(self._layout, b)]
+        if a == b:
+            return np.asarray(self._marginals.marginalCovariance(a))
+        return np.asarray(self._marginals.jointMarginalCovariance(gtsam.KeyVector([a, b])).at(a, b))
+
+    def joint(self, keys: list[int]) -> np.ndarray:
+        """The joint covariance of ``keys``, blocks in that order."""
+        if self._cov is not None:
+            idx = np.concatenate([np.arange(s.start, s.stop) for s in (camera_block(self._layout, k) for k in keys)])
+            return self._cov[np.ix_(idx, idx)]
+        return np.asarray(self._marginals.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix())

@@ -133,11 +133,10 @@ def shake_trial_rows(t: ShakeTrial) -> set[tuple]:
 
 def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     """Render the trial's frames with a shaken rig (in memory) and refine from the original with every config."""
-    from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
     from lfgraph.datasets.scenes import get_scene
-    from lfgraph.evaluation import evaluate_calibration
+    from lfgraph.evaluation import evaluate_calibration, transfer_error_at_infinity
     from lfgraph.refinement import RefineConfig, refine
 
     named = get_scene(trial.scene)

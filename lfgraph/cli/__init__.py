@@ -56,6 +56,14 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+class _Formatter(logging.Formatter):
+    """The message alone; a WARNING (or worse) says so (``warning: ...``)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        return f"warning: {text}" if record.levelno >= logging.WARNING and not text.startswith("warning:") else text
+
+
 def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     """The library logs through ``logging.getLogger("lfgraph")``; the CLI shows it on standard error."""
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
@@ -63,7 +71,7 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     logger.setLevel(level)
     if not any(getattr(h, "_lfgraph_cli", False) for h in logger.handlers):
         handler = _StderrHandler()
-        handler.setFormatter(logging.Formatter(LOG_FORMAT))
+        handler.setFormatter(_Formatter(LOG_FORMAT))
         handler._lfgraph_cli = True  # type: ignore[attr-defined]
         logger.addHandler(handler)
     logger.propagate = False

@@ -45,6 +45,27 @@ class GraphContext:
 GraphHook = Callable[[GraphContext], None]
 
 
+def as_hooks(hooks: GraphHook | Iterable[GraphHook] | None, what: str) -> tuple[GraphHook, ...]:
+    """``graph_hooks`` as given to a config — one function, several, or None — as a tuple of functions.
+
+    Raises:
+        TypeError: something that is not a function (``what`` names the setting).
+    """
+    if hooks is None:
+        return ()
+    if callable(hooks):
+        return (hooks,)
+    try:
+        out = tuple(hooks)
+    except TypeError:
+        raise TypeError(f"{what} must be a function taking a GraphContext, or a sequence of them; got "
+                        f"{type(hooks).__name__}") from None
+    for hook in out:
+        if not callable(hook):
+            raise TypeError(f"{what} must hold functions taking a GraphContext, got {hook!r}")
+    return out
+
+
 def run_hooks(hooks: Iterable[GraphHook], ctx: GraphContext) -> None:
     """Call each hook; an exception names the hook that raised it."""
     for hook in hooks:

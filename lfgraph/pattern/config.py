@@ -8,6 +8,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 
 
@@ -72,10 +73,7 @@ class CalibrateConfig:
             except ValueError:
                 raise ValueError(f"unknown {name} {getattr(self, name)!r}; choose from {', '.join(kind)}") from None
         object.__setattr__(self, "robust", as_noise(self.robust))
-        object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
-        for hook in self.graph_hooks:
-            if not callable(hook):
-                raise TypeError(f"graph_hooks must hold functions taking a GraphContext, got {hook!r}")
+        object.__setattr__(self, "graph_hooks", as_hooks(self.graph_hooks, "CalibrateConfig.graph_hooks"))
         if not isinstance(self.lens, str | Mapping):
             raise TypeError(f"lens must be a model name or a mapping of views to models, got "
                             f"{type(self.lens).__name__}")

@@ -40,9 +40,9 @@ from lfgraph.refinement.posterior import (
     restricted,
 )
 from lfgraph.refinement.priors import input_sigmas, view_priors
+from lfgraph.refinement.report import DRIFTED, OK, REFERENCE, UNCERTAIN
 from lfgraph.refinement.triangulate import finite_rms, reprojection_errors, triangulate_dlt
 
-OK, DRIFTED, UNCERTAIN, REFERENCE = "OK", "DRIFTED", "UNCERTAIN", "REFERENCE"
 FOLD_SEED = 14
 MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range

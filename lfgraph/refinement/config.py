@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
 
 import numpy as np
 
+from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 
@@ -20,6 +21,19 @@ class Stage(StrEnum):
     POSES = "poses"  # poses free except the reference (gauge); intrinsics constant
     ALL = "all"  # poses and fx, fy, cx, cy free; distortion held
     CLEAN = "clean"  # drop outlying tracks, repeat the previous free stage
+
+    @property
+    def frees_poses(self) -> bool:
+        return self in (Stage.POSES, Stage.ALL)
+
+    @property
+    def frees_intrinsics(self) -> bool:
+        return self in (Stage.INTRINSICS, Stage.ALL)
+
+    @property
+    def free_per_view(self) -> int:
+        """Parameters this stage frees per free view: 6 (pose) and/or 4 (fx, fy, cx, cy); 0 for points/clean."""
+        return 6 * self.frees_poses + 4 * self.frees_intrinsics
 
 
 class TriangulationFilter(StrEnum):
@@ -101,6 +115,29 @@ class DriftModel:
             if not (isinstance(value, int | float) and DRIFT_SIGMA_RANGE[0] <= value <= DRIFT_SIGMA_RANGE[1]):
                 raise ValueError(f"drift sigma {name} must be a number from {DRIFT_SIGMA_RANGE[0]:g} to "
                                  f"{DRIFT_SIGMA_RANGE[1]:g}, got {value!r}")
+
+    @classmethod
+    def of(cls, value: DriftModel | str | Mapping[str, float] | None) -> DriftModel:
+        """A `DriftModel` from itself, its text form (`parse`), a mapping of field names to sigmas, or None (the
+        defaults).
+
+        Raises:
+            TypeError: another kind of value; ValueError: an unknown field or a sigma out of range.
+        """
+        if value is None:
+            return cls()
+        if isinstance(value, DriftModel):
+            return value
+        if isinstance(value, str):
+            return cls.parse(value)
+        if isinstance(value, Mapping):
+            names = {f.name for f in fields(cls)}
+            unknown = sorted(set(map(str, value)) - names)
+            if unknown:
+                raise ValueError(f"unknown drift sigma {', '.join(unknown)}; the fields are {', '.join(sorted(names))}")
+            return cls(**value)
+        raise TypeError(f"drift must be a DriftModel, a text such as 'roll_deg=2' or a mapping such as "
+                        f"{{'roll_deg': 2}}; got {type(value).__name__}")
 
     @classmethod
     def parse(cls, spec: str | None) -> DriftModel:
@@ -220,9 +257,8 @@ class RefineConfig:
         object.__setattr__(self, "robust", as_noise(self.robust))
         if self.clean_robust is not None:
             object.__setattr__(self, "clean_robust", as_noise(self.clean_robust))
-        object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
-        if isinstance(self.drift, str):
-            object.__setattr__(self, "drift", DriftModel.parse(self.drift))
+        object.__setattr__(self, "graph_hooks", as_hooks(self.graph_hooks, "RefineConfig.graph_hooks"))
+        object.__setattr__(self, "drift", DriftModel.of(self.drift))
         if self.folds < 0 or self.folds == 1:
             raise ValueError(f"folds must be 0 (no held-out test) or >= 2, got {self.folds}")
         if not (np.isfinite(self.tolerance_px) and self.tolerance_px >= 0):

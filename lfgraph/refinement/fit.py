@@ -17,14 +17,12 @@ from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.report import StageReport
 from lfgraph.refinement.stages import run_stage
-from lfgraph.refinement.tracks import (
-    OUTLIER_FACTOR,
-    OUTLIER_FLOOR_PX,
-    in_front,
-)
+from lfgraph.refinement.tracks import in_front
 from lfgraph.refinement.triangulate import (
+    drop_mismatches,
     finite_rms,
     normalized_coordinates,
+    per_coordinate_sigma,
     reprojection_errors,
     triangulate_dlt,
     worst_error_filter,
@@ -63,15 +61,6 @@ class FitResult:
     points: np.ndarray
     sigma_px: float
     held: frozenset[int]
-
-
-def estimate_sigma_px(errors: np.ndarray, n_points: int, n_params: int) -> float:
-    """Per-coordinate measurement sigma from Euclidean residuals: sqrt(sum r^2 / (2 n_obs - 3 n_points - params))."""
-    e = errors[np.isfinite(errors)]
-    dof = 2 * e.size - 3 * n_points - n_params
-    if dof <= 0:
-        return float("nan")
-    return float(np.sqrt(np.sum(e**2) / dof))
 
 
 def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
@@ -137,7 +126,7 @@ def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config
             last_free = name
         if name != Stage.CLEAN:
             # re-run the outlier rejection between stages
-            good = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+            good = drop_mismatches(errors)
             idx = np.nonzero(keep)[0]
             keep[idx[~good]] = False
         else:
@@ -208,6 +197,5 @@ def fit_sigma(fit: FitResult) -> float:
         return float("nan")
     errors = reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid)
     free = fit.calib.num_views - 1 - len(fit.held)
-    n_free = (10 if fit.last_stage == Stage.ALL else 4 if fit.last_stage == Stage.INTRINSICS else 6) * max(free, 0)
-    sigma = estimate_sigma_px(errors, fit.points.shape[0], n_free)
+    sigma = per_coordinate_sigma(errors, fit.points.shape[0], fit.last_stage.free_per_view * max(free, 0))
     return max(sigma, MIN_MEASUREMENT_SIGMA_PX) if np.isfinite(sigma) else sigma

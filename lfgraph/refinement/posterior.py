@@ -17,8 +17,7 @@ from lfgraph.optimize import gtsam_quiet
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.stages import stage_graph, stage_problem
-from lfgraph.schur import marginal_covariance, problem_covariance
-from lfgraph.schur_system import NotReducible, camera_block
+from lfgraph.schur import CameraMarginals
 
 GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics": (6, 7, 8, 9)}  # of the 10 directions
 ROTATION = (0, 1, 2)  # also tested jointly: a tilt and a roll each just short of significance can be clear together
@@ -73,7 +72,7 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
     mask[calib.grid.reference] = True
     for v in held_views:
         mask[v] = True
-    intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
+    intr_free = Stage(stage).frees_intrinsics
     gauge, rgauge = principal_point_gauge(calib), rotation_gauge(calib)
     if intr_free and gauge is not None and priors is None:  # held exactly only in the free fit
         mask[gauge[0], 6 + gauge[1] - 1] = True  # Cal3DS2 index 3/4 (cx/cy) -> 8/9
@@ -98,43 +97,24 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
     if priors is None and config.priors:
         priors = view_priors(calib, config.drift)
     model = measurement_noise(config.noise, fit.sigma_px)
-    intr_free = fit.last_stage in (Stage.INTRINSICS, Stage.ALL)
+    intr_free = fit.last_stage.frees_intrinsics
     idx = [0, 1, 3, 4]
     try:
         with gtsam_quiet():
             bulk = stage_problem(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
                                  config.scale_sigma_mm, fit.held, priors)
-            if bulk is not None:  # the projections in bulk, as the fit ran them
-                cov, layout = problem_covariance(*bulk), bulk[0].layout
-            else:
-                graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
-                                            config.scale_sigma_mm, fit.held, priors)
-                cov, layout = marginal_covariance(graph, values, LANDMARK_CHAR)
-    except (NotReducible, np.linalg.LinAlgError):  # a structure the reduction does not handle, or numerically
-        cov, layout = None, None  # indeterminate: GTSAM's own marginals decide
-    try:
-        with gtsam_quiet():
-            if cov is None:
-                graph, values = stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
-                                            config.scale_sigma_mm, fit.held, priors)
-                marginals = gtsam.Marginals(graph, values)
+
+            def build():
+                return stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                                   config.scale_sigma_mm, fit.held, priors)
+
+            graph, values = (None, None) if bulk is not None else build()
+            marginals = CameraMarginals(graph, values, LANDMARK_CHAR, *(bulk or (None, None)), build=build)
             for v in range(n):
-                if cov is not None:
-                    p, k = camera_block(layout, view_pose_key(v)), None
-                    pose_cov[v] = cov[p, p]
-                    if intr_free:
-                        k = camera_block(layout, calib_key(v))
-                        intr_cov[v] = cov[k, k][np.ix_(idx, idx)]
-                        cross[v] = cov[p, k][:, idx]
-                elif intr_free:
-                    keys = gtsam.KeyVector([view_pose_key(v), calib_key(v)])
-                    joint = marginals.jointMarginalCovariance(keys)
-                    pose_cov[v] = joint.at(view_pose_key(v), view_pose_key(v))
-                    kk = np.asarray(joint.at(calib_key(v), calib_key(v)))
-                    intr_cov[v] = kk[np.ix_(idx, idx)]
-                    cross[v] = np.asarray(joint.at(view_pose_key(v), calib_key(v)))[:, idx]
-                else:
-                    pose_cov[v] = marginals.marginalCovariance(view_pose_key(v))
+                pose_cov[v] = marginals.block(view_pose_key(v))
+                if intr_free:
+                    intr_cov[v] = marginals.block(calib_key(v))[np.ix_(idx, idx)]
+                    cross[v] = marginals.block(view_pose_key(v), calib_key(v))[:, idx]
     except RuntimeError:  # an indeterminate system: report no posterior rather than a wrong one
         return None
     return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px,
@@ -216,7 +196,7 @@ def change_size_px(before: Calibration, after: Calibration,
     the figure disparity and refocusing see and that ``tolerance_px`` is stated in. With ``groups`` (view -> the
     groups whose change was significant) only those groups' part of the change counts: a significant position change
     that carries an insignificant turn is not a turn that matters."""
-    from lfgraph.alignment import transfer_error_at_infinity
+    from lfgraph.evaluation import transfer_error_at_infinity
 
     if groups is None:
         return transfer_error_at_infinity(after, before)

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+OK, DRIFTED, UNCERTAIN, REFERENCE = "OK", "DRIFTED", "UNCERTAIN", "REFERENCE"
+VERDICTS = (OK, DRIFTED, UNCERTAIN, REFERENCE)  # a view's verdict (`lfgraph.refinement.assess.ViewVerdict`)
+
 
 @dataclass(frozen=True)
 class StageReport:
@@ -55,7 +58,9 @@ class RefinementReport:
     cpu_seconds_adjustment: float = 0.0
 
     def verdict_counts(self) -> dict[str, int]:
-        out: dict[str, int] = {}
+        """Views per verdict: every verdict, zero counts included, always in the order OK, DRIFTED, UNCERTAIN,
+        REFERENCE (a study's CSV keeps its columns from seed to seed)."""
+        out = dict.fromkeys(VERDICTS, 0)
         for v in self.verdicts:
             out[v.verdict] = out.get(v.verdict, 0) + 1
         return out

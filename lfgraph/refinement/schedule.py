@@ -42,13 +42,8 @@ MATCH_WARN = 0.15  # warn when fewer than 15 % of detected features survive trac
 
 
 def with_reference(calib: Calibration, reference: int) -> Calibration:
-    """The same array expressed relative to another reference view."""
-    from lfgraph.grid import ViewGrid
-
-    poses = np.linalg.inv(calib.ref_T_view[reference])[None] @ calib.ref_T_view
-    poses[reference] = np.eye(4)
-    return calib.replace(grid=ViewGrid(calib.grid.rows, calib.grid.cols, reference), ref_T_view=poses,
-                         rectification=None)
+    """The same array expressed relative to another reference view (`Calibration.with_reference`)."""
+    return calib.with_reference(reference)
 
 
 def _timed_track(images: np.ndarray, grid, tracker: Tracker) -> tuple[Tracks, float]:
@@ -97,7 +92,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         TypeError: ``calib``, ``config`` or ``frames`` of the wrong kind (named).
     """
     if not isinstance(calib, Calibration):
-        raise TypeError(f"refine: calib must be a lfgraph.Calibration, got {type(calib).__name__}")
+        raise TypeError(f"refine: calib must be a lfgraph.Calibration "
+                        f"(load a file with lfgraph.Calibration.load), got {type(calib).__name__}")
     if config is not None and not isinstance(config, RefineConfig):
         raise TypeError(f"refine: config must be a lfgraph.RefineConfig, got {type(config).__name__}")
     check_frames_argument(frames, "refine")

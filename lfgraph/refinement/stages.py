@@ -68,8 +68,8 @@ def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     if projections:
         insert_landmarks(values, points)
-    poses_free = stage in (Stage.POSES, Stage.ALL)
-    intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
+    poses_free = stage.frees_poses
+    intr_free = stage.frees_intrinsics
     insert_view_poses(values, calib.ref_T_view)
     centre = None if priors is None else priors.centre.ref_T_view
     graph.push_back(scene_graph.pose_priors(calib, poses_free, held_views, scale_sigma_mm, centre,
@@ -147,8 +147,8 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     stage = Stage(stage)
     model = measurement_noise(noise, sigma_px)
     n_views = calib.num_views
-    poses_free = stage in (Stage.POSES, Stage.ALL)
-    intr_free = stage in (Stage.INTRINSICS, Stage.ALL)
+    poses_free = stage.frees_poses
+    intr_free = stage.frees_intrinsics
     relative_tol = ROBUST_RELATIVE_TOL if isinstance(model, gtsam.noiseModel.Robust) else STAGE_RELATIVE_TOL
     bulk = stage_problem(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views, priors, hooks)
     if bulk is not None:  # the projections in bulk

@@ -7,10 +7,15 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.refinement.config import TriangulationFilter
 from lfgraph.refinement.matching import Tracks
-from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.triangulate import (
+    OUTLIER_FACTOR,
+    OUTLIER_FLOOR_PX,
+    drop_mismatches,
+    median_filter,
+    reprojection_errors,
+    triangulate_dlt,
+)
 
-OUTLIER_FACTOR = 4.0  # drop a track whose worst residual is > 4x the median track's ...
-OUTLIER_FLOOR_PX = 0.5  # ... and > 0.5 px
 COVERAGE_CELLS = 8
 MIN_BASELINE_M = 1e-6  # a track needs observing centres at least this far apart
 
@@ -23,7 +28,7 @@ def collect_tracks(calib: Calibration, tracks: Tracks,
     if triangulation_filter == TriangulationFilter.MEDIAN:
         keep = median_filter(errors, calib.grid.reference)
     elif triangulation_filter == TriangulationFilter.WORST:
-        keep = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+        keep = drop_mismatches(errors)
     else:
         keep = np.all(np.isfinite(points), axis=1)
     return tracks.subset(keep), {**tracks.counts, "triangulation": int(keep.sum())}

@@ -83,6 +83,24 @@ def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.n
     return out
 
 
+OUTLIER_FACTOR = 4.0  # the one mismatch rule (refine, check, calibrate-scene): a track whose worst residual is > 4x
+OUTLIER_FLOOR_PX = 0.5  # the median track's worst and > 0.5 px (so an exact calibration does not reject its noise)
+
+
+def per_coordinate_sigma(errors: np.ndarray, n_points: int, n_params: int) -> float:
+    """The measurement sigma per image coordinate from (V, N) Euclidean residuals of a fit of ``n_points``
+    landmarks and ``n_params`` other parameters: sqrt(sum e^2 / (2 n_obs - 3 n_points - n_params)); NaN when no
+    degree of freedom is left. The one noise estimate of refine, check and calibrate-scene."""
+    e = errors[np.isfinite(errors)]
+    dof = 2 * e.size - 3 * n_points - n_params
+    return float(np.sqrt(np.sum(e**2) / dof)) if dof > 0 else float("nan")
+
+
+def drop_mismatches(errors: np.ndarray) -> np.ndarray:
+    """(N,) tracks kept by the one mismatch rule (`worst_error_filter` at OUTLIER_FACTOR, OUTLIER_FLOOR_PX)."""
+    return worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+
+
 def finite_rms(errors: np.ndarray) -> float:
     """RMS of the finite entries (NaN where there are none): residual arrays hold NaN where a view does not see."""
     e = errors[np.isfinite(errors)]

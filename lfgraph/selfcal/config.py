@@ -9,6 +9,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
+from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.factors.selfcal_graph import GROUPS, DesignSigmas
 from lfgraph.grid import ViewGrid
@@ -172,7 +173,7 @@ class SelfCalConfig:
                 raise ValueError(f"a stage frees a non-empty set of {', '.join(GROUPS)}; got {s}")
         object.__setattr__(self, "stages", stages)
         object.__setattr__(self, "robust", as_noise(self.robust))
-        object.__setattr__(self, "graph_hooks", tuple(self.graph_hooks))
+        object.__setattr__(self, "graph_hooks", as_hooks(self.graph_hooks, "SelfCalConfig.graph_hooks"))
         if not isinstance(self.match, MatchSettings):
             raise TypeError(f"SelfCalConfig.match must be a lfgraph MatchSettings, got {type(self.match).__name__}")
         object.__setattr__(self, "tracker", ChainTracker(self.match) if self.tracker is None

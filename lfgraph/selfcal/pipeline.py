@@ -12,6 +12,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.observer import Observer, resolve
 from lfgraph.refinement.tracks import in_front
+from lfgraph.refinement.triangulate import per_coordinate_sigma
 from lfgraph.selfcal.config import Design, SelfCalConfig
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
 from lfgraph.selfcal.retrack import retrack
@@ -50,21 +51,15 @@ def _rms(errors: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
 
-def per_coordinate_rms(errors: np.ndarray, landmarks: int, views: int) -> float:
-    """Noise per image coordinate from (V, N) Euclidean residuals: sqrt(sum e^2 / (2 n_obs - n_params))."""
-    e = errors[np.isfinite(errors)]
-    dof = 2 * len(e) - 3 * landmarks - PARAMS_PER_VIEW * views
-    return float(np.sqrt(np.sum(e**2) / dof)) if dof > 0 else float("nan")
-
-
 def _measured_noise(errors: np.ndarray, landmarks: int, views: int) -> float:
-    """`per_coordinate_rms`, never below `NOISE_FLOOR_PX`; no degrees of freedom left is a clear error (a NaN here
-    used to reach the noise model as "sigmas must be positive and finite, got [nan]").
+    """`per_coordinate_sigma` (each view's pose and six intrinsics), never below `NOISE_FLOOR_PX`; no degrees of
+    freedom left is a clear error (a NaN here used to reach the noise model as "sigmas must be positive and finite,
+    got [nan]").
 
     Raises:
         SelfCalibrationError: too few tracks survive to measure the noise.
     """
-    measured = per_coordinate_rms(errors, landmarks, views)
+    measured = per_coordinate_sigma(errors, landmarks, PARAMS_PER_VIEW * views)
     if not np.isfinite(measured):
         raise SelfCalibrationError(
             f"self-calibration: only {landmarks} tracks ({int(np.isfinite(errors).sum())} observations) survive, too "

@@ -24,11 +24,9 @@ from lfgraph.factors.values import (
     read_view_poses,
 )
 from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt, worst_error_filter
+from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
+from lfgraph.schur import CameraMarginals
 
-MAD_TO_SIGMA = 1.4826  # median absolute deviation -> Gaussian sigma
-OUTLIER_FACTOR = 4.0  # drop a track whose worst residual exceeds 4x the median track's worst ...
-OUTLIER_FLOOR_PX = 0.5  # ... and 0.5 px
 STAGE_RELATIVE_TOL = 1e-6  # an intermediate stage stops when an iteration gains less than this share of the error
 FINAL_RELATIVE_TOL = 1e-9  # the final stage converges fully (the marginals are taken at its optimum)
 # after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.schur`'s
@@ -133,9 +131,9 @@ def robust_sigma(errors: np.ndarray) -> float:
 
 def drop_outliers(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
                   points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Keep tracks whose worst residual is <= max(4x the median track's worst, 0.5 px); returns (keep, errors)."""
+    """The one mismatch rule (`lfgraph.refinement.triangulate.drop_mismatches`); returns (keep, errors)."""
     errors = reprojection_errors(calib, points, pixels, valid)
-    keep = worst_error_filter(errors, OUTLIER_FACTOR, OUTLIER_FLOOR_PX)
+    keep = drop_mismatches(errors)
     return keep, errors
 
 
@@ -165,34 +163,22 @@ def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     """Marginal sigmas of every view's Cal3DS2 and pose at the optimum, and the (9V, 9V) joint covariance of every
     view's Cal3DS2 (views in order, Cal3DS2 tangent order).
 
-    The covariances are the inverse of the reduced camera system (`lfgraph.schur.marginal_covariance`: the same
-    numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every landmark twice;
-    paper-4x4 with 20 frames: the whole graph 176 -> 134 s); a graph the Schur complement cannot reduce goes through
-    `Marginals`.
+    The covariances are `lfgraph.schur.CameraMarginals` (the one posterior path): the inverse of the reduced camera
+    system (the same numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every
+    landmark twice; paper-4x4 with 20 frames: the whole graph 176 -> 134 s); a graph the Schur complement cannot
+    reduce goes through `Marginals`.
 
     Raises:
         RuntimeError: the system is indeterminate (a parameter without information).
     """
-    from lfgraph.schur import marginal_covariance
-    from lfgraph.schur_system import NotReducible, camera_block
-
     cal_keys = [calib_key(v) for v in range(num_views)]
-    pose_keys = [view_pose_key(v) for v in range(num_views)]
     try:
-        cov, layout = marginal_covariance(graph, values, LANDMARK_CHAR)
-        cal_idx = np.concatenate([np.arange(b.start, b.stop) for b in (camera_block(layout, k) for k in cal_keys)])
-        joint = cov[np.ix_(cal_idx, cal_idx)]
-        pose_var = np.array([np.diag(cov[camera_block(layout, k), camera_block(layout, k)]) for k in pose_keys])
-    except (NotReducible, np.linalg.LinAlgError):
-        # not reducible, or a landmark block the closed-form 3x3 inverse finds singular in floating point (a far
-        # landmark on a short baseline): GTSAM's Marginals eliminate with pivoting
-        try:
-            with gtsam_quiet():
-                marginals = gtsam.Marginals(graph, values)
-                joint = marginals.jointMarginalCovariance(cal_keys).fullMatrix()
-                pose_var = np.array([np.diag(marginals.marginalCovariance(k)) for k in pose_keys])
-        except RuntimeError as exc:
-            raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
+        with gtsam_quiet():
+            marginals = CameraMarginals(graph, values, LANDMARK_CHAR)
+            joint = marginals.joint(cal_keys)
+            pose_var = np.array([np.diag(marginals.block(view_pose_key(v))) for v in range(num_views)])
+    except RuntimeError as exc:
+        raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
     joint = np.asarray(joint)
     cal = np.sqrt(np.diag(joint)).reshape(num_views, -1)
     pose = np.sqrt(pose_var)
