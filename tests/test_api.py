@@ -56,8 +56,12 @@ def test_readme_python_section_runs_as_written(scene_dir, monkeypatch):
         exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102  the README is the test subject
     assert lf.Calibration.load("refined.json").num_views == 4
     assert Path("run.rrd").stat().st_size > 0 and not list(Path(".").glob(".run.rrd.*"))
-    truth = namespace["truth"]
+    truth = lf.Calibration.load("scene/truth.json")
     calib, held, refined = namespace["calib"], namespace["held"], namespace["refined"]
+    # the study block's in-memory capture: its last kernel's estimate is no worse than the knocked input
+    cap, estimate = namespace["cap"], namespace["estimate"]
+    assert lf.evaluate(estimate, cap.truth).summary()["rms_transfer_px"] <= \
+        lf.evaluate(cap.original, cap.truth).summary()["rms_transfer_px"]
     # the user's prior held view 1 where it was; the unconstrained run moved it towards the truth
     turn = lf.evaluate(held, calib).rotation_deg[1]
     assert turn < HELD_VIEW_DEG

@@ -13,6 +13,7 @@ from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 SAME_PX = 1e-9  # px: one transfer computation against another
 FAR_M = 1e9  # m: a point this far projects as a point at infinity ...
 FAR_PX = 1e-4  # px: ... to within this (a 5 cm baseline at 1e9 m and f 500 px: 2.5e-8 px)
+JSON_ROUND_TRIP = 1e-15  # m and rotation entries: a float written to JSON and read back
 KNOCK_PX = 0.5  # px: a 0.3 deg knock moves some view by more than this at infinity
 
 
@@ -92,3 +93,27 @@ def test_library_warnings_are_logged_at_warning(caplog):
     levels = {r.getMessage(): r.levelno for r in caplog.records}
     assert levels["tracks cover only 3 % of the reference image"] == logging.WARNING
     assert levels["stage poses: 100 landmarks"] == logging.INFO
+
+
+def test_a_synthetic_capture_in_memory_is_the_one_the_cli_writes(tmp_path):
+    from lfgraph.cli import main
+
+    out = tmp_path / "sc"
+    args = ["synth", "scene", str(out), "--scene", "small-2x2", "--frames", "2", "--shake-rot-deg", "0.5",
+            "--shake-trans-mm", "1", "--shake-axis", "any", "--seed", "3", "--jobs", "1", "--quiet"]
+    assert main(args) == 0
+    cap = lf.synth.scene_capture("small-2x2", frames=2, shake_rot_deg=0.5, shake_trans_mm=1.0, shake_axis="any",
+                                 seed=3)
+    assert cap.knocked
+    # the same rigs (to the JSON file's last digit) ...
+    np.testing.assert_allclose(cap.truth.ref_T_view, lf.Calibration.load(out / "truth.json").ref_T_view,
+                               atol=JSON_ROUND_TRIP)
+    np.testing.assert_allclose(cap.original.ref_T_view, lf.Calibration.load(out / "original.json").ref_T_view,
+                               atol=JSON_ROUND_TRIP)
+    written = lf.open_capture(out, cap.truth.grid)
+    for f, frame in enumerate(cap.frames):
+        np.testing.assert_array_equal(frame, written.load_frame(f))  # ... and the same pixels, noise included
+    plain = lf.synth.scene_capture("small-2x2", frames=1, seed=3)
+    assert not plain.knocked and plain.frames[0].shape == (4, 240, 320) and plain.frames[0].dtype == np.uint8
+    with pytest.raises(ValueError, match="unknown scene"):
+        lf.synth.scene_capture("paper-9x9")

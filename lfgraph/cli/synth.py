@@ -103,24 +103,18 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
 
 
 def cmd_synth_scene(args: argparse.Namespace) -> int:
-    import numpy as np
+    import dataclasses
 
-    from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
-    from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
+    from lfgraph.datasets.scene import write_scene_dataset
     from lfgraph.datasets.scenes import get_scene
+    from lfgraph.synth import knocked_rig, scene_config
 
     named = get_scene(args.scene)
-    rig = _synth_rig(args, named)
-    near, far = named.scene_depth_m
-    cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4,
-                      kind="keyboard" if args.keyboard else "dead-leaves")
+    named = dataclasses.replace(named, rig=_synth_rig(args, named))
+    cfg = scene_config(named, args.keyboard)  # the library's own (lfgraph.synth.scene_capture renders the same)
     frames = args.frames if args.frames is not None else named.frames
-    original = make_rig(rig, np.random.default_rng(args.seed))
-    shaken = args.shake_rot_deg > 0 or args.shake_trans_mm > 0
-    truth = original
-    if shaken:
-        shake = ShakeConfig(rot_deg=args.shake_rot_deg, trans_mm=args.shake_trans_mm, axis=args.shake_axis)
-        truth = shake_rig(original, shake, np.random.default_rng([args.seed, 1]))
+    original, truth = knocked_rig(named, args.shake_rot_deg, args.shake_trans_mm, args.shake_axis, args.seed)
+    shaken = truth is not original
     _prepare_out(args)
     start = time.perf_counter()
     write_scene_dataset(args.out, truth, cfg, frames=frames, seed=args.seed, layout=args.layout, jobs=args.jobs,
