@@ -21,8 +21,8 @@ from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size, view_index
 
 # the format names as lfgraph.interop defines them (tests/test_interop.py checks they agree), here so that building
 # the parser does not import the format modules (OpenCV, GTSAM)
-EXPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json")
-IMPORT_FORMATS = (*EXPORT_FORMATS, "middlebury", "hci")
+EXPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "ros", "mrcal")
+IMPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "middlebury", "hci")
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -64,12 +64,15 @@ def cmd_import(args: argparse.Namespace) -> int:
 def add_parsers(sub: Any) -> None:
     """Add the ``export`` and ``import`` subcommands to ``sub = parser.add_subparsers(...)``."""
     ex = sub.add_parser("export", help="write a calibration in another tool's format",
-                        description="Write calibration.json as OpenCV FileStorage YAML, a Kalibr camchain.yaml, a "
-                                    "COLMAP text model folder (cameras.txt + rigs.txt) or lfgraph JSON.")
+                        description="Write calibration.json as OpenCV FileStorage YAML (with the stereo names M1 D1 "
+                                    "M2 D2 R T R1 R2 P1 P2 Q for a pair), a Kalibr camchain.yaml, a COLMAP text "
+                                    "model folder (cameras.txt + rigs.txt + rig_config.json), lfgraph JSON, a folder "
+                                    "of ROS camera_info YAML files or a folder of mrcal .cameramodel files (one per "
+                                    "view).")
     ex.add_argument("calibration", type=Path, metavar="CALIB.json", help="lfgraph calibration.json")
     ex.add_argument("--to", dest="fmt", required=True, choices=EXPORT_FORMATS, help="output format")
     ex.add_argument("-o", "--output", type=Path, required=True, metavar="PATH",
-                    help="output file (a folder for colmap)")
+                    help="output file (a folder for colmap, ros and mrcal)")
     ex.set_defaults(func=cmd_export)
 
     im = sub.add_parser("import", help="read a calibration from another tool's format",

@@ -6,7 +6,9 @@ sibling renamed onto the final name), so a crash never leaves half a file.
 
 One module per format, each documenting its layout: `opencv_yaml` (``opencv-yaml``, export and import), `kalibr`
 (``kalibr``, export and import), `colmap` (``colmap``, export and import), `json_format` (``json``, export and
-import), `middlebury` (``middlebury``, import) and `hci` (``hci``, import); `common` holds the shared validation and
+import), `ros` (``ros``: a folder of ROS camera_info YAML files, export), `mrcal` (``mrcal``: a folder of
+mrcal ``.cameramodel`` files, export), `middlebury` (``middlebury``, import) and `hci` (``hci``, import);
+`common` holds the shared validation and
 the grid rules of imports. Common conventions: views are always row-major on the grid; poses are in metres; pixels
 follow OpenCV's convention, the centre of the top-left pixel is ``(0, 0)``, except where a format says otherwise.
 
@@ -22,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from lfgraph.calibration import Calibration
-from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, opencv_yaml
+from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, mrcal, opencv_yaml, ros
 from lfgraph.interop.colmap import COLMAP_CAMERA_MODELS, COLMAP_MODEL_FILES, COLMAP_PIXEL_OFFSET_PX
 from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike, in_folder
 from lfgraph.interop.kalibr import KALIBR_DISTORTION_MODELS
@@ -47,6 +49,8 @@ _WRITERS: dict[str, Callable[[Calibration, Path], None]] = {
     "kalibr": kalibr.write,
     "colmap": colmap.write,
     "json": json_format.write,
+    "ros": ros.write,
+    "mrcal": mrcal.write,
 }
 _READERS: dict[str, Callable[[Path, GridLike], Calibration]] = {
     "opencv-yaml": opencv_yaml.read,
@@ -66,8 +70,9 @@ def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
 
     Args:
         calib: the calibration to write.
-        fmt: one of `EXPORT_FORMATS`: ``opencv-yaml``, ``kalibr``, ``colmap``, ``json``.
-        path: the output file; for ``colmap`` a folder (created, or replaced if it holds only COLMAP model files).
+        fmt: one of `EXPORT_FORMATS`: ``opencv-yaml``, ``kalibr``, ``colmap``, ``json``, ``ros``, ``mrcal``.
+        path: the output file; for ``colmap``, ``ros`` and ``mrcal`` a folder (created, or replaced if it holds only
+            files of that export).
 
     Returns:
         The path written.

@@ -7,17 +7,17 @@ own rig file (doc/format.rst): one rig whose reference sensor is the reference v
 carry ``sensor_from_rig`` = ``view_T_ref(i)`` as a Hamilton unit quaternion ``QW QX QY QZ`` and a translation
 ``TX TY TZ`` (metres). A comment line ``# lfgraph grid: RxC`` records the grid, which COLMAP cannot; without it import
 needs ``grid``. Empty ``frames.txt``, ``images.txt`` and ``points3D.txt`` make the folder a complete (image-less)
-model. Import also takes ``PINHOLE``, ``SIMPLE_PINHOLE``, ``SIMPLE_RADIAL`` and ``RADIAL`` cameras; camera IDs in
-increasing order become the row-major views. Export replaces an existing folder only when it holds nothing but
+model. ``rig_config.json`` beside it is the rig for COLMAP's rig workflow (``colmap rig_configurator
+--rig_config_path``, doc/rigs.rst; `rig_config`): images in one folder per view named after the view. Import also
+takes ``PINHOLE``, ``SIMPLE_PINHOLE``, ``SIMPLE_RADIAL`` and ``RADIAL`` cameras; camera IDs in increasing order
+become the row-major views. Export replaces an existing folder only when it holds nothing but
 COLMAP model files.
 """
 
 from __future__ import annotations
 
-import os
+import json
 import re
-import shutil
-import tempfile
 from pathlib import Path
 
 import gtsam
@@ -38,13 +38,14 @@ from lfgraph.interop.common import (
     read_text,
     required_grid,
     whole,
+    write_folder,
 )
-from lfgraph.io_utils import default_mode
 
 COLMAP_PIXEL_OFFSET_PX = 0.5  # COLMAP's centre of the top-left pixel is (0.5, 0.5), OpenCV's (0, 0)
 QUATERNION_NORM_TOLERANCE = 1e-3  # |q| may differ from 1 by this (rounded text) before a quaternion is refused
-COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("rigs", "cameras", "frames", "images", "points3D")
-                               for ext in ("txt", "bin"))
+COLMAP_RIG_CONFIG = "rig_config.json"  # the rig_configurator's input (doc/rigs.rst), written beside the model
+COLMAP_MODEL_FILES = frozenset({*(f"{name}.{ext}" for name in ("rigs", "cameras", "frames", "images", "points3D")
+                                  for ext in ("txt", "bin")), COLMAP_RIG_CONFIG})
 # COLMAP camera model -> names of its parameters, in file order (src/colmap/sensor/models.h)
 COLMAP_CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -69,6 +70,33 @@ def rotation_from_wxyz(wxyz: np.ndarray) -> np.ndarray:
     return np.asarray(gtsam.Rot3.Quaternion(*(float(c) for c in wxyz)).matrix(), dtype=np.float64)
 
 
+def rig_config(calib: Calibration) -> str:
+    """COLMAP's ``rig_config.json`` for ``colmap rig_configurator`` (doc/rigs.rst): one rig whose cameras are the
+    views, images under ``<view name>/`` (e.g. ``r00_c01/000.png``: one folder per view, the same file name for one
+    frame in every folder); the reference view is the ``ref_sensor``, every other view carries ``cam_from_rig_rotation``
+    (w, x, y, z) and ``cam_from_rig_translation`` (metres) = ``view_T_ref``, and every camera its calibrated
+    ``camera_model_name`` and ``camera_params`` (COLMAP's pixel convention, as ``cameras.txt``)."""
+    cameras = []
+    for v, intr in enumerate(calib.intrinsics):
+        entry: dict = {"image_prefix": f"{calib.grid.name(v)}/"}
+        if v == calib.grid.reference:
+            entry["ref_sensor"] = True
+        else:
+            cam_from_rig = calib.view_T_ref(v)
+            entry["cam_from_rig_rotation"] = [float(x) for x in quaternion_wxyz(cam_from_rig[:3, :3])]
+            entry["cam_from_rig_translation"] = [float(x) for x in cam_from_rig[:3, 3]]
+        entry["camera_model_name"] = "OPENCV_FISHEYE" if intr.lens == "fisheye" else "OPENCV"
+        entry["camera_params"] = [float(p) for p in _params(intr)]
+        cameras.append(entry)
+    return json.dumps([{"cameras": cameras}], indent=2) + "\n"
+
+
+def _params(intr: Intrinsics) -> list[float]:
+    """The COLMAP parameters of a view (``OPENCV`` / ``OPENCV_FISHEYE`` order, COLMAP's pixel centres)."""
+    return [intr.fx, intr.fy, intr.cx + COLMAP_PIXEL_OFFSET_PX, intr.cy + COLMAP_PIXEL_OFFSET_PX,
+            *intr.distortion.values()]
+
+
 def colmap_files(calib: Calibration) -> dict[str, str]:
     unified = [calib.grid.name(v) for v, i in enumerate(calib.intrinsics) if i.lens == "unified"]
     if unified:
@@ -84,9 +112,7 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
     ]
     for v, intr in enumerate(calib.intrinsics):
         model = "OPENCV_FISHEYE" if intr.lens == "fisheye" else "OPENCV"
-        params = [intr.fx, intr.fy, intr.cx + COLMAP_PIXEL_OFFSET_PX, intr.cy + COLMAP_PIXEL_OFFSET_PX,
-                  *intr.distortion.values()]
-        cameras.append(f"{v + 1} {model} {w} {h} " + " ".join(num(p) for p in params))
+        cameras.append(f"{v + 1} {model} {w} {h} " + " ".join(num(p) for p in _params(intr)))
     ref = calib.grid.reference
     sensors = []
     for v in range(n):
@@ -104,6 +130,7 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
         " ".join([f"1 {n} CAMERA {ref + 1}", *sensors]),
     ]
     return {
+        COLMAP_RIG_CONFIG: rig_config(calib),
         "rigs.txt": "\n".join(rigs) + "\n",
         "cameras.txt": "\n".join(cameras) + "\n",
         "frames.txt": "# Frame list with one line of data per frame:\n"
@@ -119,39 +146,7 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
 
 
 def write(calib: Calibration, path: Path) -> None:
-    final = path
-    if final.exists() and not final.is_dir():
-        raise ValueError(f"{final}: a COLMAP model is a folder, but a file of that name exists")
-    if final.is_dir():
-        others = sorted(p.name for p in final.iterdir() if p.name not in COLMAP_MODEL_FILES)
-        if others:
-            raise ValueError(f"{final}: the folder holds files that are not part of a COLMAP model "
-                             f"({', '.join(others[:5])}{', ...' if len(others) > 5 else ''}); refusing to replace it")
-    final.parent.mkdir(parents=True, exist_ok=True)
-    # Write a temporary sibling folder, then rename it into place: the model never appears half-written.
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
-    old: Path | None = None
-    try:
-        for name, text in colmap_files(calib).items():
-            (tmp / name).write_text(text, encoding="utf-8")
-        # mkdtemp makes a 0700 folder; the model gets the mode mkdir would give (or the replaced folder's)
-        os.chmod(tmp, final.stat().st_mode & 0o777 if final.is_dir() else default_mode(0o777))
-        if final.is_dir():
-            old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
-            os.replace(final, old)  # onto an empty folder: allowed by rename(2)
-            try:
-                os.replace(tmp, final)
-            except OSError:
-                os.replace(old, final)
-                old = None
-                raise
-        else:
-            os.replace(tmp, final)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and old.exists():
-            shutil.rmtree(old, ignore_errors=True)
+    write_folder(path, colmap_files(calib), lambda name: name in COLMAP_MODEL_FILES, "a COLMAP model")
 
 
 def _data_lines(path: Path) -> list[tuple[int, list[str]]]:

@@ -14,6 +14,8 @@ import contextlib
 import gc
 import math
 import os
+import shutil
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -25,7 +27,7 @@ from lfgraph.calibration import REFERENCE_POSE_TOLERANCE, Calibration, Calibrati
 from lfgraph.camera import Intrinsics
 from lfgraph.geometry import invert_T, is_rotation, make_T
 from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import input_problem
+from lfgraph.io_utils import default_mode, input_problem
 
 MM_PER_M = 1000.0
 HOMOGENEOUS_ROW_TOLERANCE = 1e-9  # the last row of a 4x4 transform must be [0, 0, 0, 1] to this
@@ -265,3 +267,44 @@ def check_reference_pose(view_T_ref: np.ndarray, path: PathLike, key: str) -> No
 def num(x: float) -> str:
     """Shortest text that reads back as exactly ``x``."""
     return repr(float(x))
+
+
+def write_folder(final: Path, files: dict[str, str], ours: Callable[[str], bool], what: str) -> None:
+    """Write ``files`` (name -> text) as the folder ``final``, all at once: a temporary sibling folder renamed into
+    place, so the folder never appears half-written. An existing folder is replaced only when every file in it is
+    one of ``ours`` (names this export writes); ``what`` names the export in errors.
+
+    Raises:
+        ValueError: ``final`` is a file, or a folder holding other files.
+    """
+    if final.exists() and not final.is_dir():
+        raise ValueError(f"{final}: {what} is a folder, but a file of that name exists")
+    if final.is_dir():
+        others = sorted(p.name for p in final.iterdir() if not ours(p.name))
+        if others:
+            raise ValueError(f"{final}: the folder holds files that are not part of {what} "
+                             f"({', '.join(others[:5])}{', ...' if len(others) > 5 else ''}); refusing to replace it")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
+    old: Path | None = None
+    try:
+        for name, text in files.items():
+            (tmp / name).write_text(text, encoding="utf-8")
+        # mkdtemp makes a 0700 folder; the export gets the mode mkdir would give (or the replaced folder's)
+        os.chmod(tmp, final.stat().st_mode & 0o777 if final.is_dir() else default_mode(0o777))
+        if final.is_dir():
+            old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
+            os.replace(final, old)  # onto an empty folder: allowed by rename(2)
+            try:
+                os.replace(tmp, final)
+            except OSError:
+                os.replace(old, final)
+                old = None
+                raise
+        else:
+            os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and old.exists():
+            shutil.rmtree(old, ignore_errors=True)

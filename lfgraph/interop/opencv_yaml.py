@@ -4,6 +4,9 @@ Top level ``grid_rows``, ``grid_cols``, ``reference``, ``image_width``, ``image_
 ``i``: ``K_i`` (3x3), ``D_i`` (1x5: k1 k2 p1 p2 k3 with k3 = 0), ``R_i`` (3x3) and ``T_i`` (3x1, metres) with
 ``x_view = R_i x_ref + T_i`` (= ``calib.view_T_ref(i)``, the convention of ``cv2.stereoCalibrate``).
 
+A pair (two views) is also written under the names OpenCV's stereo functions use (`stereo_entries`): ``M1 D1 M2
+D2 R T`` and, with a rectification, ``R1 R2 P1 P2 Q``.
+
 A stored rectification adds ``rect_image_width``, ``rect_image_height`` (the rectified image size), ``K_r`` (3x3),
 and per view ``R_rect_i`` (3x3, rectified from view; the role of ``cv2.stereoRectify``'s R1/R2) and ``P_i`` (3x4) in
 ``cv2.stereoRectify``'s P1/P2 convention: ``P_i = [K_r | p_i]`` maps points of the *rectified reference frame*
@@ -110,8 +113,41 @@ def write(calib: Calibration, path: Path) -> None:
                 for i in range(calib.num_views):
                     fs.write(f"R_rect_{i}", rect.rect_R_view[i])
                     fs.write(f"P_{i}", rectified_projection(rect.K_r, rect.P[i]))
+            if calib.num_views == 2:
+                for key, value in stereo_entries(calib, rect).items():
+                    fs.write(key, value)
         finally:
             fs.release()
+
+
+def stereo_entries(calib: Calibration, rect) -> dict[str, np.ndarray]:
+    """A pair under the names of ``cv2.stereoCalibrate`` / ``cv2.stereoRectify`` (camera 1 = view 0, camera 2 =
+    view 1): ``M1 D1 M2 D2``, ``R T`` (``x2 = R x1 + T``, metres) and, with a rectification, ``R1 R2`` (rectified
+    from camera), ``P1 P2`` (3x4, in camera 1's rectified frame: ``P1 = [K_r | 0]``, ``P2 = [K_r | K_r t]`` with
+    ``t`` camera 1's centre in camera 2's rectified frame) and ``Q`` (4x4, ``cv2.reprojectImageTo3D``'s: (u, v, d, 1)
+    -> camera 1's rectified frame, d = u1 - u2 for a horizontal pair, v1 - v2 for a vertical one)."""
+    two_T_one = calib.view_T_ref(1) @ invert_T(calib.view_T_ref(0))  # noqa: N806
+    out = {"M1": calib.intrinsics[0].K, "D1": calib.intrinsics[0].dist_cv.reshape(1, -1),
+           "M2": calib.intrinsics[1].K, "D2": calib.intrinsics[1].dist_cv.reshape(1, -1),
+           "R": two_T_one[:3, :3], "T": two_T_one[:3, 3].reshape(3, 1)}
+    if rect is None:
+        return out
+    k_r = np.asarray(rect.K_r, dtype=np.float64)
+    shift = rect.P[1][:, 3] - rect.P[0][:, 3]  # = K_r t: the last columns are -K_r R c_i
+    t = np.linalg.solve(k_r, shift)
+    axis = 0 if abs(t[0]) >= abs(t[1]) else 1  # horizontal or vertical pair
+    # Z = -f t / d with f the focal length along the disparity; the other axis row is scaled by f / its own focal
+    # length (OpenCV's stereoRectify makes fx = fy; lfgraph's K_r keeps the mean of each)
+    f = k_r[axis, axis]
+    q = np.zeros((4, 4))
+    for row in (0, 1):
+        q[row, row] = f / k_r[row, row]
+        q[row, 3] = -k_r[row, 2] * f / k_r[row, row]
+    q[2, 3] = f
+    q[3, 2] = -1.0 / t[axis]  # views share K_r, so cx1 - cx2 = cy1 - cy2 = 0 (Q[3, 3])
+    out.update({"R1": rect.rect_R_view[0], "R2": rect.rect_R_view[1], "P1": np.column_stack([k_r, np.zeros(3)]),
+                "P2": np.column_stack([k_r, shift]), "Q": q})
+    return out
 
 
 @dataclass(frozen=True)
