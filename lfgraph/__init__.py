@@ -61,7 +61,7 @@ _EXPORTS = {
     "StageEnd": "lfgraph.observer",
     "SilentObserver": "lfgraph.observer",
 }
-_SUBMODULES = ("viz", "factors", "datasets", "pattern", "refinement", "synth")
+_SUBMODULES = ("viz", "factors", "datasets", "pattern", "refinement", "synth", "study")
 
 __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
@@ -69,7 +69,7 @@ __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "Cal
            "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
            "RobustKernel", "SilentObserver", "Stage", "StageEnd", "Tracker", "Tracks", "TriangulationFilter",
            "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "load_detections",
-           "open_capture", "rectify", "refine", "viz", "factors", "datasets", "pattern", "refinement", "synth"]
+           "open_capture", "rectify", "refine", "viz", "factors", "datasets", "pattern", "refinement", "synth", "study"]
 
 
 def __getattr__(name: str) -> Any:

@@ -12,7 +12,7 @@ import csv
 import io
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,11 +68,12 @@ def read_rows(path: str | os.PathLike, columns: Sequence[str]) -> list[dict[str,
     return rows
 
 
-def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], out_csv: str | os.PathLike,
+def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], out_csv: str | os.PathLike | None,
               columns: Sequence[str], trial_rows: Callable[[Any], set], row_key: Callable[[dict], tuple],
               executor_spec: str = "local", jobs: int | None = None, progress: bool = True,
               on_rows: Callable[[list[dict[str, Any]]], None] | None = None) -> list[dict[str, Any]]:
-    """Run the trials not yet in ``out_csv`` and keep the CSV complete after every one.
+    """Run the trials not yet in ``out_csv`` and keep the CSV complete after every one (``out_csv`` None: every
+    trial, rows kept in memory only).
 
     Returns:
         all rows (earlier ones as strings from the CSV, new ones as values).
@@ -81,7 +82,7 @@ def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], 
 
     from lfgraph.executor import open_executor
 
-    existing = read_rows(out_csv, columns)
+    existing = [] if out_csv is None else read_rows(out_csv, columns)
     try:
         done = {row_key(r) for r in existing}
     except (ValueError, TypeError) as exc:
@@ -96,7 +97,8 @@ def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], 
                                                          desc="trials", unit="trial", disable=not progress) as bar:
         for _, new in ex.run(fn, todo):
             rows.extend(new)
-            write_rows(out_csv, rows, columns, key=row_key)
+            if out_csv is not None:
+                write_rows(out_csv, rows, columns, key=row_key)
             if on_rows is not None:
                 on_rows(new)
             bar.update()
@@ -106,7 +108,7 @@ def run_study(trials: Sequence[Any], fn: Callable[[Any], list[dict[str, Any]]], 
 # --------------------------------------------------------------------------------------------- shake study
 @dataclass(frozen=True)
 class ShakeTrial:
-    """One shaken rig and its frames, refined with every configuration."""
+    """One shaken rig and its frames, refined with every configuration: (label, `lfgraph.RefineConfig`) pairs."""
 
     scene: str
     level: int
@@ -114,21 +116,21 @@ class ShakeTrial:
     trans_mm: float
     seed: int
     frames: int
-    configs: tuple[tuple[str, str], ...]  # (stages, robust)
+    configs: tuple[tuple[str, Any], ...]
 
 
-SHAKE_COLUMNS = ("scene", "stages", "robust", "level", "rot_deg", "trans_mm", "seed", "frames", "landmarks",
+SHAKE_COLUMNS = ("scene", "config", "stages", "robust", "level", "rot_deg", "trans_mm", "seed", "frames", "landmarks",
                  "rms_before_px", "rms_after_px", "rot_err_before_deg", "rot_err_deg", "transfer_before_px",
                  "transfer_px", "pos_err_mm", "accepted")  # no wall times: the CSV must not depend on the executor
 
 
 def shake_row_key(r: dict) -> tuple:
-    return (str(r["stages"]), str(r["robust"]), int(r["level"]), int(r["seed"]))
+    return (str(r["config"]), int(r["level"]), int(r["seed"]))
 
 
 def shake_trial_rows(t: ShakeTrial) -> set[tuple]:
     """The row keys a shake trial produces (one per configuration)."""
-    return {(s, r, t.level, t.seed) for s, r in t.configs}
+    return {(label, t.level, t.seed) for label, _ in t.configs}
 
 
 def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
@@ -137,7 +139,9 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.evaluation import evaluate_calibration, transfer_error_at_infinity
-    from lfgraph.refinement import RefineConfig, refine
+    from lfgraph.factors.noise import describe_noise
+    from lfgraph.refinement import refine
+    from lfgraph.refinement.config import schedule_name
 
     named = get_scene(trial.scene)
     original = make_rig(named.rig, np.random.default_rng([trial.seed, 0]))
@@ -159,9 +163,9 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
         return float(np.sqrt(np.mean(transfer_error_at_infinity(c, truth) ** 2)))
 
     rows = []
-    for stages, robust in trial.configs:
+    for label, config in trial.configs:
         try:
-            refined, report = refine(original, frames, RefineConfig(stages=stages, robust=robust))
+            refined, report = refine(original, frames, config)
             e = evaluate_calibration(refined, truth)
             result = {"landmarks": report.stages[-1].landmarks if report.stages else 0,
                       "rms_before_px": report.rms_before_px, "rms_after_px": report.rms_after_px,
@@ -172,7 +176,8 @@ def run_shake_trial(trial: ShakeTrial) -> list[dict[str, Any]]:
             result = {"landmarks": 0, "rms_before_px": float("nan"), "rms_after_px": float("nan"),
                       "rot_err_deg": float("nan"), "transfer_px": float("nan"), "pos_err_mm": float("nan"),
                       "accepted": False}
-        rows.append({"scene": trial.scene, "stages": stages, "robust": robust, "level": trial.level,
+        rows.append({"scene": trial.scene, "config": label, "stages": schedule_name(config.stages),
+                     "robust": describe_noise(config.noise), "level": trial.level,
                      "rot_deg": trial.rot_deg, "trans_mm": trial.trans_mm, "seed": trial.seed,
                      "frames": trial.frames, "rot_err_before_deg": rot_rms(original),
                      "transfer_before_px": transfer(original), **result})
@@ -189,9 +194,74 @@ def make_shake_trials(scene: str, rot_deg: Sequence[float], trans_mm: Sequence[f
         trans = trans * len(rot)
     if len(rot) != len(trans):
         raise ValueError(f"--rot-deg has {len(rot)} levels but --trans-mm {len(trans)}; give equal lists or one value")
-    configs = tuple((s, r) for s in stages for r in robust)
-    return [ShakeTrial(scene, k, float(rot[k]), float(trans[k]), seed + i, frames, configs)
-            for k in range(len(rot)) for i in range(trials)]
+    from lfgraph.refinement import RefineConfig
+
+    configs = tuple((f"{s} / {r}", RefineConfig(stages=s, robust=r)) for s in stages for r in robust)
+    return shake_trials(scene, rot, trans, trials, frames, configs, seed)
+
+
+def shake_trials(scene: str, rot_deg: Sequence[float], trans_mm: Sequence[float], trials: int, frames: int,
+                 configs: Sequence[tuple[str, Any]], seed: int = 0) -> list[ShakeTrial]:
+    """Paired shake levels x ``trials`` seeds, each trial refined with every (label, RefineConfig)."""
+    configs = tuple(configs)
+    return [ShakeTrial(scene, k, float(rot_deg[k]), float(trans_mm[k]), seed + i, frames, configs)
+            for k in range(len(rot_deg)) for i in range(trials)]
+
+
+def _in_process_only(config) -> str | None:
+    """Why ``config`` cannot run in another process (None when it can): GTSAM pickles a ``mEstimator.Custom`` without
+    its Python functions (the copy raises "bad_function_call")."""
+    import gtsam
+
+    for noise in (config.noise, config.clean_noise):
+        est = noise.robust() if isinstance(noise, gtsam.noiseModel.Robust) else noise
+        if isinstance(est, gtsam.noiseModel.mEstimator.Custom):
+            return "a gtsam mEstimator.Custom (its Python functions do not survive pickling)"
+    return None
+
+
+def shake_study(configs: Mapping[str, Any] | Sequence[Any], scene: str = "paper-5x5",
+                rot_deg: Sequence[float] = (0.0, 0.25, 0.5, 1.0), trans_mm: Sequence[float] = (0.0, 1.0, 2.0, 5.0),
+                trials: int = 3, frames: int = 4, out_csv: str | os.PathLike | None = None, executor: str = "local",
+                jobs: int = 1, seed: int = 0, progress: bool = False) -> list[dict[str, Any]]:
+    """The paper's shake study with any refinement configurations: every noise model (a kernel name, a
+    `RobustKernel`, a GTSAM M-estimator or noise model), hooks, trackers, schedules.
+
+    Each trial renders a named scene's rig knocked by one level (``rot_deg[k]`` degrees, ``trans_mm[k]`` mm; a
+    single value broadcasts) with ``frames`` frames and refines it from the unknocked rig with every configuration.
+
+    Args:
+        configs: ``{label: RefineConfig}`` or a sequence of `RefineConfig` (labelled ``config 0``, ``config 1``, ...).
+        out_csv: where the rows go, resumable (a re-run skips the trials already there); None keeps them in memory.
+        executor, jobs: ``local`` with ``jobs`` processes (1: this process), ``dask-local`` or ``dask://HOST:PORT``.
+            A ``mEstimator.Custom`` (Python callbacks) runs only in this process (``jobs=1``).
+
+    Returns:
+        one row per trial and configuration, with the columns of `SHAKE_COLUMNS` (errors against the knocked truth:
+        ``rot_err_deg``, ``transfer_px``, ``pos_err_mm``; the input's ``rot_err_before_deg``, ``transfer_before_px``).
+
+    Raises:
+        TypeError: a configuration that is not a `RefineConfig`; ValueError: unequal level lists, a configuration
+            that cannot leave this process with ``jobs > 1`` or another executor.
+    """
+    from lfgraph.refinement import RefineConfig
+
+    labelled = list(configs.items()) if isinstance(configs, Mapping) else \
+        [(f"config {i}", c) for i, c in enumerate(configs)]
+    for label, config in labelled:
+        if not isinstance(config, RefineConfig):
+            raise TypeError(f"shake_study: configuration {label!r} must be a lfgraph.RefineConfig, got "
+                            f"{type(config).__name__}")
+        why = _in_process_only(config)
+        if why is not None and not (executor == "local" and jobs == 1):
+            raise ValueError(f"shake_study: configuration {label!r} uses {why}: run it with jobs=1 (this process)")
+    rot, trans = list(rot_deg), list(trans_mm)
+    rot, trans = (rot * len(trans), trans) if len(rot) == 1 else (rot, trans * len(rot) if len(trans) == 1 else trans)
+    if len(rot) != len(trans):
+        raise ValueError(f"rot_deg has {len(rot)} levels but trans_mm {len(trans)}; give equal lists or one value")
+    trials_ = shake_trials(scene, rot, trans, trials, frames, labelled, seed)
+    return run_study(trials_, run_shake_trial, out_csv, SHAKE_COLUMNS, shake_trial_rows, shake_row_key, executor,
+                     jobs, progress=progress)
 
 
 def summarise(rows: Sequence[dict[str, Any]], group: Sequence[str], x: str, metrics: Sequence[str]

@@ -26,8 +26,9 @@ def shake_rows(identical: bool = False):
             for seed in range(SEEDS):
                 scale = 1.0 if identical or stages == "paper" else 0.01  # default: a hundred times better
                 value = (0.01 + rot) * scale * (1 + 0.1 * seed)
-                rows.append({"stages": stages, "robust": "none", "level": level, "rot_deg": rot, "seed": seed,
-                             "transfer_px": value, "rot_err_deg": value, "rms_after_px": 0.1 + 0.01 * seed,
+                rows.append({"config": f"{stages} / none", "stages": stages, "robust": "none", "level": level,
+                             "rot_deg": rot, "seed": seed, "transfer_px": value, "rot_err_deg": value,
+                             "rms_after_px": 0.1 + 0.01 * seed,
                              "transfer_before_px": 1 + rot, "rot_err_before_deg": rot})
     return rows
 

@@ -126,7 +126,7 @@ def shake_figure(rows: Sequence[dict[str, Any]], stem: str | os.PathLike) -> lis
 
 def make_shake_figure(rows: Sequence[dict[str, Any]]) -> Figure:
     """The shake study: transfer error, rotation error and reprojection RMS against the shake, one series per
-    schedule and kernel (median over seeds, band: lowest to highest seed), with the shake itself for reference."""
+    configuration (median over seeds, band: lowest to highest seed), with the shake itself for reference."""
     fig, axes = plt.subplots(1, len(SHAKE_METRICS), figsize=(13, 3.8), constrained_layout=True)
     seeds = 0
     for ax, (metric, label) in zip(axes, SHAKE_METRICS.items(), strict=True):
@@ -137,9 +137,8 @@ def make_shake_figure(rows: Sequence[dict[str, Any]]) -> Figure:
                 ax.plot(xs, med, color="0.45", linestyle=":", marker="x", label="before refinement (the shake)")
                 ax.fill_between(xs, lo, hi, color="0.45", alpha=BAND_ALPHA / 2, linewidth=0)
                 values.append(med)
-        for k, ((stages, robust), (xs, med, lo, hi, n)) in enumerate(spread(rows, ("stages", "robust"), "rot_deg",
-                                                                           metric).items()):
-            _series(ax, k, f"{stages} / {robust}", xs, med, lo, hi)
+        for k, ((config,), (xs, med, lo, hi, n)) in enumerate(spread(rows, ("config",), "rot_deg", metric).items()):
+            _series(ax, k, config, xs, med, lo, hi)
             values += [lo, hi]
             seeds = max(seeds, n)
         maybe_log(ax, np.concatenate(values) if values else np.array([]))
@@ -147,7 +146,7 @@ def make_shake_figure(rows: Sequence[dict[str, Any]]) -> Figure:
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle(f"shake study: median over {seeds} seed(s), band = lowest to highest seed")
-    _legend_outside(fig, axes, "stages / robust kernel")
+    _legend_outside(fig, axes, "configuration")
     return fig
 
 
