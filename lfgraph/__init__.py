@@ -55,6 +55,10 @@ _EXPORTS = {
     "CalibrationErrors": "lfgraph.evaluation",
     "RobustKernel": "lfgraph.factors.noise",
     "GraphContext": "lfgraph.factors.hooks",
+    "view_pose_key": "lfgraph.factors.keys",
+    "calib_key": "lfgraph.factors.keys",
+    "landmark_key": "lfgraph.factors.keys",
+    "pose_noise": "lfgraph.factors.noise",
     "Observer": "lfgraph.observer",
     "BaseObserver": "lfgraph.observer",
     "Observers": "lfgraph.observer",
@@ -68,8 +72,9 @@ __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "Cal
            "CaptureSet", "ChainTracker", "DriftModel", "DriftReport", "GraphContext", "Init", "Intrinsics",
            "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
            "RobustKernel", "SilentObserver", "Stage", "StageEnd", "Tracker", "Tracks", "TriangulationFilter",
-           "ViewGrid", "calibrate", "check", "detect_capture", "evaluate", "load_detections",
-           "open_capture", "rectify", "refine", "viz", "factors", "datasets", "pattern", "refinement", "synth", "study"]
+           "ViewGrid", "calib_key", "calibrate", "check", "detect_capture", "evaluate", "landmark_key",
+           "load_detections", "open_capture", "pose_noise", "rectify", "refine", "view_pose_key", "viz", "factors",
+           "datasets", "pattern", "refinement", "synth", "study"]
 
 
 def __getattr__(name: str) -> Any:
@@ -95,7 +100,8 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.drift import DriftReport, check
     from lfgraph.evaluation import CalibrationErrors, evaluate
     from lfgraph.factors.hooks import GraphContext
-    from lfgraph.factors.noise import RobustKernel
+    from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
+    from lfgraph.factors.noise import RobustKernel, pose_noise
     from lfgraph.grid import ViewGrid
     from lfgraph.observer import BaseObserver, Observer, Observers, SilentObserver, StageEnd
     from lfgraph.pattern.config import CalibrateConfig, Init, Method
