@@ -93,6 +93,10 @@ class BaseObserver:
     def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
         pass
 
+    def measurement_sigma(self, sigma_px: float) -> None:
+        """The pixel sigma of the stage that starts next: the graph errors of its iterations are in its units
+        (optional: called only on observers that have it)."""
+
 
 class SilentObserver(BaseObserver):
     """Hears nothing, logs nothing: for fits whose stages are not the result (held-out refits, screening passes)."""
@@ -130,6 +134,17 @@ class Observers(BaseObserver):
     def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
         for o in self.observers:
             o.outliers(name, pixels_px, valid)
+
+    def measurement_sigma(self, sigma_px: float) -> None:
+        for o in self.observers:
+            tell_sigma(o, sigma_px)
+
+
+def tell_sigma(observer: Observer, sigma_px: float) -> None:
+    """``observer.measurement_sigma(sigma_px)`` where the observer has it (the method is optional)."""
+    method = getattr(observer, "measurement_sigma", None)
+    if callable(method):
+        method(float(sigma_px))
 
 
 def resolve(observer: Observer | None) -> Observer:

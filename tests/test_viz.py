@@ -22,6 +22,7 @@ STDOUT_CLOSED_S = 120  # seconds: the command must end by itself once its reader
 CORNERS = 7 * 5
 RDF = [3, 2, 5]  # rerun's ViewDir codes of Right, Down, Forward (OpenCV camera axes)
 FRAMES = 10
+RMS_CHART_REL = 0.1  # the RMS chart (graph error, priors included) against the stage's own RMS of the tracks
 JPEG_CORNER_TOLERANCE_PX = 0.5  # median gap of OpenCV's corners (no sub-pixel step) on the JPEG to the logged ones
 
 
@@ -215,6 +216,10 @@ def test_refine_recording(scene, tmp_path):
     assert len([x for x in by_iteration["/optimizer/error:Scalars:scalars"] if x is not None]) \
         == m["total_iterations"] > 0
     assert len([x for x in by_iteration["/optimizer/stages:TextLog:text"] if x is not None]) == 2 * 3
+    # the RMS chart is in pixels: its last value is the last stage's RMS (priors add a little), not that RMS over
+    # the measurement sigma (~0.05 px, which plotted 4.30 for 0.215 px)
+    rms = [x[0] for x in by_iteration["/optimizer/rms_px:Scalars:scalars"] if x is not None]
+    assert rms[-1] == pytest.approx(m["stages"][-1]["rms_after_px"], rel=RMS_CHART_REL)
     views, timeline = read_blueprint(rrd)
     assert timeline == "frame"
     assert ("TextLog", "optimizer/stages") in {(k, o) for k, o, _ in views}

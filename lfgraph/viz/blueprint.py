@@ -62,8 +62,10 @@ def _view_grid(grid: ViewGrid, space: str) -> rrb.Grid:
 
 
 def _optimiser_views() -> list:
-    return [rrb.BarChartView(origin="optimizer_summary/error_log10", name="log10 graph error per LM iteration"),
-            rrb.BarChartView(origin="optimizer_summary/rms_px", name="RMS (px) per LM iteration")]
+    return [rrb.BarChartView(origin="optimizer_summary/error_log10",
+                             name="log10 graph error per LM iteration (a gap between stages)"),
+            rrb.BarChartView(origin="optimizer_summary/rms_px",
+                             name="RMS (px) per LM iteration (a gap between stages)")]
 
 
 def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate") -> rrb.Blueprint:

@@ -139,6 +139,8 @@ class RerunLogger(BaseObserver):
         self._errors: list[float] = []  # graph error after every optimiser iteration
         self._rms_px: list[float] = []
         self._n_measurements = 0
+        self._sigma_px = 1.0  # the pixel sigma of the running stage (graph errors are in its units)
+        self._stage_first: list[int] = []  # the first iteration of every stage (a gap in the summary charts)
         self._frame = 0  # the frame refinement is on
         self._track_frame: dict[bytes, int] = {}  # refinement track (its pixel bytes) -> the frame it came from
         self._outliers: dict[int, list[np.ndarray]] = {}  # frame -> (V, K, 2) outlying observations, NaN elsewhere
@@ -224,7 +226,12 @@ class RerunLogger(BaseObserver):
         self.rec.set_time("frame", sequence=self._frame)
         self._log_images(images)
 
+    def measurement_sigma(self, sigma_px: float) -> None:
+        """The running stage's pixel sigma: its RMS is plotted in pixels, not in units of the sigma."""
+        self._sigma_px = float(sigma_px)
+
     def stage_start(self, name: str, measurements: int) -> None:
+        self._stage_first.append(self.iteration_count + 1)
         self.rec.set_time("iteration", sequence=self.iteration_count + 1)
         self.rec.log("optimizer/stages", rr.TextLog(f"frame {self._frame}: stage {name} starts", level="INFO"))
         self.set_measurements(measurements)
@@ -303,8 +310,8 @@ class RerunLogger(BaseObserver):
         self.rec.log("optimizer/error", rr.Scalars(after))
         self._errors.append(float(after))
         if self._n_measurements:
-            # graph error = 0.5 sum |r|^2 at 1 px sigma (priors are negligible): RMS per point = sqrt(2 e / N)
-            rms = float(np.sqrt(2.0 * after / self._n_measurements))
+            # graph error = 0.5 sum |r / sigma|^2 (priors are negligible): RMS per point = sigma sqrt(2 e / N)
+            rms = self._sigma_px * float(np.sqrt(2.0 * after / self._n_measurements))
             self.rec.log("optimizer/rms_px", rr.Scalars(rms))
             self._rms_px.append(rms)
         else:
@@ -314,7 +321,10 @@ class RerunLogger(BaseObserver):
         """The whole optimiser history as bar charts (one bar per LM iteration), readable on any timeline."""
         if not self._errors:
             return
+        # one empty slot before every stage after the first: the bars of one stage stand together
+        starts = sorted({s for s in self._stage_first if 1 < s <= len(self._errors)})
         iterations = np.arange(1, len(self._errors) + 1, dtype=np.float64)
+        iterations += np.searchsorted(np.asarray(starts, dtype=np.float64), iterations, side="right")
         err = np.log10(np.maximum(np.asarray(self._errors), np.finfo(float).tiny))
         self.rec.log("optimizer_summary/error_log10", rr.BarChart(err, abscissa=iterations, color=ERROR_COLOUR),
                      static=True)
