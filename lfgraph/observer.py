@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -97,6 +97,13 @@ class BaseObserver:
         """The pixel sigma of the stage that starts next: the graph errors of its iterations are in its units
         (optional: called only on observers that have it)."""
 
+    def run_start(self, kind: str, calib: Calibration) -> None:
+        """A run starts (``kind`` ``refine``) from ``calib`` (optional)."""
+
+    def run_end(self, kind: str, before: Calibration, after: Calibration, report: Any) -> None:
+        """A run ended: ``after`` is what it returns (the input where nothing was applied), ``report`` its report
+        (optional)."""
+
 
 class SilentObserver(BaseObserver):
     """Hears nothing, logs nothing: for fits whose stages are not the result (held-out refits, screening passes)."""
@@ -139,12 +146,25 @@ class Observers(BaseObserver):
         for o in self.observers:
             tell_sigma(o, sigma_px)
 
+    def run_start(self, kind: str, calib: Calibration) -> None:
+        for o in self.observers:
+            tell(o, "run_start", kind, calib)
+
+    def run_end(self, kind: str, before: Calibration, after: Calibration, report: Any) -> None:
+        for o in self.observers:
+            tell(o, "run_end", kind, before, after, report)
+
+
+def tell(observer: Observer, method: str, *args: Any) -> None:
+    """Call an optional observer method (``measurement_sigma``, ``run_start``, ``run_end``) where it exists."""
+    fn = getattr(observer, method, None)
+    if callable(fn):
+        fn(*args)
+
 
 def tell_sigma(observer: Observer, sigma_px: float) -> None:
     """``observer.measurement_sigma(sigma_px)`` where the observer has it (the method is optional)."""
-    method = getattr(observer, "measurement_sigma", None)
-    if callable(method):
-        method(float(sigma_px))
+    tell(observer, "measurement_sigma", float(sigma_px))
 
 
 def resolve(observer: Observer | None) -> Observer:

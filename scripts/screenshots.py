@@ -29,7 +29,6 @@ import time
 import urllib.request
 from pathlib import Path
 
-import numpy as np
 import rerun.blueprint as rrb
 
 from lfgraph.cli import main as lfgraph
@@ -37,7 +36,6 @@ from lfgraph.cli import main as lfgraph
 WINDOW_PX = (1400, 860)
 VIEWER_LOAD_S = 60.0  # real time for the web viewer to load its wasm and the recording, decode the JPEGs, draw
 PNG_COLOURS = 256
-RIG_EYE_BASELINES = (-1.5, -2.0, -3.5)  # the 3-D shot's eye: left, above and behind the rig centre, in baselines
 APP_ID = "lfgraph"
 CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
                   "--hide-scrollbars", "--remote-allow-origins=*", "--remote-debugging-address=127.0.0.1",
@@ -207,18 +205,16 @@ def make(work: Path, out: Path, viewer: bool) -> None:
     if not viewer:
         return
     from lfgraph.calibration import Calibration
-    from lfgraph.viz.rerun_log import default_blueprint, smallest_baseline_m
+    from lfgraph.viz.blueprint import rig_eye
+    from lfgraph.viz.rerun_log import default_blueprint
 
     refined = Calibration.load(work / "refined.json")
-    centre = refined.ref_T_view[:, :3, 3].mean(axis=0)
-    baseline = smallest_baseline_m(refined)
     # paused: a playing timeline shows each frame's points while its image is still being decoded
     paused = rrb.TimePanel(timeline="frame", play_state="paused", state="collapsed")
     rig_view = rrb.Spatial3DView(
         origin="world", name="input (grey) and refined (green) rig; arrows: the change per view",
         contents=["+ /world/input_rig/**", "+ /world/refined_rig/**", "+ /world/change/**"],
-        eye_controls=rrb.EyeControls3D(position=centre + baseline * np.array(RIG_EYE_BASELINES),
-                                       look_target=centre, eye_up=(0.0, -1.0, 0.0)))
+        eye_controls=rig_eye(refined))
     shots = [
         ("refine.rrd", rrb.Blueprint(rig_view, paused, collapse_panels=True), "rerun_refine_rig.png"),
         ("calibrate.rrd", rrb.Blueprint(rrb.Spatial2DView(origin="views/r01_c01", name="r01_c01"), paused,
@@ -226,7 +222,7 @@ def make(work: Path, out: Path, viewer: bool) -> None:
         ("rectify.rrd", rrb.Blueprint(rrb.Grid(*[rrb.Spatial2DView(origin=f"rectified/{grid.name(v)}",
                                                                    name=grid.name(v)) for v in range(4)],
                                                grid_columns=2), collapse_panels=True), "rerun_rectified.png"),
-        ("refine.rrd", default_blueprint(grid, "refine"), "rerun_refine_default.png"),
+        ("refine.rrd", default_blueprint(grid, "refine", refined), "rerun_refine_default.png"),
     ]
     for rrd, blueprint, name in shots:
         print(f"rendering {rrd} -> {name}", flush=True)

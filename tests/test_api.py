@@ -56,6 +56,15 @@ def test_readme_python_section_runs_as_written(scene_dir, monkeypatch):
         exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102  the README is the test subject
     assert lf.Calibration.load("refined.json").num_views == 4
     assert Path("run.rrd").stat().st_size > 0 and not list(Path(".").glob(".run.rrd.*"))
+    # the README's recording of a refine run opens in refine's layout, with both rigs (issue 28: it showed the
+    # calibrate layout, an empty "calibrated rig" panel and two empty charts)
+    from test_viz import read_blueprint, read_rrd
+
+    views, _ = read_blueprint("run.rrd")
+    assert ("TextLog", "optimizer/stages") in {(k, o) for k, o, _ in views}
+    columns, static, _ = read_rrd("run.rrd", None)
+    assert any(c.startswith("/world/refined_rig/") for c in columns)
+    assert any(c.startswith("/optimizer_summary/rms_px") for c in columns)
     truth = lf.Calibration.load("scene/truth.json")
     calib, held, refined = namespace["calib"], namespace["held"], namespace["refined"]
     # the study block's in-memory capture: its last kernel's estimate is no worse than the knocked input

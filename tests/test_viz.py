@@ -22,6 +22,7 @@ STDOUT_CLOSED_S = 120  # seconds: the command must end by itself once its reader
 CORNERS = 7 * 5
 RDF = [3, 2, 5]  # rerun's ViewDir codes of Right, Down, Forward (OpenCV camera axes)
 FRAMES = 10
+EYE_RIG_SIZES = 10  # the default 3-D eye is closer than this many rig sizes to the rig's centre
 RMS_CHART_REL = 0.1  # the RMS chart (graph error, priors included) against the stage's own RMS of the tracks
 JPEG_CORNER_TOLERANCE_PX = 0.5  # median gap of OpenCV's corners (no sub-pixel step) on the JPEG to the logged ones
 
@@ -38,10 +39,15 @@ def read_rrd(path, index):
     return columns, static, rows
 
 
-def read_blueprint(path):
-    """The default blueprint of a recording: [(view class, origin, name)] and the time panel's timeline."""
+def read_blueprint(path, eye: list | None = None):
+    """The default blueprint of a recording — the last one sent: a logger re-sends it with the 3-D eye on the rig
+    once the rig is known — as [(view class, origin, name)] and the time panel's timeline; ``eye`` (a list) gets
+    the 3-D eye's (position, look target) when there is one."""
     reader = RrdReader(path)
-    (store,) = reader.blueprints()
+    stores = reader.blueprints()
+    with_eye = [s for s in stores if any("EyeControls3D:position" in c.to_record_batch().schema.names
+                                         for c in reader.stream(store=s))]
+    store = (with_eye or stores)[-1]
     views, timeline = [], None
     for chunk in reader.stream(store=store):
         batch = chunk.to_record_batch()
@@ -52,6 +58,9 @@ def read_blueprint(path):
                           get.get("ViewBlueprint:display_name")))
         if "TimePanelBlueprint:timeline" in names:
             timeline = batch.column("TimePanelBlueprint:timeline").to_pylist()[0][0]
+        if eye is not None and "EyeControls3D:position" in names:
+            eye.append((np.array(batch.column("EyeControls3D:position").to_pylist()[0][0]),
+                        np.array(batch.column("EyeControls3D:look_target").to_pylist()[0][0])))
     return views, timeline
 
 
@@ -220,9 +229,16 @@ def test_refine_recording(scene, tmp_path):
     # the measurement sigma (~0.05 px, which plotted 4.30 for 0.215 px)
     rms = [x[0] for x in by_iteration["/optimizer/rms_px:Scalars:scalars"] if x is not None]
     assert rms[-1] == pytest.approx(m["stages"][-1]["rms_after_px"], rel=RMS_CHART_REL)
-    views, timeline = read_blueprint(rrd)
+    eye = []
+    views, timeline = read_blueprint(rrd, eye)
     assert timeline == "frame"
     assert ("TextLog", "optimizer/stages") in {(k, o) for k, o, _ in views}
+    # the 3-D view opens on the rig (not on landmarks metres away): it looks at the rig's centre from a few rig sizes
+    (position, target), = eye
+    centres = original.ref_T_view[:, :3, 3]  # the first rig logged: the input
+    np.testing.assert_allclose(target, centres.mean(axis=0), atol=1e-6)
+    size = np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1))
+    assert np.linalg.norm(position - target) < EYE_RIG_SIZES * size
     assert_every_view_has_data(views, columns)
 
 

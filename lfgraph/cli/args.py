@@ -318,11 +318,9 @@ def reports_to_stderr(args: argparse.Namespace) -> AbstractContextManager:
 
 
 def cli_observer(logger):
-    """What the commands pass as ``observer=``: log lines to `logging` (the CLI shows them on stderr), and to rerun
-    when a recording is open."""
-    from lfgraph.observer import BaseObserver, Observers
-
-    return None if logger is None else Observers(BaseObserver(), logger)
+    """What the commands pass as ``observer=``: None (log lines go to `logging`, which the CLI shows on stderr), or
+    the open rerun recording, which logs them there too."""
+    return logger
 
 
 def add_rerun_args(p: argparse.ArgumentParser) -> None:

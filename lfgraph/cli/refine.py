@@ -67,12 +67,9 @@ def _refine(args: argparse.Namespace) -> int:
     frames = (capture.load_frame(f) for f in range(n))
     bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
     with rerun_session(args, calib.grid, logging, "refine") as logger, logging_redirect_tqdm():
-        if logger is not None:
-            logger.rig(calib, name="input_rig")
+        # a recording hears the input rig, the stages and the result through the observer (run_start, run_end)
         refined, report = refine(calib, bar, config, cli_observer(logger))
         refined.save(args.output)
-        if logger is not None:
-            logger.refinement_result(calib, refined, report)
     if args.json:
         print(json_text({"calibration": str(args.calibration), "capture": str(args.input), "output": str(args.output),
                           **report.metrics()}, indent=1))

@@ -18,7 +18,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.capture import check_frame_array, check_frames_argument
-from lfgraph.observer import Observer, resolve
+from lfgraph.observer import Observer, resolve, tell
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, fit_sigma
@@ -103,10 +103,13 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     # A frame's KLT does not depend on the calibration: it runs in a worker thread (OpenCV releases the GIL) while
     # the frames so far are refitted, and only judging its tracks waits for that fit. Results are unchanged.
     klt = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lfgraph-klt")
+    tell(obs, "run_start", "refine", calib)  # e.g. a rerun recording shows the input rig and the refine layout
     try:
-        return _refine_frames(calib, frames, config, obs, klt)
+        out, report = _refine_frames(calib, frames, config, obs, klt)
     finally:
         klt.shutdown(wait=True, cancel_futures=True)
+    tell(obs, "run_end", "refine", calib, out, report)  # ... and the refined rig, the change, the summaries
+    return out, report
 
 
 def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig, obs: Observer,

@@ -20,6 +20,7 @@ JPEG_QUALITY = 80  # per-frame images are stored as JPEG (a recording of every f
 POINT_RADIUS_UI = 2.0  # observed points, in screen points (negative radii in rerun), whatever the zoom
 FRUSTUM_BASELINE_SHARE = 0.4  # each camera's frustum is drawn this share of the smallest baseline deep
 FRUSTUM_DEPTH_M = 0.02  # frustum depth of a single view (no baseline)
+RIG_EYE_BASELINES = (-1.5, -2.0, -3.5)  # the default 3-D eye: left, above and behind the rig centre, in rig sizes
 OUTLIER_COLOUR = (255, 40, 40)
 OBSERVED_COLOUR = (80, 160, 255)
 REPROJECTED_COLOUR = (255, 255, 255)
@@ -57,7 +58,10 @@ def rms_of(values_px: np.ndarray) -> float:
 
 
 def _view_grid(grid: ViewGrid, space: str) -> rrb.Grid:
-    views = [rrb.Spatial2DView(origin=f"{space}/{grid.name(v)}", name=grid.name(v)) for v in range(grid.num_views)]
+    # the views' residual arrows are exaggerated: the titles say by how much
+    note = f" (residual arrows x{RESIDUAL_ARROW_SCALE:g})" if space == "views" else ""
+    views = [rrb.Spatial2DView(origin=f"{space}/{grid.name(v)}", name=grid.name(v) + note)
+             for v in range(grid.num_views)]
     return rrb.Grid(*views, grid_columns=grid.cols, name=space)
 
 
@@ -68,7 +72,18 @@ def _optimiser_views() -> list:
                              name="RMS (px) per LM iteration (a gap between stages)")]
 
 
-def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate") -> rrb.Blueprint:
+def rig_eye(calib: Calibration) -> rrb.EyeControls3D:
+    """A 3-D eye on the rig: left of, above and behind its centre by `RIG_EYE_BASELINES` of its smallest baseline,
+    looking at the centre, image-down (-y) up, so that the views (not landmarks metres away) fill the picture."""
+    centres = calib.ref_T_view[:, :3, 3]
+    centre = centres.mean(axis=0)
+    scale = max(smallest_baseline_m(calib), float(np.max(np.linalg.norm(centres - centre, axis=1))))
+    return rrb.EyeControls3D(position=centre + scale * np.asarray(RIG_EYE_BASELINES), look_target=centre,
+                             eye_up=(0.0, -1.0, 0.0))
+
+
+def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate",
+                      calib: Calibration | None = None) -> rrb.Blueprint:
     """The layout a recording opens with: one per command, each showing everything that command logs.
 
     Args:
@@ -76,7 +91,9 @@ def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate") -> rrb.Blu
         kind: ``calibrate`` (3-D calibrated rig and boards, per-frame views, per-frame RMS, optimiser),
             ``refine`` (input and refined rig, landmarks, per-frame views, per-frame RMS, optimiser, stages),
             ``rectify`` (3-D rig, rectified views with guide lines) or ``study`` (the study's curves per level).
+        calib: the array, when known: the 3-D view's eye is then on the rig (`rig_eye`).
     """
+    eye = None if calib is None else rig_eye(calib)
     if kind not in KINDS:
         raise ValueError(f"unknown blueprint kind {kind!r}; one of {', '.join(KINDS)}")
     if kind == "study" or grid is None:
@@ -84,11 +101,12 @@ def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate") -> rrb.Blu
                              rrb.TimePanel(timeline="level", state="collapsed"), collapse_panels=True)
     if kind == "rectify":
         return rrb.Blueprint(
-            rrb.Horizontal(rrb.Spatial3DView(origin="world", name="rig (calibration)"), _view_grid(grid, "rectified"),
+            rrb.Horizontal(rrb.Spatial3DView(origin="world", name="rig (calibration)", eye_controls=eye),
+                           _view_grid(grid, "rectified"),
                            column_shares=[1, 2]),
             collapse_panels=True)
     three_d = rrb.Spatial3DView(origin="world", name="input (grey) and refined (green) rig, landmarks"
-                                if kind == "refine" else "calibrated rig and board poses")
+                                if kind == "refine" else "calibrated rig and board poses", eye_controls=eye)
     side = [three_d, rrb.TimeSeriesView(origin="rms", name="RMS reprojection error per frame (px)"),
             *_optimiser_views()]
     if kind == "refine":

@@ -33,6 +33,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -40,7 +41,7 @@ import rerun as rr
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import check_replaceable
-from lfgraph.observer import BaseObserver, StageEnd
+from lfgraph.observer import WARNING_PREFIX, BaseObserver, StageEnd
 from lfgraph.viz.blueprint import (
     APP_ID,
     CHANGE_ARROW_BASELINE_SHARE,
@@ -50,6 +51,7 @@ from lfgraph.viz.blueprint import (
     GUIDE_COLOUR,
     GUIDE_SPACING_PX,
     JPEG_QUALITY,
+    KINDS,
     OBSERVED_COLOUR,
     OUTLIER_COLOUR,
     POINT_RADIUS_UI,
@@ -131,9 +133,11 @@ class RerunLogger(BaseObserver):
     """
 
     def __init__(self, rec: rr.RecordingStream, grid: ViewGrid | None = None, final_path: Path | None = None,
-                 tmp_path: Path | None = None) -> None:
+                 tmp_path: Path | None = None, kind: str | None = None) -> None:
         self.rec = rec
         self.grid = grid
+        self._kind = kind  # the default blueprint's kind: re-sent with the 3-D eye on the rig once it is known
+        self._eye_set = False
         self._final, self._tmp = final_path, tmp_path
         self.iteration_count = 0
         self._errors: list[float] = []  # graph error after every optimiser iteration
@@ -162,7 +166,7 @@ class RerunLogger(BaseObserver):
         tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
         rec = rr.RecordingStream(APP_ID)
         rec.save(str(tmp), default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid, final, tmp)
+        return cls(rec, grid, final, tmp, kind=kind)
 
     @classmethod
     def from_stream(cls, rec: rr.RecordingStream, grid: ViewGrid | None = None, kind: str = "calibrate"
@@ -170,21 +174,21 @@ class RerunLogger(BaseObserver):
         """Log to a stream you opened (and whose sink you chose); ``grid`` sends the default blueprint."""
         if grid is not None:
             rec.send_blueprint(default_blueprint(grid, kind))
-        return cls(rec, grid)
+        return cls(rec, grid, kind=kind)
 
     @classmethod
     def serve(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
         """Host a gRPC server and web viewer for the recording."""
         rec = rr.RecordingStream(APP_ID)
         rec.serve_grpc(default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid)
+        return cls(rec, grid, kind=kind)
 
     @classmethod
     def connect(cls, url: str | None = None, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
         """Stream to a running viewer (rerun's default address unless ``url``)."""
         rec = rr.RecordingStream(APP_ID)
         rec.connect_grpc(url, default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid)
+        return cls(rec, grid, kind=kind)
 
     @classmethod
     def stdout(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
@@ -196,7 +200,7 @@ class RerunLogger(BaseObserver):
         pump = _StdoutPump()
         rec = rr.RecordingStream(APP_ID)
         rec.stdout(default_blueprint=default_blueprint(grid, kind))
-        logger = cls(rec, grid)
+        logger = cls(rec, grid, kind=kind)
         logger._pump = pump
         return logger
 
@@ -214,8 +218,26 @@ class RerunLogger(BaseObserver):
 
     # ------------------------------------------------------------------------------------------- observer
     def log(self, message: str) -> None:
-        """Into the recording only (combine with `lfgraph.BaseObserver` in `lfgraph.Observers` for the console)."""
-        self.rec.log("log", rr.TextLog(message, level="INFO"))
+        """Into the recording and, as `lfgraph.BaseObserver` does, through `logging` (the console stays informed)."""
+        warning = message.startswith(WARNING_PREFIX)
+        self.rec.log("log", rr.TextLog(message, level="WARN" if warning else "INFO"))
+        super().log(message)
+
+    def run_start(self, kind: str, calib: Calibration) -> None:
+        """A run starts: its layout (`default_blueprint` of ``kind``, the 3-D eye on ``calib``) becomes the
+        recording's default, and for ``refine`` the input rig is shown."""
+        if kind in KINDS and (kind != self._kind or not self._eye_set):
+            self._kind, self.grid = kind, self.grid or calib.grid
+            self.rec.send_blueprint(default_blueprint(self.grid, kind, calib), make_active=False, make_default=True)
+            self._eye_set = True
+        if kind == "refine":
+            self.rig(calib, name="input_rig")
+
+    def run_end(self, kind: str, before: Calibration, after: Calibration, report: Any) -> None:
+        """A run ended: for ``refine`` the refined rig, the change per view and the optimiser summaries
+        (`refinement_result`)."""
+        if kind == "refine":
+            self.refinement_result(before, after, report)
 
     def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
         self.on_iteration(iteration, error_before, error_after)
@@ -355,6 +377,11 @@ class RerunLogger(BaseObserver):
         if images is not None:
             self.rec.set_time("frame", sequence=0)
             self._log_images(images)
+        if self._kind is not None and self.grid is not None and not self._eye_set:
+            # the default eye frames everything (landmarks metres away, a rig a few pixels wide): look at the rig
+            self.rec.send_blueprint(default_blueprint(self.grid, self._kind, calib), make_active=False,
+                                    make_default=True)
+            self._eye_set = True
 
     def rig_change(self, before: Calibration, after: Calibration) -> None:
         """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
