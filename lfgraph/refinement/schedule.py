@@ -115,11 +115,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
 def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig, obs: Observer,
                    klt: ThreadPoolExecutor) -> tuple[Calibration, RefinementReport]:
     """`refine`'s body: the frame loop (``klt`` runs each frame's chain tracking) and the assessment."""
-    w, h = calib.image_size_px
     t_start = time.perf_counter()
-    pool_px: list[np.ndarray] = []
-    pool_valid: list[np.ndarray] = []
-    pool_frame: list[np.ndarray] = []
+    pool_px, pool_valid, pool_frame = [], [], []  # per frame: kept tracks (V, N, 2), (V, N) and their frame (N,)
     counts: list[dict[str, int]] = []
     frame_rms: list[float] = []
     current = calib
@@ -133,17 +130,15 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
             break
-        check_frame_array(images, f, calib.grid, (w, h))
+        check_frame_array(images, f, calib.grid, calib.image_size_px)
         tracking = klt.submit(_timed_track, images, calib.grid, config.tracker)
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
             # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
             t0, c0 = time.perf_counter(), time.thread_time()
             px_pool, ok_pool = np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1)
-            if config.max_landmarks is not None and px_pool.shape[1] > config.max_landmarks:
-                pick = np.sort(np.random.default_rng(used).choice(px_pool.shape[1], config.max_landmarks,
-                                                                   replace=False))
-                px_pool, ok_pool = px_pool[:, pick], ok_pool[:, pick]
+            pick = _subsample(px_pool.shape[1], config.max_landmarks, used)
+            px_pool, ok_pool = px_pool[:, pick], ok_pool[:, pick]
             pass_fit = fit_auto(calib, px_pool, ok_pool, config, obs, sigma_estimate=sigma_estimate)
             sigma_estimate = fit_sigma(pass_fit)  # the next pass's sigma: no sigma-estimating pass of its own
             current = pass_fit.calib
@@ -159,8 +154,7 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
         kept, c = collect_tracks(current, tracks, config.triangulation_filter)
         t_match += t_tracking + time.perf_counter() - t0
         counts.append(c)
-        pts = triangulate_dlt(current, kept.points_px, kept.valid)
-        rms_now = finite_rms(reprojection_errors(current, pts, kept.points_px, kept.valid))
+        rms_now = _rms_with(current, kept.points_px, kept.valid)
         frame_rms.append(rms_now)
         obs.log(f"frame {f}: tracks " + ", ".join(f"{k} {v}" for k, v in c.items())
             + f"; RMS with the current calibration {rms_now:.4f} px")
@@ -174,24 +168,7 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
         pool_valid.append(kept.valid)
         pool_frame.append(np.full(kept.num_tracks, f))
         used += 1
-    if used == 0:
-        raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
-                         "(see the per-frame track counts)")
-    pixels = np.concatenate(pool_px, axis=1)
-    valid = np.concatenate(pool_valid, axis=1)
-    frame_of = np.concatenate(pool_frame)
-    good, dropped = pooled_filter(calib, pixels, valid, frame_of)
-    if dropped:
-        obs.log(f"frames {', '.join(map(str, dropped))}: most tracks stand out against the other frames' "
-                f"(mismatches on a repetitive pattern?): dropped")
-    pixels, valid, frame_of = pixels[:, good], valid[:, good], frame_of[good]
-    if pixels.shape[1] == 0:
-        raise ValueError("no usable feature tracks in the capture: the scene needs texture visible in every view "
-                         "(see the per-frame track counts)")
-    if config.max_landmarks is not None and pixels.shape[1] > config.max_landmarks:
-        pick = np.sort(np.random.default_rng(used).choice(pixels.shape[1], config.max_landmarks, replace=False))
-        pixels, valid, frame_of = pixels[:, pick], valid[:, pick], frame_of[pick]
-    warnings = []
+    pixels, valid, frame_of, dropped = _pooled_tracks(calib, pool_px, pool_valid, pool_frame, config, obs, used)
     coverage = track_coverage(calib, pixels, valid)
     t0, c0 = time.perf_counter(), time.thread_time()
     result = assess(calib, pixels, valid, config, obs, coverage, used, frame_of, sigma_estimate)
@@ -200,10 +177,69 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
     c_match = time.process_time() - c_start - c_adjust  # the rest: tracking (OpenCV's threads too) and filters
     fit = result.fit
     kept_px, kept_valid = pixels[:, fit.keep], valid[:, fit.keep]
-    before = finite_rms(reprojection_errors(calib, triangulate_dlt(calib, kept_px, kept_valid), kept_px, kept_valid))
-    # the RMS of what is written (the input where nothing was applied), not of the full fit
-    after = finite_rms(reprojection_errors(result.calib, triangulate_dlt(result.calib, kept_px, kept_valid), kept_px,
-                                           kept_valid))
+    before = _rms_with(calib, kept_px, kept_valid)
+    after = _rms_with(result.calib, kept_px, kept_valid)  # of what is written (the input where nothing was applied)
+    warnings = refinement_warnings(coverage, counts, dropped, result, before)
+    for w in warnings:
+        obs.log(f"warning: {w}")
+    total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
+    report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
+                              time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
+                              tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
+                              result.heldout_after_px, result.sigma_px, tuple(dropped), cpu_seconds_matching=c_match,
+                              cpu_seconds_adjustment=c_adjust)
+    out = result.calib
+    metrics = {**dict(out.metrics or {}), **report.metrics()}
+    return out.replace(metrics=metrics, rectification=None), report
+
+
+NO_TRACKS = ("no usable feature tracks in the capture: the scene needs texture visible in every view (see the "
+             "per-frame track counts)")
+
+
+def _rms_with(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> float:
+    """RMS reprojection error (px) of tracks triangulated (DLT) and reprojected with ``calib``."""
+    return finite_rms(reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid))
+
+
+def _subsample(n: int, limit: int | None, seed: int) -> np.ndarray:
+    """Indices of at most ``limit`` of ``n`` tracks (all of them, in order, when there are not more)."""
+    if limit is None or n <= limit:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, limit, replace=False))
+
+
+def _pooled_tracks(calib: Calibration, pool_px: list[np.ndarray], pool_valid: list[np.ndarray],
+                   pool_frame: list[np.ndarray], config: RefineConfig, obs: Observer,
+                   used: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """Every frame's kept tracks pooled, mismatches against the pool dropped (`pooled_filter`: whole frames too),
+    at most ``config.max_landmarks`` kept: (pixels (V, N, 2), valid (V, N), frame of each (N,), dropped frames).
+
+    Raises:
+        ValueError: no usable track (none kept, or none left by the pooled filter).
+    """
+    if not pool_px:
+        raise ValueError(NO_TRACKS)
+    pixels, valid, frame_of = (np.concatenate(pool_px, axis=1), np.concatenate(pool_valid, axis=1),
+                               np.concatenate(pool_frame))
+    good, dropped = pooled_filter(calib, pixels, valid, frame_of)
+    if dropped:
+        obs.log(f"frames {', '.join(map(str, dropped))}: most tracks stand out against the other frames' "
+                f"(mismatches on a repetitive pattern?): dropped")
+    pixels, valid, frame_of = pixels[:, good], valid[:, good], frame_of[good]
+    if pixels.shape[1] == 0:
+        raise ValueError(NO_TRACKS)
+    pick = _subsample(pixels.shape[1], config.max_landmarks, used)
+    return pixels[:, pick], valid[:, pick], frame_of[pick], dropped
+
+
+def refinement_warnings(coverage: float, counts: list[dict[str, int]], dropped: list[int], result,
+                        rms_before_px: float) -> list[str]:
+    """What a user must hear about a refinement: poor coverage, few matches or chains, dropped frames, nothing
+    changed (and why), a calibration that does not belong to the capture (``result``: the `assess` result;
+    ``rms_before_px``: the kept tracks' RMS with the input)."""
+    warnings: list[str] = []
+    before = rms_before_px
     if coverage < COVERAGE_WARN:
         warnings.append(f"tracks cover only {100 * coverage:.0f} % of the reference image ({COVERAGE_CELLS}x"
                         f"{COVERAGE_CELLS} cells): rotations about the optical axis are weakly constrained; use "
@@ -232,14 +268,4 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
             warnings.append(f"the tracks fit the input calibration at {before:.2f} px RMS and no refit of the views' "
                             f"poses explains them: is this calibration for this camera (focal length, lens, image "
                             f"size, view order)? Re-calibrate rather than refine")
-    for w in warnings:
-        obs.log(f"warning: {w}")
-    total_iterations = heard_iterations + sum(st.iterations for st in fit.stages)
-    report = RefinementReport(tuple(counts), tuple(frame_rms), tuple(fit.stages), used, stop, before, after,
-                              time.perf_counter() - t_start, t_match, t_adjust, result.accepted, coverage,
-                              tuple(warnings), total_iterations, result.verdicts, result.heldout_before_px,
-                              result.heldout_after_px, result.sigma_px, tuple(dropped), cpu_seconds_matching=c_match,
-                              cpu_seconds_adjustment=c_adjust)
-    out = result.calib
-    metrics = {**dict(out.metrics or {}), **report.metrics()}
-    return out.replace(metrics=metrics, rectification=None), report
+    return warnings
