@@ -97,12 +97,13 @@ class BaseObserver:
         """The pixel sigma of the stage that starts next: the graph errors of its iterations are in its units
         (optional: called only on observers that have it)."""
 
-    def run_start(self, kind: str, calib: Calibration) -> None:
-        """A run starts (``kind`` ``refine``) from ``calib`` (optional)."""
+    def run_start(self, kind: str, calib: Calibration | None) -> None:
+        """A run starts (``kind`` ``refine`` from ``calib``, ``calibrate`` from None) (optional)."""
 
-    def run_end(self, kind: str, before: Calibration, after: Calibration, report: Any) -> None:
-        """A run ended: ``after`` is what it returns (the input where nothing was applied), ``report`` its report
-        (optional)."""
+    def run_end(self, kind: str, before: Calibration | None, after: Calibration, report: Any,
+                data: Any = None) -> None:
+        """A run ended: ``after`` is what it returns (for ``refine`` the input where nothing was applied),
+        ``report`` its report, ``data`` what it ran on (``calibrate``: the board observations) (optional)."""
 
 
 class SilentObserver(BaseObserver):
@@ -146,13 +147,14 @@ class Observers(BaseObserver):
         for o in self.observers:
             tell_sigma(o, sigma_px)
 
-    def run_start(self, kind: str, calib: Calibration) -> None:
+    def run_start(self, kind: str, calib: Calibration | None) -> None:
         for o in self.observers:
             tell(o, "run_start", kind, calib)
 
-    def run_end(self, kind: str, before: Calibration, after: Calibration, report: Any) -> None:
+    def run_end(self, kind: str, before: Calibration | None, after: Calibration, report: Any,
+                data: Any = None) -> None:
         for o in self.observers:
-            tell(o, "run_end", kind, before, after, report)
+            tell(o, "run_end", kind, before, after, report, data)
 
 
 def tell(observer: Observer, method: str, *args: Any) -> None:

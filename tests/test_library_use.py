@@ -143,3 +143,19 @@ def test_a_study_swaps_in_any_noise_object_or_hook(tmp_path):
                              trans_mm=(1.0,), trials=1, frames=1, jobs=2)
     with pytest.raises(TypeError, match="must be a lfgraph.RefineConfig"):
         lf.study.shake_study(["huber"], scene="small-2x2")
+
+
+def test_a_calibration_recorded_from_the_library_shows_its_result(tmp_path):
+    from test_api import corner_observations
+    from test_viz import read_blueprint, read_rrd
+
+    _, obs = corner_observations()
+    with lf.viz.RerunLogger.to_file(tmp_path / "cal.rrd", obs.grid) as rec:
+        calib, _ = lf.calibrate(obs, lf.CalibrateConfig(marginals=False), observer=rec)
+    columns, static, _ = read_rrd(tmp_path / "cal.rrd", None)
+    np.testing.assert_allclose(static["/world/calibrated_rig/r00_c01:Transform3D:translation"][0][0],
+                               calib.ref_T_view[1][:3, 3], atol=1e-9)
+    assert any(c.startswith("/world/boards/") for c in columns)
+    eye = []
+    read_blueprint(tmp_path / "cal.rrd", eye)
+    assert eye  # the layout opens on the calibrated rig

@@ -139,10 +139,10 @@ def _calibrate(args: argparse.Namespace) -> int:
     with rerun_session(args, grid, logging, "calibrate") as logger:
         if logger is not None:
             logger.set_measurements(obs.num_observations)
+            logger.frames_source = capture.load_frame if capture is not None else None
+        # the recording hears the result through the observer (run_end): rig, boards, every frame's corners
         calib, report = calibrate(obs, config, cli_observer(logger))
         calib.save(args.output)
-        if logger is not None:
-            logger.calibration_result(calib, obs, report, capture.load_frame if capture is not None else None)
     print(calibration_report_text(calib, report))
     if args.plots is not None:
         from lfgraph.viz.figures import calibration_report_figures

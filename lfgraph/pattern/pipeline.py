@@ -14,7 +14,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.detections import BoardObservations
 from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
 from lfgraph.factors.noise import RobustKernel
-from lfgraph.observer import Observer, resolve
+from lfgraph.observer import Observer, resolve, tell
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
 from lfgraph.pattern.initial import (
     check_observations,
@@ -120,6 +120,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         raise TypeError(f"calibrate: config must be a lfgraph.CalibrateConfig, got {type(config).__name__}")
     config = config or CalibrateConfig()
     say = resolve(observer)
+    tell(say, "run_start", "calibrate", None)
     method, init = config.method, config.init
     check_observations(obs)
     obs, duplicate_warnings = _without_copies(obs, say)
@@ -224,4 +225,5 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         board_T_ref=boards, residuals_px=res)
     metrics = {**report.metrics(), **choice.metrics()}
     calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics, obs.view_sizes_px)
+    tell(say, "run_end", "calibrate", None, calib, report, obs)  # e.g. a rerun recording shows the result
     return calib, report

@@ -137,6 +137,9 @@ class RerunLogger(BaseObserver):
         self.rec = rec
         self.grid = grid
         self._kind = kind  # the default blueprint's kind: re-sent with the 3-D eye on the rig once it is known
+        # where `run_end` of a calibration finds each frame's images (``f -> (V, H, W)``, e.g. a capture's
+        # ``load_frame``); None: the 2-D views show the corners without images
+        self.frames_source: Callable[[int], np.ndarray] | None = None
         self._eye_set = False
         self._final, self._tmp = final_path, tmp_path
         self.iteration_count = 0
@@ -223,21 +226,26 @@ class RerunLogger(BaseObserver):
         self.rec.log("log", rr.TextLog(message, level="WARN" if warning else "INFO"))
         super().log(message)
 
-    def run_start(self, kind: str, calib: Calibration) -> None:
-        """A run starts: its layout (`default_blueprint` of ``kind``, the 3-D eye on ``calib``) becomes the
-        recording's default, and for ``refine`` the input rig is shown."""
-        if kind in KINDS and (kind != self._kind or not self._eye_set):
-            self._kind, self.grid = kind, self.grid or calib.grid
-            self.rec.send_blueprint(default_blueprint(self.grid, kind, calib), make_active=False, make_default=True)
-            self._eye_set = True
-        if kind == "refine":
+    def run_start(self, kind: str, calib: Calibration | None) -> None:
+        """A run starts: its layout (`default_blueprint` of ``kind``, the 3-D eye on ``calib`` when given) becomes
+        the recording's default, and for ``refine`` the input rig is shown."""
+        grid = self.grid or (None if calib is None else calib.grid)
+        if kind in KINDS and grid is not None and (kind != self._kind or (calib is not None and not self._eye_set)):
+            self._kind, self.grid = kind, grid
+            self.rec.send_blueprint(default_blueprint(grid, kind, calib), make_active=False, make_default=True)
+            self._eye_set = calib is not None
+        if kind == "refine" and calib is not None:
             self.rig(calib, name="input_rig")
 
-    def run_end(self, kind: str, before: Calibration, after: Calibration, report: Any) -> None:
+    def run_end(self, kind: str, before: Calibration | None, after: Calibration, report: Any,
+                data: Any = None) -> None:
         """A run ended: for ``refine`` the refined rig, the change per view and the optimiser summaries
-        (`refinement_result`)."""
+        (`refinement_result`); for ``calibrate`` the calibrated rig, the boards and every frame's corners
+        (`calibration_result`, with the images of `frames_source` when set)."""
         if kind == "refine":
             self.refinement_result(before, after, report)
+        elif kind == "calibrate" and data is not None:
+            self.calibration_result(after, data, report, self.frames_source)
 
     def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
         self.on_iteration(iteration, error_before, error_after)
