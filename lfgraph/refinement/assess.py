@@ -257,6 +257,62 @@ def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
     return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px, post.held)
 
 
+def fold_refits(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, frame_of: np.ndarray | None,
+                config: RefineConfig) -> tuple[list[Calibration], list[np.ndarray]]:
+    """The fold refits (each without one fold of the fit's tracks) and, for each, the (N,) mask of the tracks it did
+    not see. Folds are whole frames when ``frame_of`` (the frame of each kept track) is given — errors within a frame
+    are correlated —, else random tracks; none when ``config.folds`` is 0."""
+    if not config.folds:
+        return [], []
+    if frame_of is not None:
+        uniq = np.unique(frame_of)
+        k = min(len(uniq), max(config.folds, MAX_FRAME_FOLDS))
+        order = {f: i % k for i, f in enumerate(uniq)}
+        fold = np.array([order[f] for f in frame_of], dtype=int)
+    else:
+        fold = fold_split(px.shape[1], config.folds)
+    calibs, tests = [], []
+    for k in range(int(fold.max()) + 1 if fold.size else 0):
+        train, test = fold != k, fold == k
+        if not test.any() or not train.any():
+            continue
+        try:
+            fk = fit_auto(calib, px[:, train], ok[:, train], config, SilentObserver(), fit.held, fit.sigma_px)
+        except (RuntimeError, ValueError):
+            continue
+        calibs.append(fk.calib)
+        tests.append(test)
+    return calibs, tests
+
+
+def heldout_test(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, sig_views: set[int],
+                 fold_calibs: list[Calibration], fold_tests: list[np.ndarray], config: RefineConfig,
+                 obs) -> tuple[Calibration, bool, bool, float, float, float]:
+    """The candidate (the input with the views ``sig_views`` from the full fit) and its held-out test, which
+    scores what is written: each fold's refit, applied to the same views, on its left-out tracks. Returns
+    (candidate, accepted, inconsistent, held-out RMS of the input, of the candidate, the fit's own RMS) (px)."""
+    if not sig_views:
+        return calib, False, False, float("nan"), float("nan"), float("nan")
+    candidate = combine(calib, fit.calib, sig_views)
+    e_before = [heldoutfinite_rms(calib, px[:, t], ok[:, t]) for t in fold_tests]
+    e_after = [heldoutfinite_rms(combine(calib, fc, sig_views), px[:, t], ok[:, t])
+               for fc, t in zip(fold_calibs, fold_tests, strict=True)]
+    if not e_before:
+        return candidate, True, False, float("nan"), float("nan"), float("nan")
+    before = finite_rms(np.concatenate(e_before, axis=1))
+    after = finite_rms(np.concatenate(e_after, axis=1))
+    accepted = bool(after > 0 and before / after >= config.min_improvement)
+    # the candidate must predict tracks it did not see about as well as it fits its own: far worse means the folds
+    # disagree (mismatches on a repeated pattern, too few tracks), whatever the input scores
+    fit_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
+    inconsistent = bool(after > HELDOUT_CONSISTENCY * max(fit_rms, MIN_TRACK_RMS_PX))
+    accepted &= not inconsistent
+    obs.log(f"held-out tracks ({len(e_before)} folds): RMS {before:.4f} px with the input, {after:.4f} px with the "
+            f"candidate refitted without them (its own tracks {fit_rms:.4f} px): "
+            + ("accepted" if accepted else "rejected"))
+    return candidate, accepted, inconsistent, before, after, fit_rms
+
+
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
            coverage: float, frames: int, frame_of: np.ndarray | None = None,
            sigma_estimate: float | None = None) -> Assessment:
@@ -264,43 +320,20 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames.
     ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
 
-    obs = observer
-    fit = fit_auto(calib, pixels, valid, config, obs, sigma_estimate=sigma_estimate)
+    fit = fit_auto(calib, pixels, valid, config, observer, sigma_estimate=sigma_estimate)
     post = posterior(calib, fit, config)
     n, ref = calib.num_views, calib.grid.reference
     rays = infinity_rays(calib)
-    # folds: whole frames when there are several (errors within a frame are correlated), else random tracks
     px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
-    fold = None
-    if config.folds:
-        if frame_of is not None and len(np.unique(frame_of)) >= 2:
-            frames_kept = frame_of[fit.keep]
-            uniq = np.unique(frames_kept)
-            k = min(len(uniq), max(config.folds, MAX_FRAME_FOLDS))
-            order = {f: i % k for i, f in enumerate(uniq)}
-            fold = np.array([order[f] for f in frames_kept], dtype=int)
-        else:
-            fold = fold_split(px.shape[1], config.folds)
-    fold_calibs: list[Calibration] = []
-    fold_tests: list[np.ndarray] = []  # the tracks each fold refit did not see
-    if fold is not None:
-        for k in range(int(fold.max()) + 1 if fold.size else 0):
-            train, test = fold != k, fold == k
-            if not test.any() or not train.any():
-                continue
-            try:
-                fk = fit_auto(calib, px[:, train], ok[:, train], config, SilentObserver(), fit.held, fit.sigma_px)
-            except (RuntimeError, ValueError):
-                continue
-            fold_calibs.append(fk.calib)
-            fold_tests.append(test)
+    several = frame_of is not None and len(np.unique(frame_of)) >= 2  # folds of whole frames
+    fold_calibs, fold_tests = fold_refits(calib, fit, px, ok, frame_of[fit.keep] if several else None, config)
     factors = np.ones((n, 4))
     if post is not None:
         post, factors = inflate(post, calib, fold_calibs)
         if np.any(factors > 1.0):
             worst = np.unravel_index(np.argmax(factors), factors.shape)
-            obs.log(f"fold refits scatter up to {np.sqrt(factors.max()):.1f}x more than the graph's marginals "
-                    f"({calib.grid.name(int(worst[0]))}, {list(GROUPS)[int(worst[1])]}): sigmas widened")
+            observer.log(f"fold refits scatter up to {np.sqrt(factors.max()):.1f}x more than the graph's marginals "
+                         f"({calib.grid.name(int(worst[0]))}, {list(GROUPS)[int(worst[1])]}): sigmas widened")
     test_post = with_input_uncertainty(post, calib) if post is not None else None
     free = [v for v in range(n) if v != ref and v not in fit.held]
     zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
@@ -317,8 +350,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     # periods looks like a turned camera): nothing they suggest is applied
     mismatched = not fit.sigma_px <= MAX_TRACK_SIGMA_PX
     if mismatched:
-        obs.log(f"the refit leaves {fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px): the tracks are "
-                f"mismatched, nothing is changed")
+        observer.log(f"the refit leaves {fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px): the tracks "
+                     f"are mismatched, nothing is changed")
         unsure_mismatch = set(sig_views) | small
         sig_views, small = set(), set()
     else:
@@ -337,32 +370,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         if not x <= size_px[v] / config.significance_sigma:
             unsure[v] = x
     sig_views -= set(unsure)
-    candidate = calib
-    heldout_before = heldout_after = fit_rms = float("nan")
-    inconsistent = False
-    accepted = False
-    e_before: list[np.ndarray] = []
-    e_after: list[np.ndarray] = []
-    if sig_views:
-        candidate = combine(calib, fit.calib, sig_views)
-        accepted = True
-        # the held-out test scores what is written: each fold's refit, applied to the same views, on its left-out
-        # tracks
-        for fc, test in zip(fold_calibs, fold_tests, strict=True):
-            e_before.append(heldoutfinite_rms(calib, px[:, test], ok[:, test]))
-            e_after.append(heldoutfinite_rms(combine(calib, fc, sig_views), px[:, test], ok[:, test]))
-        if e_before:
-            heldout_before = finite_rms(np.concatenate(e_before, axis=1))
-            heldout_after = finite_rms(np.concatenate(e_after, axis=1))
-            accepted = bool(heldout_after > 0 and heldout_before / heldout_after >= config.min_improvement)
-            # the candidate must predict tracks it did not see about as well as it fits its own: far worse means the
-            # folds disagree (mismatches on a repeated pattern, too few tracks), whatever the input scores
-            fit_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
-            inconsistent = bool(heldout_after > HELDOUT_CONSISTENCY * max(fit_rms, MIN_TRACK_RMS_PX))
-            accepted &= not inconsistent
-            obs.log(f"held-out tracks ({len(e_before)} folds): RMS {heldout_before:.4f} px with the input, "
-                    f"{heldout_after:.4f} px with the candidate refitted without them (its own tracks "
-                    f"{fit_rms:.4f} px): " + ("accepted" if accepted else "rejected"))
+    candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms = heldout_test(
+        calib, fit, px, ok, sig_views, fold_calibs, fold_tests, config, observer)
     out = candidate if accepted else calib
     dec = _Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
                     accepted, inconsistent, heldout_before, heldout_after, fit_rms)
