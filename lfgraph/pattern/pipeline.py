@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Any
 
 import numpy as np
 
@@ -96,6 +97,113 @@ def screen_view_frames(obs: BoardObservations, intrinsics: tuple, ref_T_view: np
     return obs, screen.intrinsics, screen.ref_T_view, boards, messages
 
 
+def _board_order(obs: BoardObservations, say: Observer) -> tuple[BoardObservations, list[str]]:
+    """A symmetric board's corner order made consistent (`order_symmetric_boards`: the detector cannot tell a board
+    turned by 180° from the original; the rig's geometry can), with its warnings; other boards unchanged."""
+    if not obs.board.is_symmetric:
+        return obs, []
+    obs, order = order_symmetric_boards(obs)
+    if order.reversed.any():
+        say.log(f"symmetric board: corner order reversed in {int(order.reversed.sum())} view-frame(s) so that "
+                f"every view agrees with the rig")
+    return obs, list(order.messages)
+
+
+def _paper_route(obs: BoardObservations, lenses, say: Observer) -> tuple[BoardObservations, Any, list[str]]:
+    """The paper route (`calibrate_paper`). One bad view-frame (a mis-detected board, another camera's image) skews
+    the PnP average the rig starts from and then the whole fit: view-frames whose relative pose contradicts the other
+    frames' are dropped and the route runs again. Returns (observations, its result, one warning per dropped)."""
+    paper = calibrate_paper(obs, lenses)
+    bad = inconsistent_view_frames(paper.view_T_board, obs.grid.reference)
+    if not bad:
+        return obs, paper, []
+    obs = drop_view_frames(obs, [(v, f) for v, f, _, _ in bad])
+    warnings = []
+    for v, f, rot, pos in bad:
+        message = (f"{obs.describe(v, f)}: its board pose contradicts the rig the other frames agree on "
+                   f"(off by {rot:.2f} deg, {1e3 * pos:.1f} mm): dropped from the calibration")
+        warnings.append(message)
+        say.log(message)
+    check_observations(obs)
+    return obs, calibrate_paper(obs, lenses), warnings
+
+
+def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
+                 say: Observer) -> tuple[BoardObservations, Any, list[str]]:
+    """The joint graph (`calibrate_joint`), started from the paper route or from design values. Robust by default:
+    a Cauchy fit first finds view-frames the rig cannot explain (swapped or mislabelled images, a mis-detected
+    board), which plain least squares would smear over every view; they are dropped by name and the least-squares
+    fit (the reported one) starts from the robust result. Returns (observations, its result, warnings)."""
+    if paper is not None:
+        start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
+    else:
+        start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
+        start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
+    start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
+    dropped: list[str] = []
+    if config.screen and isinstance(config.noise, RobustKernel) and config.noise.name == "none":
+        obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
+            obs, start_intr, start_poses, start_boards, config, say)
+    return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
+
+
+def _weak_view_warnings(obs: BoardObservations, joint) -> list[str]:
+    """One warning per view that saw the board in too few frames (calibrated through the rig, with a prior)."""
+    out = []
+    for v in np.nonzero(weak_views(obs))[0]:
+        s = joint.sigmas[v] if joint.sigmas is not None else None
+        sig = "" if s is None else (f"; 1-sigma fx {s['fx_px']:.2g} px, cx {s['cx_px']:.2g} px, position "
+                                    f"{max(s['position_mm']):.2g} mm, rotation {max(s['rotation_deg']):.2g} deg")
+        out.append(f"{obs.describe(int(v))} saw the board in only {int(obs.seen[v].sum())} frame(s): "
+                   f"calibrated through the rig with a prior on its intrinsics (focal length "
+                   f"±{100 * WEAK_FOCAL_SIGMA_REL:g} %, principal point ±{100 * WEAK_PRINCIPAL_SIGMA_REL:g} % "
+                   f"of the width, k1, k2 ±{WEAK_RADIAL_SIGMA:g}){sig}; show it the board more often")
+    return out
+
+
+def _result_warnings(obs: BoardObservations, intrinsics, res: np.ndarray, frame_rms: np.ndarray,
+                     outliers: list[int], cells: np.ndarray) -> list[str]:
+    """Warnings about a calibration's residuals: outlying frames, a radial residual pattern per view (a lens model
+    that does not fit), and views the board did not cover."""
+    warnings = []
+    if outliers:
+        warnings.append("frames with outlying reprojection error (check these images for a mis-detected board): "
+                        + ", ".join(f"{obs.frame_names[f]} ({frame_rms[f]:.3f} px)" for f in outliers))
+    for v in range(obs.num_views):
+        message = radial_profile_warning(obs, v, intrinsics[v], res[v])
+        if message:
+            warnings.append(message)
+    return warnings + coverage_warnings(obs, cells)
+
+
+def _result(obs: BoardObservations, method, init, paper, joint, intrinsics, ref_T_view: np.ndarray,  # noqa: N803
+            boards: np.ndarray, res: np.ndarray, warnings: list[str], seconds: dict[str, float],
+            choice) -> tuple[Calibration, CalibrationReport]:
+    """The calibration and its report from a route's result: RMS per view and frame, outlying frames, the
+    residual and coverage warnings, the figures in ``metrics``."""
+    n_views = obs.num_views
+    view_rms = np.asarray(rms_px(res, axis=(1, 2)))
+    frame_rms = np.asarray(rms_px(res, axis=(0, 2)))
+    rig_rms = float(rms_px(res, axis=None))
+    outliers = outlier_frames(frame_rms)
+    cells = coverage_map(obs)
+    warnings += _result_warnings(obs, intrinsics, res, frame_rms, outliers, cells)
+    report = CalibrationReport(
+        method=str(method), init=None if method == Method.PAPER else str(init),
+        e_mono_px=None if paper is None else paper.e_mono_px, e_pnp_px=None if paper is None else paper.e_pnp_px,
+        view_e_mono_px=np.full(n_views, np.nan) if paper is None else paper.view_e_mono_px,
+        view_e_pnp_px=np.full(n_views, np.nan) if paper is None else paper.view_e_pnp_px,
+        rig_rms_px=rig_rms, view_rms_px=view_rms, frame_rms_px=frame_rms, outlier_frames=tuple(outliers),
+        coverage=cells.mean(axis=(1, 2)), coverage_cells=cells, frames_per_view=obs.seen.sum(axis=1),
+        noise_sigma_px=None if joint is None else joint.noise_sigma_px,
+        sigmas=None if joint is None else joint.sigmas,
+        optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds,
+        board_T_ref=boards, residuals_px=res)
+    metrics = {**report.metrics(), **choice.metrics()}
+    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics, obs.view_sizes_px)
+    return calib, report
+
+
 def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
               observer: Observer | None = None) -> tuple[Calibration, CalibrationReport]:
     """Calibrate the array from board observations.
@@ -124,17 +232,9 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     method, init = config.method, config.init
     check_observations(obs)
     obs, duplicate_warnings = _without_copies(obs, say)
-    order_warnings: tuple[str, ...] = ()
-    if obs.board.is_symmetric:
-        # the detector cannot tell a board turned by 180° from the original; the rig's geometry can
-        obs, order = order_symmetric_boards(obs)
-        order_warnings = order.messages
-        if order.reversed.any():
-            say.log(f"symmetric board: corner order reversed in {int(order.reversed.sum())} view-frame(s) so that "
-                    f"every view agrees with the rig")
+    obs, order_warnings = _board_order(obs, say)
     seconds: dict[str, float] = {}
-    warnings: list[str] = duplicate_warnings + list(order_warnings)
-    n_views = obs.num_views
+    warnings: list[str] = duplicate_warnings + order_warnings
     t0 = time.perf_counter()
     choice = _lens_choice(obs, config, say)
     lenses = choice.lenses
@@ -142,88 +242,32 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     paper = None
     if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()
-        paper = calibrate_paper(obs, lenses)
-        # one bad view-frame (a mis-detected board, another camera's image) skews the PnP average the rig starts
-        # from and then the whole fit: view-frames whose relative pose contradicts the other frames' are dropped
-        bad = inconsistent_view_frames(paper.view_T_board, obs.grid.reference)
-        if bad:
-            obs = drop_view_frames(obs, [(v, f) for v, f, _, _ in bad])
-            for v, f, rot, pos in bad:
-                message = (f"{obs.describe(v, f)}: its board pose contradicts the rig the other frames agree on "
-                           f"(off by {rot:.2f} deg, {1e3 * pos:.1f} mm): dropped from the calibration")
-                warnings.append(message)
-                say.log(message)
-            check_observations(obs)
-            paper = calibrate_paper(obs, lenses)
+        obs, paper, dropped = _paper_route(obs, lenses, say)
         seconds["paper"] = time.perf_counter() - t0
-        warnings += paper.warnings
+        warnings += dropped + list(paper.warnings)
         say.log(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
             f"{'-' if paper.e_pnp_px is None else f'{paper.e_pnp_px:.4f}'} px ({seconds['paper']:.1f} s)")
     joint = None
     if method == Method.PAPER:
         intrinsics, ref_T_view = paper.intrinsics, paper.ref_T_view  # noqa: N806
         t0 = time.perf_counter()
-        board_T_ref = fit_board_poses(intrinsics, ref_T_view, obs,  # noqa: N806
-                                      initial_board_T_ref(paper.view_T_board, ref_T_view, obs.valid.sum(axis=2)))
+        boards = fit_board_poses(intrinsics, ref_T_view, obs,
+                                 initial_board_T_ref(paper.view_T_board, ref_T_view, obs.valid.sum(axis=2)))
         seconds["rig_fit"] = time.perf_counter() - t0
-        res = rig_residuals(intrinsics, ref_T_view, board_T_ref, obs)
-        boards = board_T_ref
+        res = rig_residuals(intrinsics, ref_T_view, boards, obs)
     else:
-        if paper is not None:
-            start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
-        else:
-            start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
-            start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
-        start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
         t0 = time.perf_counter()
-        if config.screen and isinstance(config.noise, RobustKernel) and config.noise.name == "none":
-            # robust by default: a Cauchy fit finds view-frames the rig cannot explain (swapped or mislabelled
-            # images, a mis-detected board), which plain least squares would smear over every view; they are
-            # dropped by name and the least-squares fit (the reported one) starts from the robust result
-            obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
-                obs, start_intr, start_poses, start_boards, config, say)
-            warnings += dropped
-        joint = calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration)
+        obs, joint, dropped = _joint_route(obs, paper, lenses, config, say)
+        warnings += dropped
         seconds["joint"] = time.perf_counter() - t0
         opt = joint.optimization
         say.log(f"joint route: {opt.iterations} LM iterations, error {opt.initial_error:.4g} -> "
                 f"{opt.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
         intrinsics, ref_T_view = joint.intrinsics, joint.ref_T_view  # noqa: N806
-        for v in np.nonzero(weak_views(obs))[0]:
-            s = joint.sigmas[v] if joint.sigmas is not None else None
-            sig = "" if s is None else (f"; 1-sigma fx {s['fx_px']:.2g} px, cx {s['cx_px']:.2g} px, position "
-                                        f"{max(s['position_mm']):.2g} mm, rotation {max(s['rotation_deg']):.2g} deg")
-            warnings.append(f"{obs.describe(int(v))} saw the board in only {int(obs.seen[v].sum())} frame(s): "
-                            f"calibrated through the rig with a prior on its intrinsics (focal length "
-                            f"±{100 * WEAK_FOCAL_SIGMA_REL:g} %, principal point ±{100 * WEAK_PRINCIPAL_SIGMA_REL:g} % "
-                            f"of the width, k1, k2 ±{WEAK_RADIAL_SIGMA:g}){sig}; show it the board more often")
+        warnings += _weak_view_warnings(obs, joint)
         res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
         boards = joint.board_T_ref
-    view_rms = np.asarray(rms_px(res, axis=(1, 2)))
-    frame_rms = np.asarray(rms_px(res, axis=(0, 2)))
-    rig_rms = float(rms_px(res, axis=None))
-    outliers = outlier_frames(frame_rms)
-    if outliers:
-        warnings.append("frames with outlying reprojection error (check these images for a mis-detected board): "
-                        + ", ".join(f"{obs.frame_names[f]} ({frame_rms[f]:.3f} px)" for f in outliers))
-    for v in range(n_views):
-        message = radial_profile_warning(obs, v, intrinsics[v], res[v])
-        if message:
-            warnings.append(message)
-    cells = coverage_map(obs)
-    warnings += coverage_warnings(obs, cells)
-    report = CalibrationReport(
-        method=str(method), init=None if method == Method.PAPER else str(init),
-        e_mono_px=None if paper is None else paper.e_mono_px, e_pnp_px=None if paper is None else paper.e_pnp_px,
-        view_e_mono_px=np.full(n_views, np.nan) if paper is None else paper.view_e_mono_px,
-        view_e_pnp_px=np.full(n_views, np.nan) if paper is None else paper.view_e_pnp_px,
-        rig_rms_px=rig_rms, view_rms_px=view_rms, frame_rms_px=frame_rms, outlier_frames=tuple(outliers),
-        coverage=cells.mean(axis=(1, 2)), coverage_cells=cells, frames_per_view=obs.seen.sum(axis=1),
-        noise_sigma_px=None if joint is None else joint.noise_sigma_px,
-        sigmas=None if joint is None else joint.sigmas,
-        optimization=None if joint is None else joint.optimization, warnings=tuple(warnings), seconds=seconds,
-        board_T_ref=boards, residuals_px=res)
-    metrics = {**report.metrics(), **choice.metrics()}
-    calib = Calibration(obs.grid, obs.image_size_px, intrinsics, ref_T_view, None, metrics, obs.view_sizes_px)
+    calib, report = _result(obs, method, init, paper, joint, intrinsics, ref_T_view, boards, res, warnings, seconds,
+                            choice)
     tell(say, "run_end", "calibrate", None, calib, report, obs)  # e.g. a rerun recording shows the result
     return calib, report
