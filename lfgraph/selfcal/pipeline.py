@@ -88,6 +88,102 @@ def graph_landmarks(values: gtsam.Values) -> int:
     return n
 
 
+def _retracked(tracks: PooledTracks, points: np.ndarray, calib: Calibration,
+               say: Observer) -> tuple[PooledTracks, np.ndarray, int]:
+    """The tracks followed again from the reference view with windows warped by the calibration so far (it knows
+    how each view scales, turns and bends the reference window; translation-only KLT is biased by that): the kept
+    tracks, their landmarks and how many observations were re-tracked.
+
+    A window that still differs from the reference's after the warp (a depth edge, a slanted surface, little
+    contrast) tracks badly: only re-tracked observations that match about as well as the typical one are kept.
+    Observations not re-tracked (windows keeping under `MIN_WINDOW_SHARE` inside the image, ~2 px from its border;
+    failed fits) are dropped too: their chain positions carry the scale bias the re-tracking removes."""
+    grid = calib.grid
+    pixels, valid, done, mismatch = retrack(tracks.pixels, tracks.valid, tracks.patches, calib, points)
+    retracked = int(done.sum())
+    ref_view = np.arange(grid.num_views)[:, None] == grid.reference
+    limit = MISMATCH_FACTOR * float(np.median(mismatch[done])) if retracked else np.inf
+    valid = valid & (ref_view | (done & (mismatch <= limit)))
+    pixels = np.where(valid[..., None], pixels, np.nan)
+    tracks = PooledTracks(pixels, valid, tracks.frame, tracks.frames_seen, tracks.frames_used, tracks.patches)
+    keep = drop_outliers(calib, tracks.pixels, tracks.valid, points)[0] & (valid.sum(axis=0) >= 2)
+    tracks, points = tracks.subset(keep), points[keep]
+    say.log(f"self-calibration: {retracked} observations re-tracked with the calibrated local maps, "
+            f"{tracks.num_tracks} tracks kept")
+    return tracks, points, retracked
+
+
+NO_TRACK = ("no track was followed through all {views} views in {frames} frame(s); use textured scenes that every "
+            "view sees")
+
+
+def _enough_tracks(tracks: PooledTracks, stage: str) -> None:
+    """Raises SelfCalibrationError when a stage left fewer than `MIN_TRACKS` usable tracks."""
+    if tracks.num_tracks < MIN_TRACKS:
+        raise SelfCalibrationError(f"{stage} left {tracks.num_tracks} usable tracks (at least {MIN_TRACKS} are "
+                                   f"needed): the frames do not hold the landmarks' depths; add frames at other "
+                                   f"depths or tighten the design tolerances")
+
+
+def _covered_distortion(free: frozenset, coverage, design: Design) -> tuple[frozenset, str | None]:
+    """The groups a stage frees given how far the tracks reach: short of the corners, the stages estimate k1 alone
+    when they reach half way out, else neither (the final stage frees both, pulled to the design with its
+    tolerances); with the warning that says so (None when the tracks cover the corners)."""
+    if coverage.distortion_covered:
+        return free, None
+    held = "k2" if coverage.k1_covered else "k1 and k2"
+    return (free - {"distortion"} | ({"k1"} if coverage.k1_covered else set()),
+            f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: {held} set largely by the design "
+            f"values (k1 {design.k1:g}, k2 {design.k2:g}) and their tolerances (see the sigmas); add frames with "
+            "texture in the image corners")
+
+
+def _frames_suffice(calib: Calibration, tracks: PooledTracks, points: np.ndarray, design: Design,
+                    config: SelfCalConfig):
+    """The tracks' coverage (`measure_coverage`), refusing frames that cannot determine the calibration.
+
+    Raises:
+        SelfCalibrationError: the coverage's problems (too few frames, depths, image regions)."""
+    coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
+    problems = coverage.problems(config.min_frames)
+    if problems:
+        raise SelfCalibrationError("these frames cannot determine the calibration: " + "; ".join(problems))
+    return coverage
+
+
+def _final_fit(calib: Calibration, nominal: Calibration, tracks: PooledTracks, points: np.ndarray, free: frozenset,
+               sigmas, noise: float, design: Design, config: SelfCalConfig, say: Observer):
+    """The final stage: plain least squares at the measured noise, with embedded landmark iterations, repeated
+    (up to `FINAL_PASSES`) until the fit's own residuals support the noise it assumed and no landmark left. Returns
+    (calibration, landmarks, tracks, graph, values, the noise of the graph — which the marginals scale with — and
+    one `StageResult` per pass)."""
+    passes = []
+    for _ in range(FINAL_PASSES):
+        used_noise = noise
+        calib, points, graph, values, iters = run_map_stage(
+            calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
+            measurement(RobustKernel("none"), noise), FINAL_ITERATIONS_FACTOR * config.max_iterations,
+            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False,
+            landmark_iterations=LANDMARK_ITERATIONS)
+        tracks, points = _clean(calib, tracks, points, design)
+        errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
+        passes.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
+        measured = _measured_noise(errors, tracks.num_tracks, calib.num_views)
+        if abs(measured / noise - 1.0) < NOISE_AGREEMENT and len(points) == graph_landmarks(values):
+            break
+        noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
+    return calib, points, tracks, graph, values, used_noise, passes
+
+
+def _metrics(design: Design, report: SelfCalReport, noise_px: float, post) -> dict:
+    """What a self-calibration stores in ``Calibration.metrics``."""
+    return {"source": "self-calibration from scene frames (lfgraph calibrate-scene)", "scale_from": "design pitch",
+            "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
+                       "focal_px": design.focal_px},
+            "selfcal_rms_px": report.rms_px, "selfcal_noise_px": noise_px, "verdict": report.verdict,
+            "sigmas": post.as_dict()}
+
+
 def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,
                      observer: Observer | None = None) -> tuple[Calibration, SelfCalReport]:
     """Self-calibrate from pooled tracks (the solver of `calibrate_scene`; tests feed it exact synthetic tracks).
@@ -102,8 +198,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     sigmas = config.sigmas(design)
     grid = nominal.grid
     if tracks.num_tracks == 0:
-        raise SelfCalibrationError(f"no track was followed through all {grid.num_views} views in "
-                                   f"{tracks.frames_seen} frame(s); use textured scenes that every view sees")
+        raise SelfCalibrationError(NO_TRACK.format(views=grid.num_views, frames=tracks.frames_seen))
     calib = nominal
     points = initial_landmarks(calib, tracks.pixels, tracks.valid)
     tracks, points = _clean(calib, tracks, points, design)
@@ -118,15 +213,9 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         if "distortion" in free:
             if coverage is None:
                 coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
-            if not coverage.distortion_covered:
-                # tracks short of the corners: the stages estimate k1 alone when they reach half way out, else
-                # neither; the final stage frees both, pulled to the design with its tolerances
-                free = free - {"distortion"} | ({"k1"} if coverage.k1_covered else set())
-                if not held_warned:
-                    held = "k2" if coverage.k1_covered else "k1 and k2"
-                    warnings.append(f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: {held} set "
-                                    f"largely by the design values (k1 {design.k1:g}, k2 {design.k2:g}) and their "
-                                    "tolerances (see the sigmas); add frames with texture in the image corners")
+            free, message = _covered_distortion(free, coverage, design)
+            if message is not None:
+                warnings += [] if held_warned else [message]
                 distortion, held_warned = False, True
         if not free:
             continue
@@ -141,37 +230,14 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         say.log(f"self-calibration stage {k + 1} ({'+'.join(sorted(free))}): {tracks.num_tracks} tracks, "
                 f"{iters} iterations, rms {stages[-1].rms_px:.3f} px")
         tracks, points = tracks.subset(keep), points[keep]
-        if tracks.num_tracks < MIN_TRACKS:
-            raise SelfCalibrationError(f"stage {k + 1} ({'+'.join(sorted(free))}) left {tracks.num_tracks} usable "
-                                       f"tracks (at least {MIN_TRACKS} are needed): the frames do not hold the "
-                                       "landmarks' depths; add frames at other depths or tighten the design "
-                                       "tolerances")
+        _enough_tracks(tracks, f"stage {k + 1} ({'+'.join(sorted(free))})")
         if k == 0:  # after the poses the landmarks' depths are right: refuse now if the frames cannot do it
-            coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
-            problems = coverage.problems(config.min_frames)
-            if problems:
-                raise SelfCalibrationError("these frames cannot determine the calibration: " + "; ".join(problems))
+            coverage = _frames_suffice(calib, tracks, points, design, config)
     if not stages:
         raise SelfCalibrationError("no stage frees any parameter")
     retracked = 0
     if config.retrack and tracks.patches is not None:
-        # the calibration so far knows how each view scales, turns and bends the reference window: track again
-        # from the reference view with the window warped accordingly (translation-only KLT is biased by it)
-        pixels, valid, done, mismatch = retrack(tracks.pixels, tracks.valid, tracks.patches, calib, points)
-        retracked = int(done.sum())
-        # a window that still differs from the reference's after the warp (a depth edge, a slanted surface, little
-        # contrast) tracks badly: keep the re-tracked observations that match about as well as the typical one.
-        # Observations not re-tracked (windows keeping under `MIN_WINDOW_SHARE` inside the image, ~2 px from its
-        # border; failed fits) are dropped too: their chain positions carry the scale bias the re-tracking removes
-        ref_view = np.arange(grid.num_views)[:, None] == grid.reference
-        limit = MISMATCH_FACTOR * float(np.median(mismatch[done])) if retracked else np.inf
-        valid = valid & (ref_view | (done & (mismatch <= limit)))
-        pixels = np.where(valid[..., None], pixels, np.nan)
-        tracks = PooledTracks(pixels, valid, tracks.frame, tracks.frames_seen, tracks.frames_used, tracks.patches)
-        keep = drop_outliers(calib, tracks.pixels, tracks.valid, points)[0] & (valid.sum(axis=0) >= 2)
-        tracks, points = tracks.subset(keep), points[keep]
-        say.log(f"self-calibration: {retracked} observations re-tracked with the calibrated local maps, "
-                f"{tracks.num_tracks} tracks kept")
+        tracks, points, retracked = _retracked(tracks, points, calib, say)
     # final stage: plain least squares at the measured noise, so that the marginals are the posterior. The noise
     # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
     # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
@@ -184,20 +250,9 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         free = free - {"k1"} | {"distortion"}
     if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
         calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
-    for _ in range(FINAL_PASSES):
-        used_noise = noise  # the graph's noise, which the marginals scale with
-        calib, points, graph, values, iters = run_map_stage(
-            calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
-            measurement(RobustKernel("none"), noise), FINAL_ITERATIONS_FACTOR * config.max_iterations,
-            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False,
-            landmark_iterations=LANDMARK_ITERATIONS)
-        tracks, points = _clean(calib, tracks, points, design)
-        errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-        stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
-        measured = _measured_noise(errors, tracks.num_tracks, grid.num_views)
-        if abs(measured / noise - 1.0) < NOISE_AGREEMENT and len(points) == graph_landmarks(values):
-            break
-        noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
+    calib, points, tracks, graph, values, used_noise, passes = _final_fit(calib, nominal, tracks, points, free,
+                                                                         sigmas, noise, design, config, say)
+    stages += passes
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
     post, joint = posterior(graph, values, grid.num_views)
     mode_list: list[Mode] = modes(joint, sigmas.intrinsic_sigmas(), grid, "distortion" in free)
@@ -205,11 +260,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
     report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
                            tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES, retracked, tracks)
-    metrics = {"source": "self-calibration from scene frames (lfgraph calibrate-scene)", "scale_from": "design pitch",
-               "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
-                          "focal_px": design.focal_px},
-               "selfcal_rms_px": report.rms_px, "selfcal_noise_px": used_noise, "verdict": report.verdict,
-               "sigmas": post.as_dict()}
+    metrics = _metrics(design, report, used_noise, post)
     say.log(f"self-calibration: rms {report.rms_px:.3f} px at a measured noise of {used_noise:.3f} px; verdict "
             f"{report.verdict}")
     return calib.replace(metrics=metrics), report
