@@ -92,6 +92,51 @@ def _duplicates(points: np.ndarray, alive: np.ndarray, radius: float) -> np.ndar
     return out
 
 
+def _step_guess(previous: np.ndarray | None, idx: np.ndarray) -> np.ndarray:
+    """(len(idx), 2) KLT start offsets: each track's previous step in the same grid direction (its median where a
+    track has none; zeros before the first step in that direction)."""
+    if previous is None:
+        return np.zeros((len(idx), 2))
+    known = previous[idx]
+    has = np.all(np.isfinite(known), axis=1)
+    return np.where(has[:, None], known, np.nan_to_num(np.nanmedian(previous, axis=0))[None])
+
+
+def _anchor(images: np.ndarray, ref: int, pts: np.ndarray, alive: np.ndarray, anchor_px: float, win: tuple,
+            criteria: tuple) -> None:
+    """Chained KLT drifts coherently (small biases add up over up to V-1 steps): re-track every view directly from
+    the reference patch, started at the chain's estimate, and keep the points that stay within ``anchor_px`` of it
+    (``pts`` and ``alive`` updated in place)."""
+    ref_pts = pts[ref].astype(np.float32).reshape(-1, 1, 2)
+    for b in range(len(images)):
+        if b == ref or not alive[b].any():
+            continue
+        idx = np.nonzero(alive[b])[0]
+        start = pts[b, idx].astype(np.float32).reshape(-1, 1, 2)
+        p1, status, _ = cv2.calcOpticalFlowPyrLK(images[ref], images[b], ref_pts[idx], start.copy(),
+                                                 winSize=win, maxLevel=1, criteria=criteria,
+                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        p1 = p1.reshape(-1, 2).astype(np.float64)
+        moved = np.linalg.norm(p1 - pts[b, idx], axis=1)
+        ok = (status.ravel() == 1) & (moved <= anchor_px)
+        pts[b, idx[ok]] = p1[ok]
+        alive[b, idx[~ok]] = False
+
+
+def _ransac(grid: ViewGrid, pts: np.ndarray, alive: np.ndarray, keep: np.ndarray, s: MatchSettings) -> None:
+    """Fundamental-matrix RANSAC between the chain's adjacent views: ``keep`` loses every track an adjacent pair's
+    consensus rejects (in place); pairs sharing fewer than 8 tracks are skipped."""
+    for a, b in grid.chain():
+        both = keep & alive[a] & alive[b]
+        if both.sum() < 8:
+            continue
+        _, mask = cv2.findFundamentalMat(pts[a, both], pts[b, both], cv2.FM_RANSAC, s.ransac_threshold_px,
+                                         s.ransac_confidence)
+        if mask is None:
+            continue
+        keep[np.nonzero(both)[0][mask.ravel() == 0]] = False
+
+
 def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | None = None) -> Tracks:
     """Track Shi–Tomasi features of the reference view through every view along ``grid.chain()``.
 
@@ -131,12 +176,7 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         (ra, ca), (rb, cb) = grid.position(a), grid.position(b)
         direction = (rb - ra, cb - ca)
         idx = np.nonzero(src)[0]
-        guess = np.zeros((len(idx), 2))
-        if direction in steps:
-            known = steps[direction][idx]
-            has = np.all(np.isfinite(known), axis=1)
-            median = np.nanmedian(steps[direction], axis=0)
-            guess = np.where(has[:, None], known, np.nan_to_num(median)[None])
+        guess = _step_guess(steps.get(direction), idx)
         p0 = pts[a, idx].astype(np.float32).reshape(-1, 1, 2)
         start = (pts[a, idx] + guess).astype(np.float32).reshape(-1, 1, 2)
         p1, status, _ = cv2.calcOpticalFlowPyrLK(images[a], images[b], p0, start, winSize=win,
@@ -159,22 +199,7 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         steps[direction] = step
         dup |= _duplicates(pts[b], alive[b], DUPLICATE_PX)
     if s.anchor_px is not None:
-        # Chained KLT drifts coherently (small biases add up over up to V-1 steps). Re-track every view directly
-        # from the reference patch, started at the chain's estimate, and keep points that stay near it.
-        ref_pts = pts[ref].astype(np.float32).reshape(-1, 1, 2)
-        for b in range(n_views):
-            if b == ref or not alive[b].any():
-                continue
-            idx = np.nonzero(alive[b])[0]
-            start = pts[b, idx].astype(np.float32).reshape(-1, 1, 2)
-            p1, status, _ = cv2.calcOpticalFlowPyrLK(images[ref], images[b], ref_pts[idx], start.copy(),
-                                                     winSize=win, maxLevel=1, criteria=criteria,
-                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            p1 = p1.reshape(-1, 2).astype(np.float64)
-            moved = np.linalg.norm(p1 - pts[b, idx], axis=1)
-            ok = (status.ravel() == 1) & (moved <= s.anchor_px)
-            pts[b, idx[ok]] = p1[ok]
-            alive[b, idx[~ok]] = False
+        _anchor(images, ref, pts, alive, s.anchor_px, win, criteria)
     min_views = n_views if s.min_views is None else s.min_views
     seen = alive.sum(axis=0)
     counts = {"detected": n}
@@ -183,16 +208,7 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
     dup |= _duplicates(pts[ref], alive[ref], DUPLICATE_PX)
     keep &= ~dup
     counts["dedup"] = int(keep.sum())
-    for a, b in grid.chain():
-        both = keep & alive[a] & alive[b]
-        if both.sum() < 8:
-            continue
-        _, mask = cv2.findFundamentalMat(pts[a, both], pts[b, both], cv2.FM_RANSAC, s.ransac_threshold_px,
-                                         s.ransac_confidence)
-        if mask is None:
-            continue
-        bad = np.nonzero(both)[0][mask.ravel() == 0]
-        keep[bad] = False
+    _ransac(grid, pts, alive, keep, s)
     counts["ransac"] = int(keep.sum())
     valid = alive[:, keep]
     out = pts[:, keep].copy()
