@@ -310,6 +310,66 @@ def _open_videos(root: Path, grid: ViewGrid) -> CaptureSet:
     return CaptureSet(root, "video", grid, names, tuple(tuple(videos) for _ in range(n)), infos[0][1], tuple(notes))
 
 
+def as_grid(grid: ViewGrid | tuple[int, int] | str) -> ViewGrid:
+    """A `ViewGrid` from itself, a (rows, cols) pair or the CLI's spelling ``"2x2"``.
+
+    Raises:
+        ValueError: anything else, naming what was given."""
+    if isinstance(grid, ViewGrid):
+        return grid
+    if isinstance(grid, str):  # the CLI's spelling, "2x2"
+        parts = grid.lower().split("x")
+        if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+            raise ValueError(f"grid {grid!r}: expected ROWSxCOLS such as '2x2', a (rows, cols) pair or a ViewGrid")
+        grid = (int(parts[0]), int(parts[1]))
+    if not isinstance(grid, tuple | list) or len(grid) != 2 or not all(
+            isinstance(n, int | np.integer) and not isinstance(n, bool) for n in grid):
+        raise ValueError(f"grid {grid!r}: expected a (rows, cols) pair of whole numbers, 'RxC' or a ViewGrid")
+    return ViewGrid(int(grid[0]), int(grid[1]))
+
+
+def _frame_files(root: Path, grid: ViewGrid, layout: str,
+                 missing: str) -> tuple[list[str], list[tuple[Path | None, ...]]]:
+    """(frame names, per frame the image of each view — None where missing) of an image layout."""
+    names: list[str] = []
+    files: list[tuple[Path | None, ...]] = []
+    if layout in ("folders", "hci"):
+        single = _view_files(root, grid, missing)
+        if single is not None:
+            return [root.name], [single]
+        for d in sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
+                        key=lambda p: _natural_key(p.name)):
+            views = _view_files(d, grid, missing)
+            if views is not None:
+                names.append(d.name)
+                files.append(views)
+        return names, files
+    if layout == "views":
+        return _view_folder_frames(root, grid, missing)
+    if layout == "mosaic":
+        images = _images(root)
+        return [p.stem for p in images], [(p,) for p in images]
+    return _pair_files(root, grid, missing)
+
+
+def _pair_files(root: Path, grid: ViewGrid, missing: str) -> tuple[list[str], list[tuple[Path | None, ...]]]:
+    """The pairs layout: ``left*``/``right*`` images matched by what follows the side's name."""
+    if (grid.rows, grid.cols) != (1, 2):
+        raise CaptureError(f"{root}: the pairs layout (left*/right* images) is a 1x2 grid, not {grid}")
+    sides: dict[str, dict[str, Path]] = {"left": {}, "right": {}}
+    for p in _images(root):
+        m = _PAIR_RE.match(p.stem)
+        if m:
+            sides[m.group(1)][m.group(2)] = p
+    for side, other in (("left", "right"), ("right", "left")):
+        lonely = sorted(set(sides[side]) - set(sides[other]), key=_natural_key)
+        if lonely and missing == "error":
+            raise CaptureError(f"{sides[side][lonely[0]]}: no {other} image for this {side} image (--missing-view "
+                               f"unseen counts a missing view image as 'board not seen')")
+    keys = sorted(set(sides["left"]) | set(sides["right"]), key=_natural_key)
+    return keys, [(sides["left"].get(k), sides["right"].get(k)) for k in keys]
+
+
 def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layout: str = "auto",
                  missing: str = "error") -> CaptureSet:
     """Open a capture folder in one of the `LAYOUTS`; see the module docstring.
@@ -324,16 +384,7 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
             unreadable videos or a number of videos other than the grid's views.
     """
     root = Path(path)
-    if not isinstance(grid, ViewGrid):
-        if isinstance(grid, str):  # the CLI's spelling, "2x2"
-            parts = grid.lower().split("x")
-            if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-                raise ValueError(f"grid {grid!r}: expected ROWSxCOLS such as '2x2', a (rows, cols) pair or a ViewGrid")
-            grid = (int(parts[0]), int(parts[1]))
-        if not isinstance(grid, tuple | list) or len(grid) != 2 or not all(
-                isinstance(n, int | np.integer) and not isinstance(n, bool) for n in grid):
-            raise ValueError(f"grid {grid!r}: expected a (rows, cols) pair of whole numbers, 'RxC' or a ViewGrid")
-        grid = ViewGrid(int(grid[0]), int(grid[1]))
+    grid = as_grid(grid)
     if layout not in LAYOUTS:
         raise CaptureError(f"{root}: unknown layout {layout!r}; choose from {', '.join(LAYOUTS)}")
     if missing not in MISSING_VIEW:
@@ -352,41 +403,7 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
                        f"frame holding the {grid} views tiled row-major; pass --layout if that is wrong")
     if layout == "video":
         return _open_videos(root, grid)
-    names: list[str] = []
-    files: list[tuple[Path | None, ...]] = []
-    if layout in ("folders", "hci"):
-        single = _view_files(root, grid, missing)
-        if single is not None:
-            names, files = [root.name], [single]
-        else:
-            for d in sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
-                            key=lambda p: _natural_key(p.name)):
-                views = _view_files(d, grid, missing)
-                if views is not None:
-                    names.append(d.name)
-                    files.append(views)
-    elif layout == "views":
-        names, files = _view_folder_frames(root, grid, missing)
-    elif layout == "mosaic":
-        for p in _images(root):
-            names.append(p.stem)
-            files.append((p,))
-    else:  # pairs
-        if (grid.rows, grid.cols) != (1, 2):
-            raise CaptureError(f"{root}: the pairs layout (left*/right* images) is a 1x2 grid, not {grid}")
-        sides: dict[str, dict[str, Path]] = {"left": {}, "right": {}}
-        for p in _images(root):
-            m = _PAIR_RE.match(p.stem)
-            if m:
-                sides[m.group(1)][m.group(2)] = p
-        for side, other in (("left", "right"), ("right", "left")):
-            lonely = sorted(set(sides[side]) - set(sides[other]), key=_natural_key)
-            if lonely and missing == "error":
-                raise CaptureError(f"{sides[side][lonely[0]]}: no {other} image for this {side} image (--missing-view "
-                                   f"unseen counts a missing view image as 'board not seen')")
-        for key in sorted(set(sides["left"]) | set(sides["right"]), key=_natural_key):
-            names.append(key)
-            files.append((sides["left"].get(key), sides["right"].get(key)))
+    names, files = _frame_files(root, grid, layout, missing)
     if not files:
         raise CaptureError(f"{root}: no frames found for the {layout} layout")
     first = files[0]
