@@ -200,109 +200,122 @@ class Calibration:
         return _parse(data, p)
 
 
-def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
-    def fail(field: str, problem: str) -> CalibrationFileError:
-        return CalibrationFileError(path, field, problem)
+class _Reader:
+    """Field checks of one calibration.json: every failure a `CalibrationFileError` naming the file and field."""
 
-    def get(obj: Any, key: str, where: str) -> Any:
+    def __init__(self, path: str | os.PathLike | None):
+        self.path = path
+
+    def fail(self, field: str, problem: str) -> CalibrationFileError:
+        return CalibrationFileError(self.path, field, problem)
+
+    def get(self, obj: Any, key: str, where: str) -> Any:
         if not isinstance(obj, dict):
-            raise fail(where or "top level", f"must be a JSON object, got {type(obj).__name__}")
+            raise self.fail(where or "top level", f"must be a JSON object, got {type(obj).__name__}")
         if key not in obj:
-            raise fail(f"{where}.{key}" if where else key, "is missing")
+            raise self.fail(f"{where}.{key}" if where else key, "is missing")
         return obj[key]
 
-    def number(x: Any, field: str) -> float:
+    def number(self, x: Any, field: str) -> float:
         if isinstance(x, bool) or not isinstance(x, int | float):
-            raise fail(field, f"must be a number, got {x!r}")
+            raise self.fail(field, f"must be a number, got {x!r}")
         try:
             value = float(x)
         except OverflowError:  # an integer too large for a float (JSON allows any number of digits)
-            raise fail(field, f"is out of range ({len(str(x))}-digit number)") from None
+            raise self.fail(field, f"is out of range ({len(str(x))}-digit number)") from None
         if not math.isfinite(value):
-            raise fail(field, f"must be finite, got {x}")
+            raise self.fail(field, f"must be finite, got {x}")
         return value
 
-    def matrix(x: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
+    def matrix(self, x: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
         try:
             arr = np.array(x, dtype=object)
         except ValueError:
-            raise fail(field, f"must be a {'x'.join(map(str, shape))} array of numbers") from None
+            raise self.fail(field, f"must be a {'x'.join(map(str, shape))} array of numbers") from None
         if arr.shape != shape:
-            raise fail(field, f"must have shape {'x'.join(map(str, shape))}, got {list(arr.shape)}")
-        return np.array([number(v, field) for v in arr.ravel()]).reshape(shape)
+            raise self.fail(field, f"must have shape {'x'.join(map(str, shape))}, got {list(arr.shape)}")
+        return np.array([self.number(v, field) for v in arr.ravel()]).reshape(shape)
 
-    fmt = get(data, "format", "")
-    if fmt != FORMAT_NAME:
-        raise fail("format", f"must be {FORMAT_NAME!r}, got {fmt!r}")
-    version = get(data, "version", "")
-    if version != FORMAT_VERSION:
-        raise fail("version", f"unknown version {version!r}; this lfgraph reads version {FORMAT_VERSION}")
-    g = get(data, "grid", "")
-    dims = {}
-    for key in ("rows", "cols", "reference"):
-        val = get(g, key, "grid")
-        if isinstance(val, bool) or not isinstance(val, int) or val < 0:
-            raise fail(f"grid.{key}", f"must be a non-negative integer, got {val!r}")
-        dims[key] = val
-    try:
-        grid = ViewGrid(dims["rows"], dims["cols"], dims["reference"])
-    except ValueError as exc:
-        raise fail("grid", str(exc)) from None
-    size = get(data, "image_size_px", "")
-    if (not isinstance(size, list) or len(size) != 2
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
-        raise fail("image_size_px", f"must be [width, height] in positive whole pixels, got {size!r}")
-    views = get(data, "views", "")
-    if not isinstance(views, list):
-        raise fail("views", f"must be a list, got {type(views).__name__}")
-    if len(views) != grid.num_views:
-        raise fail("views", f"has {len(views)} entries but the {grid} grid needs {grid.num_views}")
-    intrinsics, poses, sizes = [], [], []
-    for i, view in enumerate(views):
+    def size(self, value: Any, field: str) -> tuple[int, int]:
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in value)):
+            raise self.fail(field, f"must be [width, height] in positive whole pixels, got {value!r}")
+        return value[0], value[1]
+
+    def grid(self, data: Any) -> ViewGrid:
+        g = self.get(data, "grid", "")
+        dims = {}
+        for key in ("rows", "cols", "reference"):
+            val = self.get(g, key, "grid")
+            if isinstance(val, bool) or not isinstance(val, int) or val < 0:
+                raise self.fail(f"grid.{key}", f"must be a non-negative integer, got {val!r}")
+            dims[key] = val
+        try:
+            return ViewGrid(dims["rows"], dims["cols"], dims["reference"])
+        except ValueError as exc:
+            raise self.fail("grid", str(exc)) from None
+
+    def view(self, view: Any, i: int, grid: ViewGrid,
+             size: tuple[int, int]) -> tuple[Intrinsics, tuple[int, int], np.ndarray]:
+        """View ``i``: its intrinsics, image size and ``ref_T_view``."""
         w = f"views[{i}]"
-        index = get(view, "index", w)
+        index = self.get(view, "index", w)
         if index != i:
-            raise fail(f"{w}.index", f"must be {i} (views are stored row-major), got {index!r}")
+            raise self.fail(f"{w}.index", f"must be {i} (views are stored row-major), got {index!r}")
         r, c = grid.position(i)
         for key, expected in (("row", r), ("col", c)):
             if key in view and view[key] != expected:
-                raise fail(f"{w}.{key}", f"must be {expected} for view {i} of a {grid} grid, got {view[key]!r}")
-        K = matrix(get(view, "K", w), (3, 3), f"{w}.K")  # noqa: N806
+                raise self.fail(f"{w}.{key}", f"must be {expected} for view {i} of a {grid} grid, got {view[key]!r}")
+        K = self.matrix(self.get(view, "K", w), (3, 3), f"{w}.K")  # noqa: N806
         if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise fail(f"{w}.K", f"must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
-        lens = view.get("lens", RADTAN) if isinstance(view, dict) else RADTAN
+            raise self.fail(f"{w}.K", f"must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
+        lens = view.get("lens", RADTAN)
         if lens not in LENSES:
-            raise fail(f"{w}.lens", f"must be one of {', '.join(LENSES)}, got {lens!r}")
-        dist = get(view, "distortion", w)
-        coeffs = {k: number(get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}") for k in DISTORTION_KEYS[lens]}
+            raise self.fail(f"{w}.lens", f"must be one of {', '.join(LENSES)}, got {lens!r}")
+        dist = self.get(view, "distortion", w)
+        coeffs = {k: self.number(self.get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}")
+                  for k in DISTORTION_KEYS[lens]}
         extra = sorted(set(dist) - set(DISTORTION_KEYS[lens]))
         if extra:
-            raise fail(f"{w}.distortion", f"a {lens} lens has {', '.join(DISTORTION_KEYS[lens])}, not "
-                                          f"{', '.join(map(str, extra))}")
+            raise self.fail(f"{w}.distortion", f"a {lens} lens has {', '.join(DISTORTION_KEYS[lens])}, not "
+                                               f"{', '.join(map(str, extra))}")
         try:
-            intrinsics.append(Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], **coeffs, lens=lens))
+            intrinsics = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], **coeffs, lens=lens)
         except ValueError as exc:
-            raise fail(f"{w}.distortion", str(exc)) from None
-        own = view.get("image_size_px", size)
-        if (not isinstance(own, list) or len(own) != 2
-                or not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in own)):
-            raise fail(f"{w}.image_size_px", f"must be [width, height] in positive whole pixels, got {own!r}")
-        sizes.append((own[0], own[1]))
-        R = matrix(get(view, "R_view_from_ref", w), (3, 3), f"{w}.R_view_from_ref")  # noqa: N806
+            raise self.fail(f"{w}.distortion", str(exc)) from None
+        own = self.size(view.get("image_size_px", list(size)), f"{w}.image_size_px")
+        R = self.matrix(self.get(view, "R_view_from_ref", w), (3, 3), f"{w}.R_view_from_ref")  # noqa: N806
         if not is_rotation(R):
-            raise fail(f"{w}.R_view_from_ref", "is not a rotation matrix (R^T R must be I and det R = +1)")
-        t = matrix(get(view, "t_view_from_ref_m", w), (3,), f"{w}.t_view_from_ref_m")
-        poses.append(invert_T(make_T(R, t)))
-    ref_pose = poses[grid.reference]
-    if np.max(np.abs(ref_pose - np.eye(4))) > REFERENCE_POSE_TOLERANCE:
-        raise fail(f"views[{grid.reference}]", "is the reference view, so its R_view_from_ref must be the identity "
-                                                "and its t_view_from_ref_m zero")
-    rect = data.get("rectification") if isinstance(data, dict) else None
+            raise self.fail(f"{w}.R_view_from_ref", "is not a rotation matrix (R^T R must be I and det R = +1)")
+        t = self.matrix(self.get(view, "t_view_from_ref_m", w), (3,), f"{w}.t_view_from_ref_m")
+        return intrinsics, own, invert_T(make_T(R, t))
+
+
+def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:
+    read = _Reader(path)
+    fmt = read.get(data, "format", "")
+    if fmt != FORMAT_NAME:
+        raise read.fail("format", f"must be {FORMAT_NAME!r}, got {fmt!r}")
+    version = read.get(data, "version", "")
+    if version != FORMAT_VERSION:
+        raise read.fail("version", f"unknown version {version!r}; this lfgraph reads version {FORMAT_VERSION}")
+    grid = read.grid(data)
+    size = read.size(read.get(data, "image_size_px", ""), "image_size_px")
+    views = read.get(data, "views", "")
+    if not isinstance(views, list):
+        raise read.fail("views", f"must be a list, got {type(views).__name__}")
+    if len(views) != grid.num_views:
+        raise read.fail("views", f"has {len(views)} entries but the {grid} grid needs {grid.num_views}")
+    intrinsics, sizes, poses = zip(*(read.view(view, i, grid, size) for i, view in enumerate(views)), strict=True)
+    if np.max(np.abs(poses[grid.reference] - np.eye(4))) > REFERENCE_POSE_TOLERANCE:
+        raise read.fail(f"views[{grid.reference}]", "is the reference view, so its R_view_from_ref must be the "
+                                                     "identity and its t_view_from_ref_m zero")
+    rect = data.get("rectification")
     if rect is not None and not isinstance(rect, dict):
-        raise fail("rectification", f"must be an object or null, got {type(rect).__name__}")
+        raise read.fail("rectification", f"must be an object or null, got {type(rect).__name__}")
     metrics = data.get("metrics", {})
     if metrics is None:
         metrics = {}
     if not isinstance(metrics, dict):
-        raise fail("metrics", f"must be an object, got {type(metrics).__name__}")
-    return Calibration(grid, (size[0], size[1]), tuple(intrinsics), np.stack(poses), rect, metrics, tuple(sizes))
+        raise read.fail("metrics", f"must be an object, got {type(metrics).__name__}")
+    return Calibration(grid, size, tuple(intrinsics), np.stack(poses), rect, metrics, tuple(sizes))
