@@ -156,15 +156,8 @@ def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
             if line.strip() and not line.lstrip().startswith("#")]
 
 
-def read(path: Path, grid: GridLike) -> Calibration:
-    if not path.is_dir():
-        raise fail(path, "folder", "does not exist" if not path.exists() else "is not a folder (a COLMAP text "
-                                                                              "model is a folder)")
-    cameras_path, rigs_path = path / "cameras.txt", path / "rigs.txt"
-    for p in (cameras_path, rigs_path):
-        if not p.is_file():
-            raise fail(path, p.name, "is missing")
-
+def _read_cameras(cameras_path: Path) -> dict[int, tuple[Intrinsics, tuple[int, int]]]:
+    """``cameras.txt``: camera ID -> (intrinsics, image size), OpenCV's pixel centres."""
     cameras: dict[int, tuple[Intrinsics, tuple[int, int]]] = {}
     for lineno, tok in _data_lines(cameras_path):
         where = f"line {lineno}"
@@ -193,12 +186,11 @@ def read(path: Path, grid: GridLike) -> Calibration:
                            size)
     if not cameras:
         raise fail(cameras_path, "cameras", "holds no camera")
-    ids = sorted(cameras)
-    sizes = {cameras[i][1] for i in ids}
-    if len(sizes) > 1:
-        raise fail(cameras_path, "WIDTH, HEIGHT", f"cameras have different image sizes {sorted(sizes)}; lfgraph "
-                                                   f"needs one size for all views")
+    return cameras
 
+
+def _read_rig(rigs_path: Path, ids: list[int]) -> tuple[int, dict[int, np.ndarray]]:
+    """``rigs.txt``: the reference camera's ID and every camera's ``sensor_from_rig`` (4x4)."""
     rigs = _data_lines(rigs_path)
     if len(rigs) != 1:
         raise fail(rigs_path, "rigs", f"must hold exactly one rig with all {len(ids)} cameras, got {len(rigs)} rigs")
@@ -239,6 +231,25 @@ def read(path: Path, grid: GridLike) -> Calibration:
     if set(sensor_from_rig) != set(ids):
         raise fail(rigs_path, "SENSORS", f"the rig's cameras {sorted(sensor_from_rig)} must be the cameras of "
                                           f"cameras.txt {ids}")
+    return ref_id, sensor_from_rig
+
+
+def read(path: Path, grid: GridLike) -> Calibration:
+    if not path.is_dir():
+        raise fail(path, "folder", "does not exist" if not path.exists() else "is not a folder (a COLMAP text "
+                                                                              "model is a folder)")
+    cameras_path, rigs_path = path / "cameras.txt", path / "rigs.txt"
+    for p in (cameras_path, rigs_path):
+        if not p.is_file():
+            raise fail(path, p.name, "is missing")
+
+    cameras = _read_cameras(cameras_path)
+    ids = sorted(cameras)
+    sizes = {cameras[i][1] for i in ids}
+    if len(sizes) > 1:
+        raise fail(cameras_path, "WIDTH, HEIGHT", f"cameras have different image sizes {sorted(sizes)}; lfgraph "
+                                                   f"needs one size for all views")
+    ref_id, sensor_from_rig = _read_rig(rigs_path, ids)
     reference = ids.index(ref_id)
 
     file_dims = None
