@@ -40,6 +40,28 @@ class PaperResult:
     warnings: tuple[str, ...]
 
 
+def _pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics, Intrinsics], frames: list[int],
+               masks: list[np.ndarray], start_ref_T_view: np.ndarray) -> tuple[np.ndarray, float, float]:  # noqa: N803
+    """View ``v``'s pose relative to the reference by `cv2.stereoCalibrate` with the intrinsics fixed (the paper's
+    PnP + LM) over the shared ``frames`` (corner ``masks`` seen by both), started from ``start_ref_T_view``; a pair
+    with another lens than radtan is solved on corners undistorted by each view's model, with plain K. Returns
+    (ref_T_view, RMS in px (E_PnP), number of residual coordinates)."""
+    objs = [masked_object_points(obs, m) for m in masks]
+    radtan = all(i.lens == "radtan" for i in pair)
+    ref_pts, view_pts = ([(obs.corners_px[u, f][m] if radtan else
+                           intr.undistort_pixels(obs.corners_px[u, f][m])).astype(np.float32)
+                          for f, m in zip(frames, masks, strict=True)] for u, intr in zip((ref, v), pair, strict=True))
+    usable = [i for i in range(len(frames)) if np.isfinite(ref_pts[i]).all() and np.isfinite(view_pts[i]).all()]
+    objs, ref_pts, view_pts = ([x[i] for i in usable] for x in (objs, ref_pts, view_pts))
+    dists = [i.dist_cv if radtan else np.zeros(5) for i in pair]
+    view_T_ref = invert_T(start_ref_T_view)  # noqa: N806
+    rms, *_, R, T, _, _ = cv2.stereoCalibrate(  # noqa: N806
+        objs, ref_pts, view_pts, pair[0].K, dists[0], pair[1].K, dists[1], obs.image_size_px,
+        view_T_ref[:3, :3].copy(), view_T_ref[:3, 3].copy(), flags=cv2.CALIB_FIX_INTRINSIC,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    return invert_T(make_T(R, T.ravel())), float(rms), 2.0 * sum(len(p) for p in objs)
+
+
 def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = None) -> PaperResult:
     """The paper's Section 3.2: per-view Zhang (k1, k2) then relative poses by PnP + LM with intrinsics fixed.
 
@@ -101,24 +123,9 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
             warnings.append(f"{obs.describe(v)} shares no frame with the reference view; its pose is chained "
                             f"through view {parent[v]} and has no E_PnP")
             continue
-        objs = [masked_object_points(obs, masks[i]) for i in keep]
-        pair = (intrinsics[ref], intrinsics[v])
-        radtan = all(i.lens == "radtan" for i in pair)
-        # a pair with another lens: the corners undistorted by each view's model, then the same LM with plain K
-        ref_pts, view_pts = ([(obs.corners_px[u, frames[i]][masks[i]] if radtan else
-                               intr.undistort_pixels(obs.corners_px[u, frames[i]][masks[i]])).astype(np.float32)
-                              for i in keep] for u, intr in zip((ref, v), pair, strict=True))
-        usable = [i for i in range(len(keep)) if np.isfinite(ref_pts[i]).all() and np.isfinite(view_pts[i]).all()]
-        objs, ref_pts, view_pts = ([x[i] for i in usable] for x in (objs, ref_pts, view_pts))
-        dists = [i.dist_cv if radtan else np.zeros(5) for i in pair]
-        view_T_ref = invert_T(ref_T_view[v])  # noqa: N806
-        rms, *_, R, T, _, _ = cv2.stereoCalibrate(  # noqa: N806
-            objs, ref_pts, view_pts, pair[0].K, dists[0], pair[1].K, dists[1], obs.image_size_px,
-            view_T_ref[:3, :3].copy(), view_T_ref[:3, 3].copy(), flags=cv2.CALIB_FIX_INTRINSIC,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
-        ref_T_view[v] = invert_T(make_T(R, T.ravel()))
-        e_pnp[v] = rms
-        pnp_points[v] = 2 * sum(len(p) for p in objs)
+        ref_T_view[v], e_pnp[v], pnp_points[v] = _pair_pose(obs, ref, v, (intrinsics[ref], intrinsics[v]),
+                                                            [frames[i] for i in keep], [masks[i] for i in keep],
+                                                            ref_T_view[v])
     mono = np.isfinite(e_mono)  # weak views have no Zhang step
     pooled_mono = float(np.sqrt(np.sum(e_mono[mono] ** 2 * n_points[mono]) / np.sum(n_points[mono])))
     has = np.isfinite(e_pnp)
