@@ -110,6 +110,20 @@ def _locate_board(gray: np.ndarray, board: BoardSpec) -> np.ndarray | None:
     return corners.reshape(-1, 2).astype(np.float32)
 
 
+def _saddle_jacobian(p: np.ndarray, x: np.ndarray, y: np.ndarray, z1: np.ndarray, z2: np.ndarray, g1: np.ndarray,
+                     g2: np.ndarray) -> np.ndarray:
+    """(C, P, 7) derivatives of the saddle model (see `_fit_saddles`) at parameters ``p`` (C, 7) for the samples
+    ``x``, ``y`` (C, P) (float32), given its edge distances ``z`` and ``tanh`` terms ``g``."""
+    w, b = p[:, 6:7].astype(np.float32), p[:, 1:2].astype(np.float32)
+    h1, h2 = (1 - g1**2) / w, (1 - g2**2) / w
+    return np.stack([np.ones_like(x), g1 * g2,
+                     b * h1 * g2 * (-np.sin(p[:, 2:3], dtype=np.float32) * x
+                                    + np.cos(p[:, 2:3], dtype=np.float32) * y), -b * h1 * g2,
+                     b * h2 * g1 * (-np.sin(p[:, 4:5], dtype=np.float32) * x
+                                    + np.cos(p[:, 4:5], dtype=np.float32) * y), -b * h2 * g1,
+                     -b * (h1 * g2 * z1 + h2 * g1 * z2) / w], axis=-1)
+
+
 def _fit_saddles(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.ndarray:
     """Refine corners by fitting a blurred checkerboard corner to the image around each, all corners at once.
 
@@ -163,14 +177,7 @@ def _fit_saddles(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.
     cost = (r.astype(np.float64) ** 2).sum(axis=1)
     lam = np.full(len(corners), SADDLE_LM_START)
     for _ in range(SADDLE_ITERATIONS):
-        w, b = p[:, 6:7].astype(np.float32), p[:, 1:2].astype(np.float32)
-        h1, h2 = (1 - g1**2) / w, (1 - g2**2) / w
-        jac = np.stack([np.ones_like(x), g1 * g2,
-                        b * h1 * g2 * (-np.sin(p[:, 2:3], dtype=np.float32) * x
-                                       + np.cos(p[:, 2:3], dtype=np.float32) * y), -b * h1 * g2,
-                        b * h2 * g1 * (-np.sin(p[:, 4:5], dtype=np.float32) * x
-                                       + np.cos(p[:, 4:5], dtype=np.float32) * y), -b * h2 * g1,
-                        -b * (h1 * g2 * z1 + h2 * g1 * z2) / w], axis=-1)  # (C, P, 7)
+        jac = _saddle_jacobian(p, x, y, z1, z2, g1, g2)  # (C, P, 7)
         jt = jac.transpose(0, 2, 1)
         normal = (jt @ jac).astype(np.float64)
         damped = normal + lam[:, None, None] * (np.eye(7) * np.diagonal(normal, axis1=1, axis2=2)[:, :, None]
