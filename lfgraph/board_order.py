@@ -142,6 +142,51 @@ def _pair_consensus(pa: np.ndarray, pb: np.ndarray, flip: np.ndarray,
     return choice, int(support[best]), rival
 
 
+def _pair_poses(seen: np.ndarray, poses: np.ndarray, flip: np.ndarray, trans_tol_m: float,
+                support: np.ndarray) -> np.ndarray:
+    """(V, V, 4, 4) ``a_T_b`` of every pair of views whose shared frames agree on one corner order by a clear
+    majority (NaN otherwise): b's board put in a's order, averaged over those frames (chordal mean of rotations).
+    ``support`` (V, V) gets each pair's majority (in place)."""
+    n_views = len(seen)
+    rel = np.full((n_views, n_views, 4, 4), np.nan)
+    for a in range(n_views):
+        for b in range(a + 1, n_views):
+            frames = np.nonzero(seen[a] & seen[b])[0]
+            if len(frames) < 2:
+                continue  # one frame supports both hypotheses equally
+            choice, best, rival = _pair_consensus(poses[a, frames], poses[b, frames], flip, trans_tol_m)
+            if best <= rival:
+                continue
+            support[a, b] = support[b, a] = best
+            keep, flips = frames[choice >= 0], choice[choice >= 0]
+            samples = np.stack([poses[a, f] @ (flip if s else np.eye(4)) @ invert_T(poses[b, f])
+                                for f, s in zip(keep, flips, strict=True)])
+            u, _, vt = np.linalg.svd(samples[:, :3, :3].sum(axis=0))
+            rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+            rel[a, b] = make_T(rot, samples[:, :3, 3].mean(axis=0))
+            rel[b, a] = invert_T(rel[a, b])
+    return rel
+
+
+def _spanning_tree(seen: np.ndarray, support: np.ndarray, rel: np.ndarray,
+                   ref: int) -> tuple[np.ndarray, np.ndarray]:
+    """The maximum spanning tree of supported pairs grown from the reference view: (V, 4, 4) ``ref_T_view`` (NaN
+    where not linked) and (V,) which views it links."""
+    n_views = len(seen)
+    ref_T_view = np.full((n_views, 4, 4), np.nan)  # noqa: N806
+    linked = np.zeros(n_views, dtype=bool)
+    if seen[ref].any():
+        ref_T_view[ref], linked[ref] = np.eye(4), True
+    while True:
+        score = np.where(linked[:, None] & ~linked[None, :], support, 0)
+        a, b = np.unravel_index(np.argmax(score), score.shape)
+        if score[a, b] == 0:
+            break
+        ref_T_view[b] = ref_T_view[a] @ rel[a, b]
+        linked[b] = True
+    return ref_T_view, linked
+
+
 def order_symmetric_boards(obs: BoardObservations) -> tuple[BoardObservations, BoardOrderReport]:
     """Make the corner order of a 180°-symmetric board consistent over all views and frames, from the geometry.
 
@@ -168,40 +213,9 @@ def order_symmetric_boards(obs: BoardObservations) -> tuple[BoardObservations, B
     trans_tol_m = TRANS_TOL_BOARDS * diagonal_m
     poses = _view_poses(obs)
 
-    # pairwise relative poses with a clear majority
-    rel = np.full((n_views, n_views, 4, 4), np.nan)
-    for a in range(n_views):
-        for b in range(a + 1, n_views):
-            frames = np.nonzero(seen[a] & seen[b])[0]
-            if len(frames) < 2:
-                continue  # one frame supports both hypotheses equally
-            choice, best, rival = _pair_consensus(poses[a, frames], poses[b, frames], flip, trans_tol_m)
-            if best <= rival:
-                continue
-            support[a, b] = support[b, a] = best
-            keep = frames[choice >= 0]
-            flips = choice[choice >= 0]
-            # a_T_b with b's board put in a's order, averaged (chordal mean of rotations)
-            samples = np.stack([poses[a, f] @ (flip if s else np.eye(4)) @ invert_T(poses[b, f])
-                                for f, s in zip(keep, flips, strict=True)])
-            u, _, vt = np.linalg.svd(samples[:, :3, :3].sum(axis=0))
-            rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-            rel[a, b] = make_T(rot, samples[:, :3, 3].mean(axis=0))
-            rel[b, a] = invert_T(rel[a, b])
-
-    # maximum spanning tree of supported pairs, grown from the reference view
+    rel = _pair_poses(seen, poses, flip, trans_tol_m, support)
     ref = obs.grid.reference
-    ref_T_view = np.full((n_views, 4, 4), np.nan)  # noqa: N806
-    linked = np.zeros(n_views, dtype=bool)
-    if seen[ref].any():
-        ref_T_view[ref], linked[ref] = np.eye(4), True
-    while True:
-        score = np.where(linked[:, None] & ~linked[None, :], support, 0)
-        a, b = np.unravel_index(np.argmax(score), score.shape)
-        if score[a, b] == 0:
-            break
-        ref_T_view[b] = ref_T_view[a] @ rel[a, b]
-        linked[b] = True
+    ref_T_view, linked = _spanning_tree(seen, support, rel, ref)  # noqa: N806
 
     messages = []
     for v in np.nonzero(~linked & seen.any(axis=1))[0]:
