@@ -37,7 +37,7 @@ from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.geometry import rotvec_from_rotation
 from lfgraph.refinement import RefineConfig, refine
-from lfgraph.refinement.assess import DRIFTED, OK
+from lfgraph.refinement.report import DRIFTED, OK
 
 GRIDS = [(1, 2), (2, 2), (1, 3), (2, 3), (3, 3), (3, 4), (4, 4), (1, 5), (5, 5), (6, 6), (1, 8)]
 IMAGE_SIZES = [(320, 240), (400, 300), (512, 512), (640, 480), (800, 600), (1024, 768), (1280, 960), (1920, 1080)]

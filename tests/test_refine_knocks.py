@@ -12,10 +12,11 @@ from lfgraph.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.refinement import DriftModel, RefineConfig
-from lfgraph.refinement.assess import DRIFTED, OK, assess, group_significance
+from lfgraph.refinement.assess import assess, group_significance
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.posterior import Posterior, held_directions
 from lfgraph.refinement.priors import view_priors
+from lfgraph.refinement.report import DRIFTED, OK
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import sweep  # noqa: E402

@@ -17,9 +17,11 @@ from lfgraph.evaluation import evaluate_calibration
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.geometry import make_T, rotation_from_rotvec
 from lfgraph.refinement import RefineConfig, refine
-from lfgraph.refinement.assess import DRIFTED, OK, REFERENCE, UNCERTAIN, assess, chi2_sigma, pose_change
+from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import DriftModel
+from lfgraph.refinement.posterior import chi2_sigma, pose_change
 from lfgraph.refinement.priors import view_priors
+from lfgraph.refinement.report import DRIFTED, OK, REFERENCE, UNCERTAIN
 from lfgraph.refinement.stages import baseline_scale
 
 NOISE_PX = 0.05  # transfer error and RMS comparisons: "not worse" within this

@@ -7,7 +7,7 @@ import lfgraph as lf
 from lfgraph.alignment import transfer_error_at_infinity
 from lfgraph.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
-from lfgraph.refinement.assess import DRIFTED
+from lfgraph.refinement.report import DRIFTED
 
 ORACLE_NOISE_PX = 0.05  # the oracle's feature noise per coordinate
 REFINED_TRANSFER_PX = 0.1  # the refinement's target, transfer at infinity against the truth (as test_refine)

@@ -6,11 +6,11 @@ triangulation filters), `tracks` (per-frame selection), `stages` (one stage's gr
 per-view verdicts), `report`, `unordered` (tracks for views that are not a grid).
 """
 
-from lfgraph.refinement.assess import ViewVerdict
 from lfgraph.refinement.config import SCHEDULES, DriftModel, RefineConfig, Stage, TriangulationFilter, parse_stages
 from lfgraph.refinement.fit import refine_tracks
 from lfgraph.refinement.report import RefinementReport, StageReport
 from lfgraph.refinement.schedule import refine, with_reference
+from lfgraph.refinement.verdicts import ViewVerdict
 
 __all__ = ["SCHEDULES", "DriftModel", "RefineConfig", "RefinementReport", "Stage", "StageReport", "TriangulationFilter",
            "ViewVerdict", "parse_stages", "refine", "refine_tracks", "with_reference"]

@@ -18,12 +18,11 @@ The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.observer import SilentObserver
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto
@@ -40,76 +39,23 @@ from lfgraph.refinement.posterior import (
     restricted,
 )
 from lfgraph.refinement.priors import input_sigmas, view_priors
-from lfgraph.refinement.report import DRIFTED, OK, REFERENCE, UNCERTAIN
 from lfgraph.refinement.triangulate import finite_rms, reprojection_errors, triangulate_dlt
+from lfgraph.refinement.verdicts import (
+    MAX_TRACK_SIGMA_PX,
+    MIN_TRACK_RMS_PX,
+    Decision,
+    ViewVerdict,
+    data_needs,
+    verdict_of,
+    view_sigmas,
+)
 
 FOLD_SEED = 14
 MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
-NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
-COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
-FEW_OBSERVATIONS = 100  # a view with fewer observations than this wants more texture or frames
 HELDOUT_CONSISTENCY = 10.0  # held-out RMS of the candidate at most this x the full fit's RMS of its own tracks:
 # legitimate thin fits predicted held-out tracks at up to ~5x (one frame of a 3x3 rig: 0.40 px vs 0.08 px); fits of
 # mismatches at 17-39x (keyboard textures in benchmarks/sweep.py)
-MIN_TRACK_RMS_PX = 0.05  # ... floored (KLT tracks are not better than this)
-MAX_TRACK_SIGMA_PX = 1.0  # px per coordinate: KLT tracks fit a right rig to ~0.05-0.3 px (rendered and real sets);
-# a refit that leaves more has fitted mismatches (sweep: a keyboard texture knocked by 15 px, all 72 tracks a key off)
-
-
-@dataclass(frozen=True)
-class ViewVerdict:
-    """What the refinement (or the check) concluded for one view.
-
-    Attributes:
-        verdict: OK (no significant drift), DRIFTED (changed: significant and confirmed by held-out tracks),
-            UNCERTAIN (the data cannot tell: ``needs`` says what would), REFERENCE (the gauge).
-        change_sigma: the change's significance (one-sided normal deviate of its chi-square under the posterior).
-        rotation_change_deg: (3,) body-frame change of pan/tilt (x, y) and roll (z) the fit proposed.
-        position_change_mm: (3,) body-frame change of position the fit proposed.
-        intrinsics_change_px: (4,) fx, fy, cx, cy change the fit proposed.
-        transfer_change_px: the change's effect on the transfer at infinity (px, RMS over the image): of what was
-            written for a DRIFTED view, of the significant groups' part for a view with a significant change, of
-            the whole proposal otherwise.
-        sigma_rotation_deg, sigma_position_mm, sigma_intrinsics_px: posterior 1-sigma (3, 3, 4), widened to the
-            fold refits' scatter when that is larger; intrinsics a stage held report the input's own sigmas, a
-            rotation held as a gauge (the second view's pan in a stereo pair) its drift prior's sigma, groups a
-            DRIFTED view kept report the full fit's.
-        predicted_transfer_px: 1-sigma transfer error at infinity (px) that the posterior of the refined parameters
-            predicts (rotation, and intrinsics when freed; the directions the data determine, not a held gauge).
-        applied: whether the output carries the change.
-        reason: one line of why; needs: what data would decide an UNCERTAIN view.
-    """
-
-    view: int
-    name: str
-    verdict: str
-    change_sigma: float
-    rotation_change_deg: np.ndarray
-    position_change_mm: np.ndarray
-    intrinsics_change_px: np.ndarray
-    transfer_change_px: float
-    sigma_rotation_deg: np.ndarray
-    sigma_position_mm: np.ndarray
-    sigma_intrinsics_px: np.ndarray
-    predicted_transfer_px: float
-    observations: int
-    applied: bool
-    reason: str
-    needs: tuple[str, ...] = field(default=())
-
-    def as_dict(self) -> dict:
-        def f(x):
-            return [float(v) for v in np.ravel(x)] if np.ndim(x) else float(x)
-
-        return {"view": self.name, "verdict": self.verdict, "applied": self.applied, "reason": self.reason,
-                "needs": list(self.needs), "change_sigma": f(self.change_sigma),
-                "rotation_change_deg": f(self.rotation_change_deg), "position_change_mm": f(self.position_change_mm),
-                "intrinsics_change_px": f(self.intrinsics_change_px), "transfer_change_px": f(self.transfer_change_px),
-                "sigma_rotation_deg": f(self.sigma_rotation_deg), "sigma_position_mm": f(self.sigma_position_mm),
-                "sigma_intrinsics_px": f(self.sigma_intrinsics_px),
-                "predicted_transfer_px": f(self.predicted_transfer_px), "observations": self.observations}
-
-
+# ... floored at MIN_TRACK_RMS_PX; a refit leaving more than MAX_TRACK_SIGMA_PX has fitted mismatches (verdicts)
 
 
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
@@ -138,28 +84,6 @@ def group_significance(before: Calibration, after: Calibration, post: Posterior,
         d2 = float(dn @ np.linalg.lstsq(cn, dn, rcond=1e-12)[0])
         out[name] = chi2_sigma(d2, int(idx_a.size))
     return out
-
-
-def data_needs(calib: Calibration, points: np.ndarray, valid: np.ndarray, v: int, coverage: float,
-               frames: int) -> tuple[str, ...]:
-    """What kind of data would decide view v: depth range, coverage, texture, frames."""
-    needs = []
-    if int(valid[v].sum()) < FEW_OBSERVATIONS // 4:  # too few tracks to say anything finer
-        return (f"texture (only {int(valid[v].sum())} tracks reach this view: more texture, or a scene farther "
-                f"away if tracks are lost between neighbouring views)", "more frames of different scenes")
-    ref = calib.grid.reference
-    m = valid[v] & valid[ref] & np.all(np.isfinite(points), axis=1)
-    z = points[m, 2] if m.any() else np.zeros(0)
-    z = z[z > 0]
-    if z.size >= 2 and np.percentile(z, 90) / np.percentile(z, 10) < NARROW_DEPTH_RATIO:
-        needs.append("depth range (texture both near and far in the same frame: pan/tilt trade against position)")
-    if coverage < COVERAGE_HINT:
-        needs.append("coverage (texture across the whole field of view: rotation about the optical axis)")
-    if int(valid[v].sum()) < FEW_OBSERVATIONS:
-        needs.append(f"texture (only {int(valid[v].sum())} tracks reach this view)")
-    if frames < 2 or not needs:
-        needs.append("more frames of different scenes")
-    return tuple(needs)
 
 
 def heldoutfinite_rms(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -373,7 +297,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms = heldout_test(
         calib, fit, px, ok, sig_views, fold_calibs, fold_tests, config, observer)
     out = candidate if accepted else calib
-    dec = _Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
+    dec = Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
                     accepted, inconsistent, heldout_before, heldout_after, fit_rms)
     written_size = change_size_px(calib, out, significant)
     own = input_sigmas(calib)
@@ -385,9 +309,9 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         d = pose_change(calib.ref_T_view[v], shown.ref_T_view[v])
         a, b = shown.intrinsics[v], calib.intrinsics[v]
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
-        s_rot, s_pos, s_int, pred = _view_sigmas(calib, post, v, rays, own, gauge_sigma)
+        s_rot, s_pos, s_int, pred = view_sigmas(calib, post, v, rays, own, gauge_sigma)
         change_px = float(written_size[v] if applied else size_px[v] if significant.get(v) else proposed_px[v])
-        verdict, reason, needs = _verdict(v, dec, calib, fit, config, change_px, pred, post is not None)
+        verdict, reason, needs = verdict_of(v, dec, calib, fit, config, change_px, pred, post is not None)
         needs = () if needs is None else (*needs, *data_needs(calib, fit.points, fit.valid, v, coverage, frames))
         verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),
                                     1e3 * d[3:], dk, change_px, s_rot, s_pos, s_int, float(pred),
@@ -395,84 +319,3 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
 
 
-@dataclass(frozen=True)
-class _Decision:
-    """What `assess` decided, view by view, for `_verdict` to word."""
-
-    significant: dict[int, tuple[str, ...]]
-    zg: dict[int, dict[str, float]]
-    z: dict[int, float]
-    sig_views: frozenset[int]
-    small: frozenset[int]
-    unsure: dict[int, float]
-    unsure_mismatch: frozenset[int]
-    accepted: bool
-    inconsistent: bool
-    heldout_before: float
-    heldout_after: float
-    fit_rms: float
-
-    @property
-    def disagreement(self) -> float:
-        """How many times worse the refits predict held-out tracks than the fit its own."""
-        return self.heldout_after / max(self.fit_rms, MIN_TRACK_RMS_PX)
-
-
-def _view_sigmas(calib: Calibration, post: Posterior | None, v: int, rays: np.ndarray,
-                 own: tuple[np.ndarray, np.ndarray] | None, gauge_sigma: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """View v's reported 1-sigmas (rotation deg, position mm, intrinsics px) and its predicted transfer at
-    infinity (px), from the posterior; intrinsics a stage held report the input's own sigmas, a rotation held as a
-    gauge its drift prior's (the graph's ~0 is no knowledge)."""
-    if post is None:
-        return np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
-    s_rot = np.degrees(np.sqrt(np.maximum(np.diag(post.pose_cov[v])[:3], 0.0)))
-    s_pos = 1e3 * np.sqrt(np.maximum(np.diag(post.pose_cov[v])[3:], 0.0))
-    s_int = np.sqrt(np.maximum(np.diag(post.intr_cov[v]), 0.0))
-    if not post.intrinsics_free and own is not None:
-        s_int = own[1][v]
-    pred = predicted_transfer_px(calib, post, v, rays) if v != calib.grid.reference else 0.0
-    gauge_axis = rotation_gauge(calib)
-    if gauge_axis is not None and gauge_axis[0] == v and post.held_mask(v)[gauge_axis[1]]:
-        s_rot[gauge_axis[1]] = np.degrees(gauge_sigma[v, gauge_axis[1]])  # predicted_transfer_px: the data's part
-    return s_rot, s_pos, s_int, pred
-
-
-def _verdict(v: int, dec: _Decision, calib: Calibration, fit, config: RefineConfig, change_px: float, pred: float,
-             have_posterior: bool) -> tuple[str, str, tuple[str, ...] | None]:
-    """(verdict, reason, needs) of view v: ``needs`` None when the verdict wants no more data, else the specific
-    needs that come before `data_needs` (which the caller appends)."""
-    z = dec.z.get(v, 0.0)
-    ask: tuple[str, ...] = ()
-    if v == calib.grid.reference:
-        return REFERENCE, "the reference view (the gauge)", None
-    if v in fit.held:
-        return UNCERTAIN, (f"only {int(fit.valid[v].sum())} observations (< {config.min_view_observations}): "
-                           f"held"), ask
-    if v in dec.sig_views and dec.accepted:
-        return DRIFTED, (", ".join(f"{g} {dec.zg[v][g]:.1f} sigma" for g in dec.significant[v])
-                         + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by "
-                         "held-out tracks; the view is written from the full fit"), None
-    if dec.inconsistent and v not in dec.sig_views:
-        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits predict "
-                           f"held-out tracks {dec.disagreement:.0f}x worse than they fit their own (mismatches, or "
-                           f"too few tracks): kept"), ask
-    if v in dec.unsure_mismatch:
-        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
-                           f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a "
-                           f"repeated pattern?): kept"), ("texture that does not repeat (or a scene farther away)",)
-    if v in dec.small:
-        return OK, (f"a significant ({z:.1f} sigma) change of {change_px:.3f} px, within the tolerance "
-                    f"{config.tolerance_px:g} px: not applied"), None
-    if v in dec.unsure:
-        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but applied it would leave "
-                           f"{dec.unsure[v]:.2f} px (1 sigma) undetermined at infinity: kept"), ask
-    if v in dec.sig_views:
-        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px that the held-out tracks did not confirm "
-                           f"({dec.heldout_before:.3f} px with the input, {dec.heldout_after:.3f} px with the change"
-                           + (f", {dec.disagreement:.0f}x what it leaves on its own tracks: the frames disagree"
-                              if dec.inconsistent else "") + "): kept"), ask
-    if not have_posterior or not pred <= config.uncertain_transfer_px:
-        return UNCERTAIN, (f"no significant change ({z:.1f} sigma) but the data leave {pred:.2f} px (1 sigma) at "
-                           f"infinity undetermined: kept"), ask
-    return OK, f"no significant change ({z:.1f} sigma; 1 sigma = {pred:.3f} px at infinity)", None
