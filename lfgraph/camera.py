@@ -31,9 +31,19 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-UNDISTORT_MAX_ITERATIONS = 50
-UNDISTORT_TOLERANCE = 1e-15  # normalised units; ~1e-12 px at f = 1000 px
-UNDISTORT_RESIDUAL_LIMIT = 1e-11  # normalised units; larger residuals mean the pixel has no inverse
+from lfgraph.lens_math import (  # noqa: F401  (the models' arithmetic; re-exported where callers import it)
+    UNDISTORT_MAX_ITERATIONS,
+    UNDISTORT_RESIDUAL_LIMIT,
+    UNDISTORT_TOLERANCE,
+    distort_fisheye_xy,
+    distort_xy,
+    distortion_jacobian,
+    fisheye_theta_d,
+    lift_unified,
+    undo_fisheye,
+    undo_radtan,
+    unified_to_plane,
+)
 
 RADTAN, FISHEYE, UNIFIED = "radtan", "fisheye", "unified"
 LENSES = (RADTAN, FISHEYE, UNIFIED)
@@ -48,119 +58,6 @@ def _as_points(points: np.ndarray, dims: tuple[int, ...], name: str) -> np.ndarr
     if arr.ndim != 2 or arr.shape[1] not in dims:
         raise ValueError(f"{name} must have shape (N, {' or '.join(map(str, dims))}), got {arr.shape}")
     return arr
-
-
-def distort_xy(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2) -> tuple[np.ndarray, np.ndarray]:
-    """The Cal3DS2 / OpenCV distortion of normalised coordinates (arrays broadcast: one lens or a lens per row)."""
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
-
-
-def distortion_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(d xd/dx, d xd/dy = d yd/dx, d yd/dy) of `distort_xy` (the map's Jacobian is symmetric)."""
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    dradial = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(x or y) divided by the coordinate
-    return (radial + x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x,
-            x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y,
-            radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x)
-
-
-def fisheye_theta_d(theta: np.ndarray, k1, k2, k3, k4) -> np.ndarray:
-    """Kannala–Brandt: the distorted angle ``theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``."""
-    t2 = theta * theta
-    return theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-
-
-def distort_fisheye_xy(x: np.ndarray, y: np.ndarray, k1, k2, k3, k4) -> tuple[np.ndarray, np.ndarray]:
-    """The Cal3Fisheye / ``cv2.fisheye`` distortion of normalised coordinates (arrays broadcast)."""
-    r = np.hypot(x, y)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scale = np.where(r > 1e-12, fisheye_theta_d(np.arctan(r), k1, k2, k3, k4) / np.where(r > 1e-12, r, 1.0),
-                         1.0)
-    return x * scale, y * scale
-
-
-def unified_to_plane(x: np.ndarray, y: np.ndarray, xi) -> tuple[np.ndarray, np.ndarray]:
-    """Mei's projection of the ray through normalised ``(x, y)`` from the unit sphere shifted by ``xi``."""
-    d = 1.0 + xi * np.sqrt(x * x + y * y + 1.0)
-    return x / d, y / d
-
-
-def _undo_radtan(target: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Newton inverse of `distort_xy` for (V, N, 2) distorted normalised coordinates, k (V, 4, 1) = k1 k2 p1 p2.
-
-    The loop runs until the largest step of all views is below the tolerance. Results that are not true inverses on
-    the unfolded branch (residual ~0 and d(r radial)/dr > 0) are NaN."""
-    k1, k2, p1, p2 = (k[:, i] for i in range(4))
-    xy = target.copy()
-    distorted = np.any(k[:, :, 0] != 0.0, axis=1)
-    if not distorted.any():
-        return xy
-    for _ in range(UNDISTORT_MAX_ITERATIONS):
-        x, y = xy[..., 0], xy[..., 1]
-        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
-        j00, j01, j11 = distortion_jacobian(x, y, k1, k2, p1, p2)
-        fx_, fy_ = xd - target[..., 0], yd - target[..., 1]
-        det = j00 * j11 - j01 * j01
-        dx = (j11 * fx_ - j01 * fy_) / det
-        dy = (-j01 * fx_ + j00 * fy_) / det
-        dx[~distorted], dy[~distorted] = 0.0, 0.0
-        xy[..., 0] -= dx
-        xy[..., 1] -= dy
-        if np.nanmax(np.abs(np.concatenate([dx.ravel(), dy.ravel()])), initial=0.0) < UNDISTORT_TOLERANCE:
-            break
-    with np.errstate(invalid="ignore", over="ignore"):
-        x, y = xy[..., 0], xy[..., 1]
-        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
-        residual = np.maximum(np.abs(xd - target[..., 0]), np.abs(yd - target[..., 1]))
-        r2 = x * x + y * y
-        radial_derivative = 1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2)
-        bad = (~(residual < UNDISTORT_RESIDUAL_LIMIT) | ~(radial_derivative > 0)) & distorted[:, None]
-    xy[bad] = np.nan
-    return xy
-
-
-def _undo_fisheye(target: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Newton inverse of `distort_fisheye_xy` for (V, N, 2), k (V, 4, 1) = k1..k4: solve theta_d(theta) = r_d, then
-    r = tan(theta). NaN where theta would reach 90 degrees, the polynomial is not increasing, or no root is found."""
-    k1, k2, k3, k4 = (k[:, i] for i in range(4))
-    rd = np.hypot(target[..., 0], target[..., 1])
-    theta = np.minimum(rd, 1.5)
-    for _ in range(UNDISTORT_MAX_ITERATIONS):
-        t2 = theta * theta
-        f = fisheye_theta_d(theta, k1, k2, k3, k4) - rd
-        df = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            step = f / df
-        theta = theta - step
-        if np.nanmax(np.abs(step), initial=0.0) < UNDISTORT_TOLERANCE:
-            break
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        t2 = theta * theta
-        df = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
-        residual = np.abs(fisheye_theta_d(theta, k1, k2, k3, k4) - rd)
-        ok = (residual < UNDISTORT_RESIDUAL_LIMIT) & (df > 0) & (theta >= 0) & (theta < np.pi / 2)
-        scale = np.where(rd > 1e-12, np.tan(theta) / np.where(rd > 1e-12, rd, 1.0), 1.0)
-    xy = target * scale[..., None]
-    xy[~ok] = np.nan
-    return xy
-
-
-def _lift_unified(m: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    """Inverse of `unified_to_plane` for (V, N, 2) plane points, xi (V, 1): back to the unit sphere, then X/Z, Y/Z.
-    NaN for points off the model's image (no real lift) or behind the camera."""
-    r2 = m[..., 0] ** 2 + m[..., 1] ** 2
-    with np.errstate(invalid="ignore"):
-        disc = 1.0 + (1.0 - xi * xi) * r2
-        factor = (xi + np.sqrt(disc)) / (r2 + 1.0)
-        z = factor - xi
-        ok = (disc >= 0) & (z > 0)
-        xy = m * (factor / np.where(ok, z, 1.0))[..., None]
-    xy[~ok] = np.nan
-    return xy
 
 
 def _float_fields(obj: object) -> None:
@@ -389,7 +286,7 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
     target = (px - c) / f
     lenses = np.array([i.lens for i in intrinsics])
     if np.all(lenses == RADTAN):  # the common case without copies
-        return _undo_radtan(target, np.array([[i.k1, i.k2, i.p1, i.p2] for i in intrinsics])[:, :, None])
+        return undo_radtan(target, np.array([[i.k1, i.k2, i.p1, i.p2] for i in intrinsics])[:, :, None])
     out = np.full(target.shape, np.nan)
     for lens in LENSES:
         idx = np.nonzero(lenses == lens)[0]
@@ -397,8 +294,8 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
             continue
         sub = [intrinsics[v] for v in idx]
         if lens == FISHEYE:
-            out[idx] = _undo_fisheye(target[idx], np.array([[i.k1, i.k2, i.k3, i.k4] for i in sub])[:, :, None])
+            out[idx] = undo_fisheye(target[idx], np.array([[i.k1, i.k2, i.k3, i.k4] for i in sub])[:, :, None])
             continue
-        m = _undo_radtan(target[idx], np.array([[i.k1, i.k2, i.p1, i.p2] for i in sub])[:, :, None])
-        out[idx] = m if lens == RADTAN else _lift_unified(m, np.array([i.xi for i in sub])[:, None])
+        m = undo_radtan(target[idx], np.array([[i.k1, i.k2, i.p1, i.p2] for i in sub])[:, :, None])
+        out[idx] = m if lens == RADTAN else lift_unified(m, np.array([i.xi for i in sub])[:, None])
     return out
