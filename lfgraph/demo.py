@@ -133,8 +133,7 @@ def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
 
     recording = out / "refine.rrd"
     with RerunLogger.to_file(recording, original.grid, "refine") as logger:
-        refined, report = refine(original, capture.frames(), observer=logger)
-        logger.refinement_result(original, refined, report)
+        refined, report = refine(original, capture.frames(), observer=logger)  # it logs the result too (run_end)
     refined.save(out / "refined.json")
     print(refinement_text(original, refined, report).split("changes per view")[0].rstrip())
     rows = []
