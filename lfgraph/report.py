@@ -46,6 +46,8 @@ def calibration_table(calib: Calibration) -> str:
 
 
 def calibration_summary(calib: Calibration) -> str:
+    """Plain text of a calibration: grid, reference and image size, then one row per view (intrinsics, position in mm
+    and rotation in degrees relative to the reference)."""
     w, h = calib.image_size_px
     lines = [
         f"grid {calib.grid} ({calib.num_views} views), reference view {calib.grid.reference} "
@@ -165,6 +167,9 @@ def alignment_table(named: Sequence[tuple[str, object]]) -> str:
 
 
 def drift_text(calib: Calibration, report, depths_m=()) -> str:  # report: lfgraph.drift.DriftReport
+    """Plain text of a drift check (`lfgraph.check`): the tracks after each filter, the reprojection RMS per view, the
+    alignment at infinity and each view's verdict (``depths_m``: depths at which to state the depth error the
+    misalignment causes)."""
     counts = ", ".join(f"{k} {v}" for k, v in report.counts.items())
     lines = [f"{report.frames} frame(s); tracks after each filter: {counts}"]
     if report.frames_dropped:

@@ -117,6 +117,8 @@ def landmark_blocks(lin: gtsam.GaussianFactorGraph, layout: SchurLayout) -> tupl
 
 
 def reduced_system(lin: gtsam.GaussianFactorGraph, layout: SchurLayout) -> ReducedSystem:
+    """The normal equations of a linearised graph ``lin`` with the landmarks of ``layout`` in 3x3 blocks: V (N, 3, 3),
+    W (N, 3, C), the landmark and camera gradients and the camera block H (C, C) (`ReducedSystem`)."""
     rows, cols, vals, b, row_lm, al, V, g_l = landmark_blocks(lin, layout)  # noqa: N806
     m, n_lm, n_c = len(b), layout.n_landmarks, layout.n_camera
     is_l = layout.col_lm[cols] >= 0
@@ -176,6 +178,8 @@ def inv3(V: np.ndarray, strict: bool = True) -> np.ndarray:  # noqa: N803
 
 
 def full_step(layout: SchurLayout, dl: np.ndarray, dc: np.ndarray) -> np.ndarray:
+    """The (n,) step of every variable in the graph's column order from a landmark step ``dl`` (N, 3) and a camera step
+    ``dc`` (C,)."""
     delta = np.empty(layout.n)
     is_l = layout.col_lm >= 0
     delta[is_l] = dl[layout.col_lm[is_l], layout.col_comp[is_l]]
@@ -184,6 +188,7 @@ def full_step(layout: SchurLayout, dl: np.ndarray, dc: np.ndarray) -> np.ndarray
 
 
 def vector_values(layout: SchurLayout, delta: np.ndarray) -> gtsam.VectorValues:
+    """``delta`` (n,) in the graph's column order as GTSAM `VectorValues` (what ``Values.retract`` takes)."""
     vv = gtsam.VectorValues()
     for k, o, d in zip(layout.keys.tolist(), layout.offsets.tolist(), layout.dims.tolist(), strict=True):
         vv.insert(k, delta[o:o + d])

@@ -125,6 +125,7 @@ SHAKE_COLUMNS = ("scene", "config", "stages", "robust", "level", "rot_deg", "tra
 
 
 def shake_row_key(r: dict) -> tuple:
+    """The key of a shake-study row (configuration, level, seed): what makes a trial's row unique in the CSV."""
     return (str(r["config"]), int(r["level"]), int(r["seed"]))
 
 
@@ -292,6 +293,8 @@ def shake_plots(rows: Sequence[dict[str, Any]], out_csv: str | os.PathLike) -> l
 # --------------------------------------------------------------------------------------------- calibration study
 @dataclass(frozen=True)
 class CalibrationTrial:
+    """One calibration-study trial: a named scene's rig shown ``frames`` board frames with corner noise ``sigma_px``
+    (px), seeded by ``seed``."""
     scene: str
     frames: int
     sigma_px: float
@@ -303,6 +306,7 @@ CALIBRATION_COLUMNS = ("scene", "method", "frames", "sigma_px", "seed", "fx_err_
 
 
 def calibration_row_key(r: dict) -> tuple:
+    """The key of a calibration-study row (method, frames, corner noise, seed)."""
     return (str(r["method"]), int(r["frames"]), float(r["sigma_px"]), int(r["seed"]))
 
 
@@ -310,6 +314,7 @@ CALIBRATION_METHODS = ("paper", "joint", "cramer-rao", "calibrateMultiview")
 
 
 def calibration_trial_rows(t: CalibrationTrial) -> set[tuple]:
+    """The row keys a calibration trial produces (one per method of `CALIBRATION_METHODS`)."""
     return {(m, t.frames, float(t.sigma_px), t.seed) for m in CALIBRATION_METHODS}
 
 

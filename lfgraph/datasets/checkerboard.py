@@ -220,6 +220,7 @@ def png_params(config: CheckerboardConfig) -> list[int]:
 
 
 def frame_name(frame: int) -> str:
+    """The folder name of frame ``frame`` in a written capture (``000``, ``001``, ...)."""
     return f"{frame:03d}"
 
 

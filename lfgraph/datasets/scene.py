@@ -92,6 +92,8 @@ class TexturedQuad:
 
 @dataclass(frozen=True)
 class Scene:
+    """A random scene: textured planar quads (the background plane, then the objects' faces), in the reference view's
+    frame (m)."""
     quads: tuple[TexturedQuad, ...]
 
 

@@ -98,6 +98,11 @@ def _params(intr: Intrinsics) -> list[float]:
 
 
 def colmap_files(calib: Calibration) -> dict[str, str]:
+    """The COLMAP text model of ``calib`` as {file name: text}: ``cameras.txt``, ``rigs.txt``, the empty
+    ``frames.txt``, ``images.txt``, ``points3D.txt`` and ``rig_config.json`` (see the module docstring).
+
+    Raises:
+        ValueError: a unified lens (COLMAP has no such model)."""
     unified = [calib.grid.name(v) for v, i in enumerate(calib.intrinsics) if i.lens == "unified"]
     if unified:
         raise ValueError(f"COLMAP has no unified (omnidirectional) camera model, which views {', '.join(unified)} "
@@ -146,6 +151,7 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
 
 
 def write(calib: Calibration, path: Path) -> None:
+    """Write ``calib`` as a COLMAP text model folder at ``path`` (`lfgraph.interop.common.write_folder`)."""
     write_folder(path, colmap_files(calib), lambda name: name in COLMAP_MODEL_FILES, "a COLMAP model")
 
 
@@ -235,6 +241,11 @@ def _read_rig(rigs_path: Path, ids: list[int]) -> tuple[int, dict[int, np.ndarra
 
 
 def read(path: Path, grid: GridLike) -> Calibration:
+    """Read a COLMAP text model folder (``cameras.txt`` and ``rigs.txt``) as a calibration on ``grid`` (the ``# lfgraph
+    grid`` comment when None).
+
+    Raises:
+        CalibrationFileError: naming the file and the line or field."""
     if not path.is_dir():
         raise fail(path, "folder", "does not exist" if not path.exists() else "is not a folder (a COLMAP text "
                                                                               "model is a folder)")

@@ -45,10 +45,13 @@ T = TypeVar("T")
 
 
 def fail(path: PathLike | None, key: str, problem: str) -> CalibrationFileError:
+    """The `CalibrationFileError` of an import: ``path`` and ``key`` name where, ``problem`` what."""
     return CalibrationFileError(path, key, problem)
 
 
 def read_text(path: Path) -> str:
+    """The UTF-8 text of an input file; a missing, unreadable or special file (a FIFO, a device) is a
+    `CalibrationFileError` naming it."""
     problem = input_problem(path)
     if problem:
         raise fail(path, "file", problem)
@@ -174,6 +177,8 @@ def array(values: Any, shape: tuple[int, ...], path: PathLike, key: str) -> np.n
 
 def intrinsics(path: PathLike, key: str, K: np.ndarray, dist: Sequence[float] | np.ndarray | None,  # noqa: N803
                lens: str = "radtan") -> Intrinsics:
+    """`Intrinsics` from an OpenCV camera matrix ``K`` (3x3, px) and distortion coefficients of ``lens``; a bad value
+    is a `CalibrationFileError` naming ``path`` and ``key``."""
     try:
         return Intrinsics.from_opencv(K, None if dist is None else np.asarray(dist, dtype=np.float64), lens)
     except ValueError as exc:
@@ -181,6 +186,7 @@ def intrinsics(path: PathLike, key: str, K: np.ndarray, dist: Sequence[float] | 
 
 
 def rotation(R: np.ndarray, path: PathLike, key: str) -> np.ndarray:  # noqa: N803
+    """``R`` (3x3) checked to be a rotation matrix; a `CalibrationFileError` naming ``path`` and ``key`` otherwise."""
     if not is_rotation(R):
         raise fail(path, key, "is not a rotation matrix (R^T R must be I and det R = +1)")
     return R
@@ -202,6 +208,8 @@ def check_view_count(num_views: int, path: PathLike, key: str) -> None:
 
 def build(path: PathLike, key: str, grid: ViewGrid, image_size_px: tuple[int, int],
           views: Sequence[Intrinsics], ref_T_view: np.ndarray) -> Calibration:  # noqa: N803
+    """The `Calibration` an import read (poses in metres, relative to the reference); what the constructor refuses is a
+    `CalibrationFileError` naming ``path`` and ``key``."""
     try:
         return Calibration(grid, image_size_px, tuple(views), ref_T_view)
     except ValueError as exc:
@@ -260,6 +268,8 @@ def fit_grid(calib: Calibration, grid: GridLike, path: PathLike, key: str) -> Ca
 
 
 def check_reference_pose(view_T_ref: np.ndarray, path: PathLike, key: str) -> None:  # noqa: N803
+    """A file's pose of the reference view (``view_T_ref``, 4x4, m) must be the identity to 1e-9; a
+    `CalibrationFileError` naming ``path`` and ``key`` otherwise."""
     if np.max(np.abs(view_T_ref - np.eye(4))) > REFERENCE_POSE_TOLERANCE:
         raise fail(path, key, "belongs to the reference view, so it must be the identity")
 

@@ -38,6 +38,8 @@ PARAMETERS_FILE = "parameters.cfg"
 
 
 def read(path: Path, grid: GridLike) -> Calibration:
+    """Read an HCI 4D light-field benchmark ``parameters.cfg`` (the file or its scene folder) as a calibration on
+    ``grid`` (the module docstring gives the conventions)."""
     path = in_folder(path, PARAMETERS_FILE)
     parser = configparser.ConfigParser(interpolation=None)  # a '%' in a value is text
     try:

@@ -78,6 +78,8 @@ def camchain(calib: Calibration) -> dict[str, dict[str, Any]]:
 
 
 def write(calib: Calibration, path: Path) -> None:
+    """Write ``calib`` as a Kalibr ``camchain.yaml`` (cam0 = view 0, row-major; ``T_cn_cnm1`` chain in metres),
+    atomically."""
     header = (f"# Kalibr camera chain written by lfgraph: {calib.grid} grid, views row-major (cam0 = view 0), "
               f"reference view {calib.grid.reference}\n"
               "# T_cn_cnm1 maps points of camera n-1 into camera n (metres)\n")
@@ -87,6 +89,8 @@ def write(calib: Calibration, path: Path) -> None:
 
 
 def read(path: Path, grid: GridLike) -> Calibration:
+    """Read a Kalibr ``camchain.yaml`` (cam0, cam1, ... in row-major order) as a calibration on ``grid`` (required:
+    Kalibr stores no grid)."""
     data = load_yaml(read_text(path), path)
     if not isinstance(data, dict):
         raise fail(path, "file", "must be a YAML mapping of cameras (cam0, cam1, ...)")

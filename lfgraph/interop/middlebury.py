@@ -43,6 +43,8 @@ def _matrix(text: str, path: PathLike, key: str) -> np.ndarray:
 
 
 def read(path: Path, grid: GridLike) -> Calibration:
+    """Read a Middlebury 2014 ``calib.txt`` (the file or its scene folder) as a 1x2 calibration (``cam0``, ``cam1``,
+    ``baseline`` in mm)."""
     path = in_folder(path, CALIB_FILE)
     entries: dict[str, str] = {}
     for lineno, line in enumerate(read_text(path).splitlines(), 1):

@@ -48,6 +48,10 @@ def cameramodel(calib: Calibration, v: int) -> str:
 
 
 def write(calib: Calibration, path: Path) -> None:
+    """Write one mrcal ``.cameramodel`` per view into the folder ``path`` (`cameramodel`).
+
+    Raises:
+        ValueError: a fisheye or unified view (mrcal has neither model)."""
     other = [calib.grid.name(v) for v, i in enumerate(calib.intrinsics) if i.lens not in MRCAL_LENS_MODELS]
     if other:
         raise ValueError(f"{path}: mrcal has no Kannala-Brandt (fisheye) or unified lens model, which views "

@@ -77,6 +77,11 @@ _CV_MODELS = {"radtan": "pinhole", "fisheye": "fisheye"}  # lfgraph lens -> the 
 
 
 def write(calib: Calibration, path: Path) -> None:
+    """Write ``calib`` as one ``cv2.FileStorage`` YAML file (see the module docstring; a pair also under OpenCV's
+    stereo names), atomically.
+
+    Raises:
+        ValueError: a unified lens, or an incomplete stored rectification."""
     unified = [calib.grid.name(v) for v, i in enumerate(calib.intrinsics) if i.lens not in _CV_MODELS]
     if unified:
         raise ValueError(f"{path}: OpenCV's main modules have no unified (omnidirectional) lens model, which views "
@@ -217,6 +222,8 @@ def _matrix(entries: dict[str, Any], key: str, shape: tuple[int, ...] | None, pa
 
 
 def read(path: Path, grid: GridLike) -> Calibration:
+    """Read an OpenCV ``FileStorage`` YAML file written in this layout as a calibration (``grid`` checked against it or
+    moving its reference)."""
     if not path.is_file():
         raise fail(path, "file", "does not exist" if not path.exists() else "is not a file")
     text = read_text(path)

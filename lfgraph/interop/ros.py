@@ -58,5 +58,6 @@ def camera_infos(calib: Calibration) -> dict[str, str]:
 
 
 def write(calib: Calibration, path: Path) -> None:
+    """Write one ROS ``camera_info`` YAML file per view into the folder ``path`` (`camera_infos`)."""
     write_folder(path, camera_infos(calib), lambda name: VIEW_FILE.match(name) is not None,
                  "a ROS camera_info folder")

@@ -75,6 +75,8 @@ def borrowed_intrinsics(obs: BoardObservations, view: int, known: dict[int, Intr
 
 # ------------------------------------------------------------------------------------------------- helpers
 def masked_object_points(obs: BoardObservations, mask: np.ndarray) -> np.ndarray:
+    """(K, 3) float32 board corners (m, board frame) where ``mask`` (C,) is set: what OpenCV's calibration functions
+    take."""
     return obs.board.object_points()[mask].astype(np.float32)
 
 
@@ -86,6 +88,7 @@ def mean_rotation(rotations: np.ndarray) -> np.ndarray:
 
 
 def mean_pose(poses: np.ndarray) -> np.ndarray:
+    """The mean of (N, 4, 4) poses: chordal mean of the rotations, mean of the translations (m)."""
     return make_T(mean_rotation(poses[:, :3, :3]), poses[:, :3, 3].mean(axis=0))
 
 

@@ -35,6 +35,9 @@ SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below t
 
 @dataclass(frozen=True)
 class JointResult:
+    """The joint graph's calibration: every view's intrinsics and ``ref_T_view`` (V, 4, 4, m), every frame's
+    ``board_T_ref`` (F, 4, 4), the board's corners (C, 3, m), the optimiser's record, the corner noise the residuals
+    support (px) and the posterior sigmas per view."""
     intrinsics: tuple[Intrinsics, ...]
     ref_T_view: np.ndarray
     board_T_ref: np.ndarray

@@ -132,6 +132,7 @@ def fit_board_poses(intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray, 
 
 
 def rms_px(residuals: np.ndarray, axis: tuple[int, ...] | int | None = None) -> np.ndarray | float:
+    """RMS of the finite residual vectors (..., 2) (px) over ``axis`` (None: all); NaN where none is finite."""
     sq = np.sum(residuals**2, axis=-1)
     n = np.sum(np.isfinite(sq), axis=axis)
     total = np.nansum(sq, axis=axis)
@@ -170,6 +171,7 @@ def coverage_warnings(obs: BoardObservations, cells_map: np.ndarray,
 
 
 def outlier_frames(frame_rms_px: np.ndarray) -> list[int]:
+    """The frames whose RMS (px) exceeds `OUTLIER_FRAME_FACTOR` x the median frame's and `OUTLIER_FRAME_MIN_PX`."""
     finite = frame_rms_px[np.isfinite(frame_rms_px)]
     if finite.size == 0:
         return []

@@ -122,6 +122,8 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
 
 
 def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
+    """(N, 3) rays of ``samples`` x ``samples`` reference pixels over 5-95 % of the image (the reference's own lens
+    undistorts them; pixels a folding lens has no ray for are left out): where the transfer at infinity is measured."""
     w, h = calib.image_size_px
     xs = np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples)
     ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)

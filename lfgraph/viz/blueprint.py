@@ -54,6 +54,7 @@ def colour_by(values: np.ndarray, vmax: float) -> np.ndarray:
 
 
 def rms_of(values_px: np.ndarray) -> float:
+    """RMS of residual lengths (px); NaN when there are none."""
     return float(np.sqrt(np.mean(values_px**2))) if values_px.size else float("nan")
 
 
