@@ -150,9 +150,11 @@ class Kernel:
                     and np.allclose(mine_l, theirs_l, rtol=PROBE_RTOL, atol=1e-12))
 
     def weights(self, d: np.ndarray) -> np.ndarray:
+        """w(d) of whitened distances ``d`` (array), as float64."""
         return np.asarray(self.weight(d), dtype=np.float64)
 
     def losses(self, d: np.ndarray) -> np.ndarray:
+        """loss(d) of whitened distances ``d`` (array), as float64: the factor error GTSAM adds per residual."""
         return np.asarray(self.loss(d), dtype=np.float64)
 
 

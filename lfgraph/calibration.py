@@ -94,6 +94,7 @@ class Calibration:
 
     @property
     def num_views(self) -> int:
+        """Number of views of the array (rows x cols)."""
         return self.grid.num_views
 
     def view_T_ref(self, view: int) -> np.ndarray:  # noqa: N802
@@ -101,6 +102,7 @@ class Calibration:
         return invert_T(self.ref_T_view[view])
 
     def replace(self, **changes: Any) -> Calibration:
+        """A copy with the given fields changed (`dataclasses.replace`, validated again)."""
         return dataclasses.replace(self, **changes)
 
     def with_reference(self, reference: int) -> Calibration:
@@ -115,6 +117,8 @@ class Calibration:
 
     # ------------------------------------------------------------------------------------------ JSON
     def to_dict(self) -> dict[str, Any]:
+        """The calibration as the JSON-ready dict of ``calibration.json`` (format, version, grid, image size, one
+        entry per view with K, lens, distortion and ``R/t_view_from_ref``, the rectification and the metrics)."""
         views = []
         for v in range(self.num_views):
             r, c = self.grid.position(v)
@@ -154,6 +158,7 @@ class Calibration:
                 "rectification": self.rectification is not None, "metrics": dict(self.metrics or {})}
 
     def to_json(self) -> str:
+        """`to_dict` as JSON text; a non-finite number is a ValueError (JSON has none)."""
         try:
             return json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n"
         except ValueError as exc:

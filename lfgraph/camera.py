@@ -134,6 +134,7 @@ class Intrinsics:
 
     @classmethod
     def from_vector(cls, v: np.ndarray) -> Intrinsics:
+        """A radtan `Intrinsics` from fx, fy, cx, cy (px) [, k1, k2 [, p1, p2]] (the inverse of `as_vector`)."""
         v = np.asarray(v, dtype=np.float64).ravel()
         if v.shape not in ((4,), (6,), (8,)):
             raise ValueError(f"intrinsics vector must have 4, 6 or 8 entries (fx fy cx cy [k1 k2 [p1 p2]]), "

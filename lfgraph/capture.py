@@ -134,6 +134,8 @@ class CaptureSet:
         return [p for f in range(len(self)) for p in self.paths(f) if p is not None]
 
     def paths(self, frame: int) -> tuple[Path, ...]:
+        """The image files of frame ``frame``, one per view (a mosaic: one file; None where a view's image is
+        missing)."""
         return self.files[frame]
 
     def load_frame(self, frame: int, grayscale: bool = True) -> np.ndarray:

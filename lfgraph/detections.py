@@ -70,6 +70,7 @@ class PointBoard:
 
     @property
     def num_corners(self) -> int:
+        """Number of the board's points."""
         return int(self.points_m.shape[0])
 
     @property
@@ -153,10 +154,12 @@ class BoardObservations:
 
     @property
     def num_views(self) -> int:
+        """Number of views."""
         return self.grid.num_views
 
     @property
     def num_frames(self) -> int:
+        """Number of frames."""
         return self.corners_px.shape[1]
 
     @property
@@ -166,6 +169,7 @@ class BoardObservations:
 
     @property
     def num_observations(self) -> int:
+        """Number of detected corners over all views and frames."""
         return int(self.valid.sum())
 
     def describe(self, view: int, frame: int | None = None) -> str:
@@ -180,6 +184,7 @@ class BoardObservations:
         return f"{name}, {where}"
 
     def subset_frames(self, frames: np.ndarray | list[int]) -> BoardObservations:
+        """The observations of the given frames only (indices into the frames, in that order)."""
         idx = np.asarray(frames, dtype=int)
         return BoardObservations(self.board, self.grid, self.image_size_px, self.corners_px[:, idx],
                                  self.valid[:, idx], tuple(self.frame_names[i] for i in idx),

@@ -57,12 +57,14 @@ class ViewGrid:
 
     @property
     def num_views(self) -> int:
+        """rows x cols."""
         return self.rows * self.cols
 
     def __str__(self) -> str:
         return f"{self.rows}x{self.cols}"
 
     def index(self, row: int, col: int) -> int:
+        """The row-major index of the view at (row, col); a ValueError outside the grid."""
         if not (0 <= row < self.rows and 0 <= col < self.cols):
             raise ValueError(f"(row {row}, col {col}) is outside a {self} grid")
         return row * self.cols + col

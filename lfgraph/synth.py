@@ -45,6 +45,7 @@ class SceneCapture:
 
     @property
     def knocked(self) -> bool:
+        """Whether the frames were rendered with a knocked rig (``truth`` differs from ``original``)."""
         return self.original is not self.truth
 
 

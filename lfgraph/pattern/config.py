@@ -86,8 +86,10 @@ class CalibrateConfig:
 
     @property
     def noise(self) -> Noise:
+        """The normalised corner noise model (``robust`` after `as_noise`)."""
         return self.robust  # type: ignore[return-value]
 
     @property
     def pitch_m(self) -> float | None:
+        """``pitch_mm`` in metres (None when not given)."""
         return None if self.pitch_mm is None else self.pitch_mm / 1000.0

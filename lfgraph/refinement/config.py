@@ -24,10 +24,12 @@ class Stage(StrEnum):
 
     @property
     def frees_poses(self) -> bool:
+        """Whether the stage frees the views' poses (``poses``, ``all``)."""
         return self in (Stage.POSES, Stage.ALL)
 
     @property
     def frees_intrinsics(self) -> bool:
+        """Whether the stage frees fx, fy, cx, cy (``intrinsics``, ``all``)."""
         return self in (Stage.INTRINSICS, Stage.ALL)
 
     @property

@@ -63,9 +63,11 @@ class Tracks:
 
     @property
     def num_tracks(self) -> int:
+        """Number of tracks (N)."""
         return self.points_px.shape[1]
 
     def subset(self, keep: np.ndarray) -> Tracks:
+        """The tracks where ``keep`` (N,) is set, with the same filter counts."""
         return Tracks(self.points_px[:, keep], self.valid[:, keep], dict(self.counts))
 
 
@@ -243,6 +245,7 @@ class ChainTracker:
                             f"{type(self.settings).__name__}")
 
     def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks:
+        """`track_chain` of one frame's (V, H, W) uint8 views with this tracker's settings."""
         return track_chain(images, grid, self.settings)
 
 

@@ -66,6 +66,8 @@ class RefinementReport:
         return out
 
     def metrics(self) -> dict:
+        """``{"refinement": ...}`` as stored in ``Calibration.metrics`` (JSON-ready: frames used and why it stopped,
+        tracks per filter and frame, the stages, the verdicts, the RMS before/after and on held-out tracks)."""
         return {
             "refinement": {
                 "frames_used": self.frames_used, "stop_reason": self.stop_reason, "accepted": self.accepted,
