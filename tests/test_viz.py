@@ -207,6 +207,12 @@ def test_refine_recording(scene, tmp_path):
             np.testing.assert_allclose(static[f"/world/{rig}/{name}:Transform3D:translation"][0][0],
                                        calib.ref_T_view[v][:3, 3], atol=1e-9)
     assert static["/world/input_rig/r00_c01:Pinhole:color"] != static["/world/refined_rig/r00_c01:Pinhole:color"]
+    # each 2-D view is a camera of the 3-D scene at the refined pose: its images sit in its frustum (issue 28)
+    for v in range(refined.num_views):
+        name = refined.grid.name(v)
+        np.testing.assert_allclose(static[f"/views/{name}:Transform3D:translation"][0][0],
+                                   refined.ref_T_view[v][:3, 3], atol=1e-9)
+        assert static[f"/views/{name}:Pinhole:image_from_camera"][0] is not None
     labels = static["/world/change:Arrows3D:labels"][0]
     assert len(labels) == refined.num_views and all("deg" in s and "mm" in s for s in labels)
     assert not np.allclose(refined.ref_T_view, original.ref_T_view)  # the shake was refined: the rigs differ

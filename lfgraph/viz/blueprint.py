@@ -106,8 +106,10 @@ def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate",
                            _view_grid(grid, "rectified"),
                            column_shares=[1, 2]),
             collapse_panels=True)
+    # the 2-D views are cameras of the 3-D scene too (their images in the frustums, one entity in both views)
     three_d = rrb.Spatial3DView(origin="world", name="input (grey) and refined (green) rig, landmarks"
-                                if kind == "refine" else "calibrated rig and board poses", eye_controls=eye)
+                                if kind == "refine" else "calibrated rig and board poses", eye_controls=eye,
+                                contents=["$origin/**", "+ /views/**"])
     side = [three_d, rrb.TimeSeriesView(origin="rms", name="RMS reprojection error per frame (px)"),
             *_optimiser_views()]
     if kind == "refine":

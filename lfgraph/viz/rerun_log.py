@@ -123,6 +123,9 @@ class _StdoutPump:
         return self.broken
 
 
+CAMERA_RIGS = ("input_rig", "calibrated_rig", "refined_rig")  # rigs whose poses place the 2-D views in 3-D
+
+
 class RerunLogger(BaseObserver):
     """Logs lfgraph's data to one explicit `rr.RecordingStream` (never the global one); an `lfgraph.Observer`.
 
@@ -382,6 +385,8 @@ class RerunLogger(BaseObserver):
                                                     labels=[f"{name}: {calib.grid.name(v)}"
                                                             for v in range(calib.num_views)],
                                                     show_labels=False), static=True)
+        if name in CAMERA_RIGS:
+            self._view_cameras(calib, depth_m)
         if images is not None:
             self.rec.set_time("frame", sequence=0)
             self._log_images(images)
@@ -390,6 +395,17 @@ class RerunLogger(BaseObserver):
             self.rec.send_blueprint(default_blueprint(self.grid, self._kind, calib), make_active=False,
                                     make_default=True)
             self._eye_set = True
+
+    def _view_cameras(self, calib: Calibration, depth_m: float) -> None:
+        """Each 2-D view (``views/rRR_cCC``: its images, tracks and residuals) made a camera of the 3-D scene at the
+        rig's pose: the images show inside the frustums, and a point picked in one view is the same entity in the
+        other (static; a later rig — refine's result — replaces an earlier one)."""
+        w, h = calib.image_size_px
+        for v in range(calib.num_views):
+            pose, path = calib.ref_T_view[v], f"views/{calib.grid.name(v)}"
+            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
+            self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
+                                          image_plane_distance=depth_m), static=True)
 
     def rig_change(self, before: Calibration, after: Calibration) -> None:
         """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
