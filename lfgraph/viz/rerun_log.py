@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -44,41 +44,15 @@ from lfgraph.io_utils import check_replaceable
 from lfgraph.observer import WARNING_PREFIX, BaseObserver, StageEnd
 from lfgraph.viz.blueprint import (
     APP_ID,
-    CHANGE_ARROW_BASELINE_SHARE,
-    CHANGE_COLOUR,
     ERROR_COLOUR,
-    FRUSTUM_BASELINE_SHARE,
-    GUIDE_COLOUR,
-    GUIDE_SPACING_PX,
-    JPEG_QUALITY,
     KINDS,
-    OBSERVED_COLOUR,
     OUTLIER_COLOUR,
     POINT_RADIUS_UI,
-    REPROJECTED_COLOUR,
-    RESIDUAL_ARROW_SCALE,
-    RESIDUAL_COLOUR_MAX_PX,
-    RIG_COLOURS,
     RMS_COLOUR,
     check_save_path,
-    colour_by,
     default_blueprint,
-    nice_factor,
-    rms_of,
-    smallest_baseline_m,
 )
-
-
-def _jpeg(image: np.ndarray) -> rr.EncodedImage | rr.Image:
-    """A grayscale (H, W) or OpenCV BGR (H, W, 3) image as JPEG at `JPEG_QUALITY`."""
-    colour = "BGR" if image.ndim == 3 and image.shape[2] == 3 else None
-    return rr.Image(image, color_model=colour).compress(jpeg_quality=JPEG_QUALITY)
-
-
-def _frames_of(frames: Callable[[int], np.ndarray] | Sequence[np.ndarray] | None, f: int) -> np.ndarray | None:
-    if frames is None:
-        return None
-    return frames(f) if callable(frames) else frames[f]
+from lfgraph.viz.rerun_scene import SceneLog, jpeg_image
 
 
 class StdoutClosed(OSError):
@@ -123,10 +97,7 @@ class _StdoutPump:
         return self.broken
 
 
-CAMERA_RIGS = ("input_rig", "calibrated_rig", "refined_rig")  # rigs whose poses place the 2-D views in 3-D
-
-
-class RerunLogger(BaseObserver):
+class RerunLogger(SceneLog, BaseObserver):
     """Logs lfgraph's data to one explicit `rr.RecordingStream` (never the global one); an `lfgraph.Observer`.
 
     Make one with `to_file` (written atomically when closed), `from_stream` (your own stream), `serve`, `connect`
@@ -329,7 +300,7 @@ class RerunLogger(BaseObserver):
 
     def _log_images(self, images: np.ndarray) -> None:
         for v in range(images.shape[0]):
-            self.rec.log(f"views/{self._name(v)}/image", _jpeg(images[v]))
+            self.rec.log(f"views/{self._name(v)}/image", jpeg_image(images[v]))
 
     # ------------------------------------------------------------------------------------------- optimiser
     def set_measurements(self, n: int) -> None:
@@ -365,170 +336,6 @@ class RerunLogger(BaseObserver):
         if np.isfinite(rms).any():
             self.rec.log("optimizer_summary/rms_px", rr.BarChart(np.nan_to_num(rms), abscissa=iterations,
                                                                  color=RMS_COLOUR), static=True)
-
-    # ------------------------------------------------------------------------------------------- 3-D
-    def rig(self, calib: Calibration, images: np.ndarray | None = None, name: str = "rig") -> None:
-        """Every view's pose and intrinsics under ``world/<name>`` (static), in that rig's colour; ``images`` (frame
-        0, optional) go to the 2-D views on the ``frame`` timeline."""
-        w, h = calib.image_size_px
-        colour = RIG_COLOURS.get(name.removesuffix("_rig"), RIG_COLOURS["rig"])
-        base = f"world/{name}"
-        depth_m = FRUSTUM_BASELINE_SHARE * smallest_baseline_m(calib)
-        for v in range(calib.num_views):
-            pose = calib.ref_T_view[v]
-            path = f"{base}/{calib.grid.name(v)}"
-            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
-            self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
-                                          image_plane_distance=depth_m, color=colour), static=True)
-        self.rec.log(f"{base}/centres", rr.Points3D(calib.ref_T_view[:, :3, 3], colors=colour,
-                                                    radii=0.05 * smallest_baseline_m(calib),
-                                                    labels=[f"{name}: {calib.grid.name(v)}"
-                                                            for v in range(calib.num_views)],
-                                                    show_labels=False), static=True)
-        if name in CAMERA_RIGS:
-            self._view_cameras(calib, depth_m)
-        if images is not None:
-            self.rec.set_time("frame", sequence=0)
-            self._log_images(images)
-        if self._kind is not None and self.grid is not None and not self._eye_set:
-            # the default eye frames everything (landmarks metres away, a rig a few pixels wide): look at the rig
-            self.rec.send_blueprint(default_blueprint(self.grid, self._kind, calib), make_active=False,
-                                    make_default=True)
-            self._eye_set = True
-
-    def _view_cameras(self, calib: Calibration, depth_m: float) -> None:
-        """Each 2-D view (``views/rRR_cCC``: its images, tracks and residuals) made a camera of the 3-D scene at the
-        rig's pose: the images show inside the frustums, and a point picked in one view is the same entity in the
-        other (static; a later rig — refine's result — replaces an earlier one)."""
-        w, h = calib.image_size_px
-        for v in range(calib.num_views):
-            pose, path = calib.ref_T_view[v], f"views/{calib.grid.name(v)}"
-            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
-            self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
-                                          image_plane_distance=depth_m), static=True)
-
-    def rig_change(self, before: Calibration, after: Calibration) -> None:
-        """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
-        longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, labelled with the change of
-        rotation (deg), position (mm) and focal length (px) and the factor."""
-        from lfgraph.geometry import rotation_angle_deg
-
-        rot_deg = np.array([rotation_angle_deg(a[:3, :3] @ b[:3, :3].T)
-                            for a, b in zip(after.ref_T_view, before.ref_T_view, strict=True)])
-        pos_mm = 1e3 * np.linalg.norm(after.ref_T_view[:, :3, 3] - before.ref_T_view[:, :3, 3], axis=1)
-        focal_px = np.array([np.hypot(a.fx - b.fx, a.fy - b.fy)
-                             for a, b in zip(after.intrinsics, before.intrinsics, strict=True)])
-        start = before.ref_T_view[:, :3, 3]
-        move = after.ref_T_view[:, :3, 3] - start
-        longest_m = float(np.max(np.linalg.norm(move, axis=1)))
-        scale = nice_factor(CHANGE_ARROW_BASELINE_SHARE * smallest_baseline_m(before) / longest_m) \
-            if longest_m > 0 else 1.0
-        labels = [f"{after.grid.name(v)}: {rot_deg[v]:.3f} deg, {pos_mm[v]:.2f} mm, f {focal_px[v]:.2f} px "
-                  f"(arrow x{scale:g})" for v in range(after.num_views)]
-        self.rec.log("world/change", rr.Arrows3D(origins=start, vectors=move * scale, colors=CHANGE_COLOUR,
-                                                 labels=labels, radii=0.02 * smallest_baseline_m(before)),
-                     static=True)
-
-    def boards(self, ref_T_board: np.ndarray, object_points_m: np.ndarray) -> None:  # noqa: N803
-        for f, pose in enumerate(ref_T_board):
-            if not np.all(np.isfinite(pose)):
-                continue
-            path = f"world/boards/frame_{f:03d}"
-            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
-            self.rec.log(f"{path}/corners", rr.Points3D(object_points_m, radii=0.0008), static=True)
-
-    def landmarks(self, points_ref: np.ndarray, mean_error_px: np.ndarray) -> None:
-        ok = np.all(np.isfinite(points_ref), axis=1)
-        self.rec.log("world/landmarks", rr.Points3D(points_ref[ok], colors=colour_by(mean_error_px[ok],
-                                                                                       RESIDUAL_COLOUR_MAX_PX),
-                                                    radii=0.01))
-
-    # ------------------------------------------------------------------------------------------- 2-D
-    def observations(self, calib: Calibration, observed: np.ndarray, projected: np.ndarray, valid: np.ndarray,
-                     outliers: np.ndarray | list[np.ndarray] | None = None) -> None:
-        """Per view, at the current ``frame`` time: observed and reprojected points, residual arrows, outliers
-        and the view's RMS. Arrays (V, N, 2) / (V, N); ``outliers`` per view (K, 2) pixels. Empty entities are
-        logged too, so that nothing of an earlier frame lingers."""
-        for v in range(calib.num_views):
-            name = calib.grid.name(v)
-            base = f"views/{name}"
-            m = valid[v] & np.all(np.isfinite(observed[v]), axis=-1) & np.all(np.isfinite(projected[v]), axis=-1)
-            obs, proj = observed[v][m], projected[v][m]
-            res = obs - proj
-            mag = np.linalg.norm(res, axis=1)
-            self.rec.log(f"{base}/observed", rr.Points2D(obs, radii=-POINT_RADIUS_UI, colors=OBSERVED_COLOUR))
-            self.rec.log(f"{base}/reprojected", rr.Points2D(proj, radii=-0.6 * POINT_RADIUS_UI,
-                                                            colors=REPROJECTED_COLOUR))
-            self.rec.log(f"{base}/residuals", rr.Arrows2D(origins=proj, vectors=res * RESIDUAL_ARROW_SCALE,
-                                                          colors=colour_by(mag, RESIDUAL_COLOUR_MAX_PX)))
-            out = np.zeros((0, 2)) if outliers is None else outliers[v]
-            self.rec.log(f"{base}/outliers", rr.Points2D(out, radii=-1.5 * POINT_RADIUS_UI, colors=OUTLIER_COLOUR))
-            if mag.size:
-                self.rec.log(f"rms/{name}", rr.Scalars(rms_of(mag)))
-
-    def calibration_result(self, calib: Calibration, obs, report,
-                           frames: Callable[[int], np.ndarray] | Sequence[np.ndarray] | None = None) -> None:
-        """After `lfgraph.calibrate`: the calibrated rig and board poses, and on the ``frame`` timeline each frame's
-        images (``frames``: a loader ``f -> (V, H, W)`` such as ``capture.load_frame``, or a sequence), corners,
-        reprojections, residuals and (outlier frames) the corners in red; the optimiser summary.
-
-        Args:
-            calib: the calibration; obs: its `lfgraph.detections.Observations`; report: its `CalibrationReport`.
-            frames: per-frame images (optional: without them the 2-D views show the points only).
-        """
-        from lfgraph.geometry import invert_T
-
-        self.rig(calib, name="calibrated_rig")
-        if report.board_T_ref is not None:
-            ref_T_board = np.stack([invert_T(T) if np.all(np.isfinite(T)) else np.full((4, 4), np.nan)  # noqa: N806
-                                    for T in report.board_T_ref])
-            self.boards(ref_T_board, obs.board.object_points())
-        outlier_frames = set(report.outlier_frames)
-        for f in range(obs.corners_px.shape[1]):
-            self.rec.set_time("frame", sequence=f)
-            images = _frames_of(frames, f)
-            if images is not None:
-                self._log_images(images)
-            if report.residuals_px is None:
-                continue
-            observed = obs.corners_px[:, f]
-            projected = observed - report.residuals_px[:, f]
-            valid = obs.valid[:, f]
-            outliers = [observed[v][valid[v]] if f in outlier_frames else np.zeros((0, 2))
-                        for v in range(calib.num_views)]
-            self.observations(calib, observed, projected, valid, outliers)
-        self.optimiser_summary()
-
-    def refinement_result(self, before: Calibration, after: Calibration, report=None) -> None:
-        """After `lfgraph.refine`: the input and the refined rig side by side, the change per view, the optimiser
-        summary. ``after`` is `refine`'s return value (the input itself when the refinement was not accepted)."""
-        self.rig(before, name="input_rig")
-        self.rig(after, name="refined_rig")
-        self.rig_change(before, after)
-        self.optimiser_summary()
-        if report is not None and not getattr(report, "accepted", True):
-            self.rec.log("log", rr.TextLog("refinement not accepted: the refined rig is the input", level="WARN"))
-
-    def study_rows(self, rows: list[dict]) -> None:
-        """Study results as scalars: ``study/<stages>_<robust>/<metric>`` on the ``level`` timeline."""
-        for r in rows:
-            name = f"{r['stages']}_{r['robust']}".replace(":", "_").replace(",", "_")
-            self.rec.set_time("level", sequence=int(r["level"]))
-            self.rec.set_time("seed", sequence=int(r["seed"]))
-            for metric in ("transfer_px", "rot_err_deg", "rms_after_px"):
-                value = float(r[metric])
-                if np.isfinite(value):
-                    self.rec.log(f"study/{name}/{metric}", rr.Scalars(value))
-
-    def rectified(self, calib: Calibration, images: np.ndarray) -> None:
-        """Rectified views (static) with horizontal guide lines every `GUIDE_SPACING_PX`."""
-        h, w = images.shape[1:3]
-        ys = np.arange(GUIDE_SPACING_PX, h, GUIDE_SPACING_PX, dtype=np.float32)
-        lines = [np.array([[0, y], [w - 1, y]], dtype=np.float32) for y in ys]
-        for v in range(calib.num_views):
-            base = f"rectified/{calib.grid.name(v)}"
-            self.rec.log(f"{base}/image", _jpeg(images[v]), static=True)
-            self.rec.log(f"{base}/guides", rr.LineStrips2D(lines, colors=GUIDE_COLOUR, radii=0.5), static=True)
 
     def close(self, success: bool = True) -> None:
         """Flush and finish; a file recording appears only now, and only when ``success``.
