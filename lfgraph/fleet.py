@@ -184,7 +184,7 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
     from lfgraph.drift import check
-    from lfgraph.rectification import check_compatible
+    from lfgraph.rectification_checks import check_compatible
     from lfgraph.refinement import RefineConfig, refine
 
     start = time.perf_counter()

@@ -73,7 +73,8 @@ def _rectify(args: argparse.Namespace) -> int:
     from lfgraph.capture import open_capture
     from lfgraph.io_utils import default_mode
     from lfgraph.parallel import run_tasks
-    from lfgraph.rectification import attach, check_compatible, compute_rectification
+    from lfgraph.rectification import attach, compute_rectification
+    from lfgraph.rectification_checks import check_compatible
     from lfgraph.report import rectification_text
 
     out = args.output
@@ -118,7 +119,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
     from lfgraph.drift import check
-    from lfgraph.rectification import check_compatible
+    from lfgraph.rectification_checks import check_compatible
     from lfgraph.refinement.config import DriftModel, RefineConfig
     from lfgraph.report import drift_text
 

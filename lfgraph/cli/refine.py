@@ -35,7 +35,7 @@ def _refine(args: argparse.Namespace) -> int:
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
     from lfgraph.factors.noise import describe_noise
-    from lfgraph.rectification import check_compatible
+    from lfgraph.rectification_checks import check_compatible
     from lfgraph.refinement import RefineConfig, refine, with_reference
     from lfgraph.refinement.config import DriftModel, schedule_name
     from lfgraph.report import refinement_text
