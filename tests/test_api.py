@@ -317,3 +317,21 @@ def test_the_entry_points_name_arguments_of_the_wrong_kind():
     for call, message in cases:
         with pytest.raises(TypeError, match=message):
             call()
+
+
+MAX_FUNCTION_LINES = 80  # issue 26: a function longer than this does more than one thing
+MAX_MODULE_LINES = 400  # ... and a module longer than this holds more than one subject
+
+
+def test_no_function_over_80_lines_and_no_module_over_400():
+    too_long = []
+    for path in (ROOT / "lfgraph").rglob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > MAX_MODULE_LINES:
+            too_long.append(f"{path.relative_to(ROOT)}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    too_long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {n} lines")
+    assert not too_long, "; ".join(too_long)
