@@ -205,11 +205,17 @@ class RerunLogger(SceneLog, BaseObserver):
         the recording's default, and for ``refine`` the input rig is shown."""
         grid = self.grid or (None if calib is None else calib.grid)
         if kind in KINDS and grid is not None and (kind != self._kind or (calib is not None and not self._eye_set)):
-            self._kind, self.grid = kind, grid
-            self.rec.send_blueprint(default_blueprint(grid, kind, calib), make_active=False, make_default=True)
-            self._eye_set = calib is not None
+            self.grid = grid
+            self._send_layout(kind, calib)
         if kind == "refine" and calib is not None:
             self.rig(calib, name="input_rig")
+
+    def _send_layout(self, kind: str, calib: Calibration | None) -> None:
+        """``kind``'s `default_blueprint` made the recording's default (not forced on a viewer already open), its
+        3-D eye on ``calib``'s rig when given."""
+        self._kind = kind
+        self.rec.send_blueprint(default_blueprint(self.grid, kind, calib), make_active=False, make_default=True)
+        self._eye_set = calib is not None
 
     def run_end(self, kind: str, before: Calibration | None, after: Calibration, report: Any,
                 data: Any = None) -> None:

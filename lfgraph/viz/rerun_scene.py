@@ -25,7 +25,6 @@ from lfgraph.viz.blueprint import (
     RESIDUAL_COLOUR_MAX_PX,
     RIG_COLOURS,
     colour_by,
-    default_blueprint,
     nice_factor,
     rms_of,
     smallest_baseline_m,
@@ -76,9 +75,7 @@ class SceneLog:
             self._log_images(images)
         if self._kind is not None and self.grid is not None and not self._eye_set:
             # the default eye frames everything (landmarks metres away, a rig a few pixels wide): look at the rig
-            self.rec.send_blueprint(default_blueprint(self.grid, self._kind, calib), make_active=False,
-                                    make_default=True)
-            self._eye_set = True
+            self._send_layout(self._kind, calib)
 
     def _view_cameras(self, calib: Calibration, depth_m: float) -> None:
         """Each 2-D view (``views/rRR_cCC``: its images, tracks and residuals) made a camera of the 3-D scene at the
