@@ -53,16 +53,11 @@ class SceneLog:
     def rig(self, calib: Calibration, images: np.ndarray | None = None, name: str = "rig") -> None:
         """Every view's pose and intrinsics under ``world/<name>`` (static), in that rig's colour; ``images`` (frame
         0, optional) go to the 2-D views on the ``frame`` timeline."""
-        w, h = calib.image_size_px
         colour = RIG_COLOURS.get(name.removesuffix("_rig"), RIG_COLOURS["rig"])
         base = f"world/{name}"
         depth_m = FRUSTUM_BASELINE_SHARE * smallest_baseline_m(calib)
         for v in range(calib.num_views):
-            pose = calib.ref_T_view[v]
-            path = f"{base}/{calib.grid.name(v)}"
-            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
-            self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
-                                          image_plane_distance=depth_m, color=colour), static=True)
+            self._camera(f"{base}/{calib.grid.name(v)}", calib, v, depth_m, colour)
         self.rec.log(f"{base}/centres", rr.Points3D(calib.ref_T_view[:, :3, 3], colors=colour,
                                                     radii=0.05 * smallest_baseline_m(calib),
                                                     labels=[f"{name}: {calib.grid.name(v)}"
@@ -81,12 +76,16 @@ class SceneLog:
         """Each 2-D view (``views/rRR_cCC``: its images, tracks and residuals) made a camera of the 3-D scene at the
         rig's pose: the images show inside the frustums, and a point picked in one view is the same entity in the
         other (static; a later rig — refine's result — replaces an earlier one)."""
-        w, h = calib.image_size_px
         for v in range(calib.num_views):
-            pose, path = calib.ref_T_view[v], f"views/{calib.grid.name(v)}"
-            self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
-            self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=[w, h],
-                                          image_plane_distance=depth_m), static=True)
+            self._camera(f"views/{calib.grid.name(v)}", calib, v, depth_m)
+
+    def _camera(self, path: str, calib: Calibration, v: int, depth_m: float,
+                colour: Sequence[int] | None = None) -> None:
+        """View ``v`` of ``calib`` at ``path``: its pose and pinhole (a frustum ``depth_m`` deep), static."""
+        pose = calib.ref_T_view[v]
+        self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
+        self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=list(calib.image_size_px),
+                                      image_plane_distance=depth_m, color=colour), static=True)
 
     def rig_change(self, before: Calibration, after: Calibration) -> None:
         """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
