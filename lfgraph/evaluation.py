@@ -83,6 +83,15 @@ def evaluate_calibration(estimate: Calibration, truth: Calibration) -> Calibrati
     return CalibrationErrors(est_vec - true_vec, pos, rot, transfer)
 
 
+def reference_pixels(image_size_px: tuple[int, int], samples: int) -> np.ndarray:
+    """(samples², 2) pixels on a ``samples`` x ``samples`` grid over 5-95 % of the image, row by row: where the
+    transfer at infinity is measured."""
+    w, h = image_size_px
+    gx, gy = np.meshgrid(np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples),
+                         np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples))
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
 def transfer_error_at_infinity(estimate: Calibration, truth: Calibration,
                                samples: int = INFINITY_SAMPLES) -> np.ndarray:
     """(V,) RMS over reference pixels of |q_est - q_true|: a reference-view pixel sent to infinite depth and projected
@@ -94,12 +103,8 @@ def transfer_error_at_infinity(estimate: Calibration, truth: Calibration,
             (truth.grid.rows, truth.grid.cols, truth.grid.reference):
         raise ValueError(f"grids differ: {estimate.grid} (reference {estimate.grid.reference}) vs {truth.grid} "
                          f"(reference {truth.grid.reference})")
-    w, h = truth.image_size_px
     ref = truth.grid.reference
-    xs = np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples)
-    ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)
-    gx, gy = np.meshgrid(xs, ys)
-    px = np.column_stack([gx.ravel(), gy.ravel()])
+    px = reference_pixels(truth.image_size_px, samples)
     out = np.zeros(truth.num_views)
 
     def project_all(calib: Calibration) -> np.ndarray:

@@ -9,6 +9,7 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.evaluation import reference_pixels
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_gauge, rotation_gauge
@@ -124,11 +125,7 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
 def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
     """(N, 3) rays of ``samples`` x ``samples`` reference pixels over 5-95 % of the image (the reference's own lens
     undistorts them; pixels a folding lens has no ray for are left out): where the transfer at infinity is measured."""
-    w, h = calib.image_size_px
-    xs = np.linspace(0.05 * (w - 1), 0.95 * (w - 1), samples)
-    ys = np.linspace(0.05 * (h - 1), 0.95 * (h - 1), samples)
-    gx, gy = np.meshgrid(xs, ys)
-    xy = calib.intrinsics[calib.grid.reference].undistort(np.column_stack([gx.ravel(), gy.ravel()]))
+    xy = calib.intrinsics[calib.grid.reference].undistort(reference_pixels(calib.image_size_px, samples))
     xy = xy[np.all(np.isfinite(xy), axis=1)]  # corners a strong barrel lens folds over have no ray
     return np.column_stack([xy, np.ones(len(xy))])
 
