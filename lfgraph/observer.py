@@ -145,7 +145,7 @@ class Observers(BaseObserver):
 
     def measurement_sigma(self, sigma_px: float) -> None:
         for o in self.observers:
-            tell_sigma(o, sigma_px)
+            tell(o, "measurement_sigma", sigma_px)
 
     def run_start(self, kind: str, calib: Calibration | None) -> None:
         for o in self.observers:
@@ -162,11 +162,6 @@ def tell(observer: Observer, method: str, *args: Any) -> None:
     fn = getattr(observer, method, None)
     if callable(fn):
         fn(*args)
-
-
-def tell_sigma(observer: Observer, sigma_px: float) -> None:
-    """``observer.measurement_sigma(sigma_px)`` where the observer has it (the method is optional)."""
-    tell(observer, "measurement_sigma", float(sigma_px))
 
 
 def resolve(observer: Observer | None) -> Observer:

@@ -12,7 +12,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.factors.noise import describe_noise
 from lfgraph.geometry import rotation_angle_deg
-from lfgraph.observer import Observer, SilentObserver, StageEnd, resolve, tell_sigma
+from lfgraph.observer import Observer, SilentObserver, StageEnd, resolve, tell
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.report import StageReport
@@ -101,7 +101,7 @@ def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config
             stage, noise = name, config.noise
         rms_before = finite_rms(errors)
         before = calib
-        tell_sigma(obs, sigma_px)  # the stage's graph errors are in units of this sigma
+        tell(obs, "measurement_sigma", float(sigma_px))  # the stage's graph errors are in units of this sigma
         obs.stage_start(str(name), int(ok.sum()))
         per_view = ok.sum(axis=1)
         thin = frozenset(int(v) for v in np.nonzero(per_view < config.min_view_observations)[0])
