@@ -101,7 +101,7 @@ def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray, flo
         dc = np.zeros(0)
     t = sys_.g_l - ((sys_.W.reshape(-1, n_c) @ dc).reshape(-1, 3) if n_c else 0.0)
     dl = np.matmul(vinv, t[..., None])[..., 0] if n_lm else np.zeros((0, 3))
-    return dl, dc, float(dc @ rhs)  # S dc = rhs
+    return dl, dc
 
 
 def _times_w(vinv: np.ndarray, W: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -179,23 +179,17 @@ def optimize_schur(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, lan
 
 
 def optimize_problem(problem, state, max_iterations: int = 100, relative_error_tol: float = 1e-10,
-                     absolute_error_tol: float = 1e-12, error_tol: float = 0.0, callback=None,
-                     camera_step_tol: float | None = None) -> OptimizationResult:
+                     absolute_error_tol: float = 1e-12, error_tol: float = 0.0,
+                     callback=None) -> OptimizationResult:
     """The Levenberg–Marquardt loop over a problem (``error``, ``system``, ``retract``); ``values`` of the result
     is the final state (a `ProjectionProblem`'s: (values, points)).
-
-    ``camera_step_tol`` (sigmas; None: off): also stop after a step whose camera part is shorter than this in the
-    reduced camera information (``sqrt(dc' S dc)``, S the Schur complement: the cameras' posterior metric). With a
-    robust kernel an outlier's landmark creeps along its kernel's flat tail for tens of iterations, each lowering
-    the cost by ~1e-7 of itself, while the cameras have long stopped moving.
     """
     with one_blas_thread():
-        return _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol, callback,
-                         camera_step_tol)
+        return _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol, callback)
 
 
 def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error_tol, error_tol,
-              callback, camera_step_tol=None) -> OptimizationResult:
+              callback) -> OptimizationResult:
     start = time.perf_counter()
     error = problem.error(state)
     initial_error = error
@@ -212,7 +206,7 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
         new_state, new_error = state, error
         while True:
             try:
-                dl, dc, camera_step2 = _solve(sys_, lam)
+                dl, dc = _solve(sys_, lam)
                 ok = bool(np.all(np.isfinite(dl)) and np.all(np.isfinite(dc)))
             except np.linalg.LinAlgError:
                 ok = False
@@ -226,7 +220,6 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
                     fidelity = (1.0 if change >= 0 else -1.0) if tiny else change / linear_change
                     if np.isfinite(cand_error) and fidelity > MIN_MODEL_FIDELITY:
                         new_state, new_error, accepted = cand, cand_error, True
-                        still = camera_step_tol is not None and dc.size > 0 and camera_step2 <= camera_step_tol ** 2
                         lam = lam / LAMBDA_FACTOR
                         break
             lam *= LAMBDA_FACTOR
@@ -242,7 +235,7 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
         decrease = error - new_error
         state, previous, error = new_state, error, new_error
         if decrease <= absolute_error_tol or (previous > 0 and decrease / previous <= relative_error_tol) \
-                or error <= error_tol or still:
+                or error <= error_tol:
             converged = True
             break
     return OptimizationResult(state, initial_error, error, iterations, converged or iterations < max_iterations,
