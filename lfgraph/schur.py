@@ -82,9 +82,8 @@ def one_blas_thread() -> Iterator[None]:
                 _blas_limit = None
 
 
-def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """(landmark step (N,3), camera step (C,), the camera step's squared length in the reduced (damped) information:
-    in sigmas) of the damped normal equations; raises LinAlgError when singular."""
+def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """(landmark step (N,3), camera step (C,)) of the damped normal equations; raises LinAlgError when singular."""
     n_lm = sys_.V.shape[0]
     n_c = sys_.H.shape[0]
     vinv = inv3(sys_.V + lam * np.eye(3)) if n_lm else np.zeros((0, 3, 3))
