@@ -229,8 +229,10 @@ def real_stereo(cache: Path, failures: list[str]) -> None:
         views = [(v["view"], v["verdict"], round(v["change_sigma"], 1)) for v in data["views"]]
         print(f"check on {n} frames: {data['verdict']} (exit {code}), reprojection RMS {data['rms_px']:.2f} px, "
               f"frames dropped {data['frames_dropped']}, views {views}")
-        if data["verdict"] != "OK":
-            failures.append(f"real stereo: check on {n} frames cries drift")
+        # a good calibration is never called DRIFTED; with 13 frames the data must also confirm it (3 frames leave
+        # ~0.27 px undetermined once the board's corners, a repeated texture, are dropped: UNCERTAIN is the answer)
+        if data["verdict"] == "DRIFTED" or (n == 13 and data["verdict"] != "OK"):
+            failures.append(f"real stereo: check on {n} frames says {data['verdict']}")
 
 
 KERNEL_SHAKE = (0.5, 2.0)  # the kernel table's dataset (deg, mm)

@@ -196,14 +196,17 @@ def test_real_stereo_check_does_not_cry_drift(stereo, capsys):
     src, calib_path = stereo
     assert main(["check", str(calib_path), str(src), "--json", "--depths", "1,2"]) == EXIT_OK
     data = json.loads(capsys.readouterr().out)
-    # a board at one depth cannot pin the second view's pan (it trades against the board's depth): that view may be
-    # UNCERTAIN, never DRIFTED (its pan was held by a false gauge before issue 24, which made it look OK)
-    assert data["verdict"] == "OK" and data["views"][0]["verdict"] == REFERENCE
+    # a board at one depth cannot pin the second view's pan (it trades against the board's depth): with the default
+    # 3 frames (the board's corners dropped as a repeated texture) that view may be UNCERTAIN, never DRIFTED (its
+    # pan was held by a false gauge before issue 24, which made it look OK)
+    assert data["verdict"] in ("OK", UNCERTAIN) and data["views"][0]["verdict"] == REFERENCE
     assert data["views"][1]["verdict"] in (OK, UNCERTAIN)
     assert data["views"][1]["sigma_rotation_deg"][2] > 0
     depth = data["depth_error_m"]["per_view"]["r00_c01"]
     assert len(depth) == 2 and 0 < depth[0] < depth[1]  # the error grows with range
-    assert main(["check", str(calib_path), str(src), "--max-frames", "13"]) == EXIT_OK
+    assert main(["check", str(calib_path), str(src), "--max-frames", "13", "--json"]) == EXIT_OK
+    assert json.loads(capsys.readouterr().out)["verdict"] == "OK"  # 13 frames confirm the calibration
+    assert main(["check", str(calib_path), str(src)]) == EXIT_OK
     text = capsys.readouterr().out
     assert "verdict per view" in text and "predicted depth error" in text
 

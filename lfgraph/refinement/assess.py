@@ -237,6 +237,29 @@ def heldout_test(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, sig_vi
     return candidate, accepted, inconsistent, before, after, fit_rms
 
 
+def undetermined_changes(calib: Calibration, post: Posterior | None, sig_views: set[int],
+                         significant: dict[int, tuple[str, ...]], size_px: np.ndarray, config: RefineConfig,
+                         rays: np.ndarray) -> dict[int, float]:
+    """{view: px}: the significant views whose change at infinity does not stand out (``significance_sigma`` times)
+    against what applying it would leave undetermined there (px, 1 sigma)."""
+    # a drifted view is written whole from the full MAP fit, in which every view was free: holding its groups that
+    # were not significant let the others absorb their real change (sweep: pan/tilt error/sigma 5.8 -> 3.1, misses
+    # 1 -> 0 of 267), and a refit holding the views that did not drift let a weakly seen view's insignificant but
+    # real error pull every other view (sweep #166: all positions 1.2 mm off, 50 sigma). Its change at infinity must
+    # stand out (significance_sigma times) against what the fit leaves undetermined there in the same groups: a
+    # change significant in a position that is small against that uncertainty cannot be trusted to improve the view
+    # (the groups that did not change significantly are about as uncertain in the input as in the fit). Without
+    # priors nothing holds those groups near the input, so the whole view's uncertainty counts (a 3x3's free fit of
+    # one frame: 1.1-3.9 px changes against 1.8-4.1 px undetermined, written 1.22 -> 5.2 px).
+    unsure: dict[int, float] = {}
+    for v in sorted(sig_views):
+        x = predicted_transfer_px(calib, restricted(post, v, significant[v]) if config.priors else post, v, rays) \
+            if post is not None else float("inf")
+        if not x <= size_px[v] / config.significance_sigma:
+            unsure[v] = x
+    return unsure
+
+
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
            coverage: float, frames: int, frame_of: np.ndarray | None = None,
            sigma_estimate: float | None = None) -> Assessment:
@@ -280,19 +303,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         sig_views, small = set(), set()
     else:
         unsure_mismatch = set()
-    # a drifted view is written whole from the full MAP fit, in which every view was free: holding its groups that
-    # were not significant let the others absorb their real change (sweep: pan/tilt error/sigma 5.8 -> 3.1, misses
-    # 1 -> 0 of 267), and a refit holding the views that did not drift let a weakly seen view's insignificant but
-    # real error pull every other view (sweep #166: all positions 1.2 mm off, 50 sigma). Its change at infinity must
-    # stand out (significance_sigma times) against what the fit leaves undetermined there in the same groups: a
-    # change significant in a position that is small against that uncertainty cannot be trusted to improve the view
-    # (the groups that did not change significantly are about as uncertain in the input as in the fit).
-    unsure: dict[int, float] = {}  # significant, but what would be applied leaves this much undetermined (px)
-    for v in sorted(sig_views):
-        x = predicted_transfer_px(calib, restricted(post, v, significant[v]), v, rays) if post is not None \
-            else float("inf")
-        if not x <= size_px[v] / config.significance_sigma:
-            unsure[v] = x
+    unsure = undetermined_changes(calib, post, sig_views, significant, size_px, config, rays)
     sig_views -= set(unsure)
     candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms = heldout_test(
         calib, fit, px, ok, sig_views, fold_calibs, fold_tests, config, observer)

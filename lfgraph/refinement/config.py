@@ -186,8 +186,9 @@ class RefineConfig:
         significance_sigma: a view's change counts only if its Mahalanobis distance under the posterior covariance
             exceeds the chi-square quantile equivalent to this many sigmas (one-sided normal); otherwise the view
             keeps its input parameters.
-        uncertain_transfer_px: a view whose change is not significant is OK when its posterior predicts at most this
-            transfer error at infinity (1-sigma, px), else UNCERTAIN (the data could hide a drift that large). (A
+        uncertain_transfer_px: a view whose change is not significant, or significant but within
+            ``tolerance_px``, is OK when its posterior predicts at most this transfer error at infinity (1-sigma,
+            px), else UNCERTAIN (the data could hide a drift that large). (A
             significant change is applied only if what the fit leaves undetermined at infinity is at most its size /
             ``significance_sigma``.)
         tolerance_px: a practical tolerance (px of transfer at infinity, RMS over the reference image; default

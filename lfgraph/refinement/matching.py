@@ -32,6 +32,13 @@ class MatchSettings:
         anchor_px: after the chain, re-track every view from the reference patch (started at the chain's
             estimate) and drop points that move more than this (None: keep the chained positions). Measured on
             paper-5x5 (4 frames): transfer error at infinity 0.024-0.035 px with it, 0.015-0.089 px without.
+        unique_margin: the repeated-texture filter (None: off). A track is dropped when its reference patch
+            (``klt_window_px`` square) matches another place within ``unique_radius_px`` no worse than
+            ``unique_margin`` (NCC) below its worst match in the other views: on a periodic texture KLT locks one period off, every patch matches at NCC > 0.99, and
+            when most tracks lock alike no later filter sees it (issue 24's sweep, keyboard texture: 250 of 1007
+            tracks of a pair and 654 of 659 of a 3x1 line were wrong).
+        unique_radius_px: how far the repeated-texture filter looks: the periods that locked KLT's 3-level
+            pyramid in the sweep were 30-60 px, in any direction (knocked views are not rectified).
     """
 
     max_features: int = 2000
@@ -45,6 +52,8 @@ class MatchSettings:
     min_views: int | None = None
     forward_backward_px: float | None = 0.5
     anchor_px: float | None = 1.0
+    unique_margin: float | None = 0.02
+    unique_radius_px: int = 64
 
 
 @dataclass(frozen=True)
@@ -54,7 +63,7 @@ class Tracks:
     Attributes:
         points_px: (V, N, 2) positions in the original views (NaN where lost).
         valid: (V, N) where each track is seen.
-        counts: tracks left after each filter, in order (``detected``, ``chain``, ``dedup``, ``ransac``).
+        counts: tracks left after each filter, in order (``detected``, ``chain``, ``dedup``, ``ransac``, ``unique``).
     """
 
     points_px: np.ndarray
@@ -139,6 +148,72 @@ def _ransac(grid: ViewGrid, pts: np.ndarray, alive: np.ndarray, keep: np.ndarray
         keep[np.nonzero(both)[0][mask.ravel() == 0]] = False
 
 
+UNIQUE_VALLEY = 0.2  # NCC: another place is separate when every path to it from the patch's own peak dips this far
+
+
+def _patches(image: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
+    """(N, 2 half + 1, 2 half + 1) float32 patches of ``image`` centred on ``points`` (N, 2), bilinear."""
+    o = np.arange(-half, half + 1, dtype=np.float32)
+    k, n = len(o), len(points)
+    map_x = np.broadcast_to(points[:, 0, None, None].astype(np.float32) + o[None, None, :], (n, k, k))
+    map_y = np.broadcast_to(points[:, 1, None, None].astype(np.float32) + o[None, :, None], (n, k, k))
+    out = cv2.remap(image, np.ascontiguousarray(map_x.reshape(n * k, k)), np.ascontiguousarray(map_y.reshape(n * k, k)),
+                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT101)
+    return out.reshape(n, k, k).astype(np.float32)
+
+
+def _ncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) normalised cross-correlation of paired patches (N, k, k)."""
+    a = a.reshape(len(a), -1) - a.reshape(len(a), -1).mean(axis=1, keepdims=True)
+    b = b.reshape(len(b), -1) - b.reshape(len(b), -1).mean(axis=1, keepdims=True)
+    return np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1) + 1e-9)
+
+
+def worst_match_ncc(images: np.ndarray, ref: int, pts: np.ndarray, alive: np.ndarray, half: int) -> np.ndarray:
+    """(N,) the lowest NCC between each track's reference patch and its patch in another view that sees it."""
+    ref_patches = _patches(images[ref], pts[ref], half)
+    worst = np.full(pts.shape[1], np.inf)
+    for v in range(len(images)):
+        seen = alive[v] & (v != ref)
+        if seen.any():
+            worst[seen] = np.minimum(worst[seen], _ncc(ref_patches[seen], _patches(images[v], pts[v, seen], half)))
+    return worst
+
+
+def repeated_nearby(image: np.ndarray, points: np.ndarray, level: np.ndarray, radius: int, half: int) -> np.ndarray:
+    """(N,) True where a point's (2 half + 1)^2 patch matches another place of ``image`` within ``radius`` px
+    at NCC >= ``level`` (N,), separated from the patch's own peak by a valley (`UNIQUE_VALLEY` below ``level`` on
+    every path between them).
+
+    A place joined to the peak above that level is the same place (a ridge along an edge), not a repeat. One
+    `cv2.matchTemplate` per point: a batched FFT correlation in NumPy gave the same map (to 3e-5) but took 15x
+    longer on 700 points of a 640x480 image."""
+    pad = radius + half
+    padded = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REFLECT101)
+    out = np.zeros(len(points), dtype=bool)
+    for i, (x, y) in enumerate(np.rint(points).astype(int) + pad):
+        ncc = cv2.matchTemplate(padded[y - pad:y + pad + 1, x - pad:x + pad + 1],
+                                padded[y - half:y + half + 1, x - half:x + half + 1], cv2.TM_CCOEFF_NORMED)
+        high = ncc >= level[i]
+        if np.count_nonzero(high) > 1:
+            _, label = cv2.connectedComponents((ncc >= level[i] - UNIQUE_VALLEY).astype(np.uint8), connectivity=8)
+            out[i] = bool(np.any(high & (label != label[radius, radius])))
+    return out
+
+
+def _unique(images: np.ndarray, ref: int, pts: np.ndarray, alive: np.ndarray, keep: np.ndarray,
+            s: MatchSettings) -> None:
+    """The repeated-texture filter (`MatchSettings.unique_margin`): ``keep`` loses every track whose reference patch
+    has another place within ``s.unique_radius_px`` that matches it about as well as its own matches do (in
+    place)."""
+    idx = np.nonzero(keep)[0]
+    if s.unique_margin is None or not len(idx):
+        return
+    half = s.klt_window_px // 2
+    worst = worst_match_ncc(images, ref, pts[:, idx], alive[:, idx], half)
+    keep[idx[repeated_nearby(images[ref], pts[ref, idx], worst - s.unique_margin, s.unique_radius_px, half)]] = False
+
+
 def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | None = None) -> Tracks:
     """Track Shi–Tomasi features of the reference view through every view along ``grid.chain()``.
 
@@ -148,7 +223,8 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         settings: options; `MatchSettings()` by default.
 
     Returns:
-        tracks seen in all views (or in ``settings.min_views``), with the counts after each filter.
+        tracks seen in all views (or in ``settings.min_views``), with the counts after each filter (``detected``,
+        ``chain``, ``dedup``, ``ransac``, ``unique``).
     """
     s = settings or MatchSettings()
     n_views = grid.num_views
@@ -212,6 +288,8 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
     counts["dedup"] = int(keep.sum())
     _ransac(grid, pts, alive, keep, s)
     counts["ransac"] = int(keep.sum())
+    _unique(images, ref, pts, alive, keep, s)
+    counts["unique"] = int(keep.sum())
     valid = alive[:, keep]
     out = pts[:, keep].copy()
     out[~valid] = np.nan

@@ -165,9 +165,13 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
                            f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a "
                            f"repeated pattern?): kept"), ("texture that does not repeat (or a scene farther away)",)
-    if v in dec.small:
+    determined = have_posterior and pred <= config.uncertain_transfer_px
+    if v in dec.small and determined:
         return OK, (f"a significant ({z:.1f} sigma) change of {change_px:.3f} px, within the tolerance "
                     f"{config.tolerance_px:g} px: not applied"), None
+    if v in dec.small:  # what changed significantly does not show at infinity; what would show is undetermined
+        return UNCERTAIN, (f"a significant ({z:.1f} sigma) change of {change_px:.3f} px at infinity, but the data "
+                           f"leave {pred:.2f} px (1 sigma) there undetermined: kept"), ask
     if v in dec.unsure:
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but applied it would leave "
                            f"{dec.unsure[v]:.2f} px (1 sigma) undetermined at infinity: kept"), ask
@@ -176,7 +180,7 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
                            f"({dec.heldout_before:.3f} px with the input, {dec.heldout_after:.3f} px with the change"
                            + (f", {dec.disagreement:.0f}x what it leaves on its own tracks: the frames disagree"
                               if dec.inconsistent else "") + "): kept"), ask
-    if not have_posterior or not pred <= config.uncertain_transfer_px:
+    if not determined:
         return UNCERTAIN, (f"no significant change ({z:.1f} sigma) but the data leave {pred:.2f} px (1 sigma) at "
                            f"infinity undetermined: kept"), ask
     return OK, f"no significant change ({z:.1f} sigma; 1 sigma = {pred:.3f} px at infinity)", None
