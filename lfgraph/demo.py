@@ -16,9 +16,10 @@ from lfgraph.capture import open_capture, write_frame
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, write_checkerboard_dataset
 from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
-from lfgraph.datasets.scenes import get_scene
+from lfgraph.datasets.scenes import SCENES, get_scene
 from lfgraph.detections import detect_capture
 from lfgraph.evaluation import evaluate_calibration
+from lfgraph.io_utils import OutputError, staged_folder
 from lfgraph.observer import BaseObserver
 from lfgraph.pattern import CalibrateConfig, calibrate
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
@@ -43,11 +44,9 @@ class _Indented(BaseObserver):
         print(f"      {message}")
 
 
-def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_SCENE,
-             with_refinement: bool = True) -> int:
-    """``make demo``: render a named board capture, detect, calibrate by both routes, rectify and (``with_refinement``)
-    refine a knocked paper-5x5 capture, printing each step's errors against the truth into ``out``; returns the exit
-    code."""
+def _demo_steps(out: Path, shown: Path, jobs: int, quiet: bool, scene_name: str, with_refinement: bool) -> int:
+    """`run_demo`'s steps, writing into ``out`` (the staged folder) and naming the files as they will be: in
+    ``shown``."""
     demo_start = time.perf_counter()
     scene = get_scene(scene_name)
     rng = np.random.default_rng(DEMO_SEED)
@@ -59,8 +58,8 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     write_checkerboard_dataset(data_dir, truth_calib, truth, scene.checkerboard, seed=DEMO_SEED, jobs=jobs,
                                progress=not quiet)
     n_images = truth_calib.num_views * scene.checkerboard.frames
-    print(f"      {n_images} images in {time.perf_counter() - start:.1f} s -> {data_dir} "
-          f"(truth: {data_dir / 'truth.json'})")
+    print(f"      {n_images} images in {time.perf_counter() - start:.1f} s -> {shown / scene_name} "
+          f"(truth: {shown / scene_name / 'truth.json'})")
 
     print("[2/5] lfgraph calibrate: detection, the paper's route, the joint factor graph")
     start = time.perf_counter()
@@ -75,7 +74,7 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
     out_json = out / "calibration.json"
     joint.save(out_json)
     print(calibration_report_text(joint, report))
-    print(f"      calibrated in {time.perf_counter() - start:.1f} s -> {out_json}")
+    print(f"      calibrated in {time.perf_counter() - start:.1f} s -> {shown / 'calibration.json'}")
 
     print("[3/5] lfgraph evaluate: the joint calibration against the ground truth")
     errors = evaluate_calibration(joint, truth_calib)
@@ -99,13 +98,13 @@ def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_S
         ("corners, original views", report_pts.before), ("corners, rectified", report_pts.after),
         ("  off-grid parallax alone", report_pts.parallax), ("  rectified, parallax removed", report_pts.compensated),
         ("infinity, true cameras", infinity_alignment(joint, rect, seen_by=truth_calib))]))
-    print(f"      rectified frame {capture.frame_names[0]} -> {out / 'rectified'}")
+    print(f"      rectified frame {capture.frame_names[0]} -> {shown / 'rectified'}")
     if with_refinement:
-        run_refinement_demo(out, jobs, quiet)
-    print(f"demo done in {time.perf_counter() - demo_start:.0f} s; everything is in {out}: the rendered boards and "
-          f"truth ({data_dir}), the calibration ({out / 'calibration.json'}), the rectified frame "
-          f"({out / 'rectified'})" + (f", the refined calibration ({out / 'refined.json'}) and its rerun recording "
-                                      f"(rerun {out / 'refine.rrd'})" if with_refinement else ""))
+        run_refinement_demo(out, shown, jobs, quiet)
+    print(f"demo done in {time.perf_counter() - demo_start:.0f} s; everything is in {shown}: the rendered boards and "
+          f"truth ({shown / scene_name}), the calibration ({shown / 'calibration.json'}), the rectified frame "
+          f"({shown / 'rectified'})" + (f", the refined calibration ({shown / 'refined.json'}) and its rerun "
+                                        f"recording (rerun {shown / 'refine.rrd'})" if with_refinement else ""))
     return 0
 
 
@@ -115,8 +114,32 @@ REFINE_SHAKE = (1.0, 5.0)  # degrees about a random axis per view (pan, tilt and
 REFINE_FRAMES = 2
 
 
-def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
-    """Shake paper-5x5, render textured scenes with the shaken rig, refine from the original calibration."""
+def _earlier_demo(out: Path) -> bool:
+    """Whether ``out`` holds an earlier demo to replace (False: absent or empty). A folder holding anything the demo
+    does not write is refused (the demo replaces its folder whole)."""
+    if not out.is_dir() or not any(out.iterdir()):
+        return False
+    ours = {"calibration.json", "rectified", "refined.json", "refine.rrd", f"{REFINE_SCENE}-shaken", *SCENES}
+    foreign = sorted(c.name for c in out.iterdir() if c.name not in ours)
+    if foreign:
+        raise OutputError(f"{out}: holds files the demo did not write ({', '.join(foreign[:5])}); the demo replaces "
+                          f"its folder whole: give another --out, or move them")
+    return True
+
+
+def run_demo(out: Path, jobs: int, quiet: bool = False, scene_name: str = DEMO_SCENE,
+             with_refinement: bool = True) -> int:
+    """``make demo``: render a named board capture, detect, calibrate by both routes, rectify and (``with_refinement``)
+    refine a knocked paper-5x5 capture, printing each step's errors against the truth; everything goes into ``out``,
+    which appears complete or not at all (an earlier demo there is replaced). Returns the exit code."""
+    out = Path(out)
+    with staged_folder(out, replaceable=_earlier_demo(out)) as work:
+        return _demo_steps(work, out, jobs, quiet, scene_name, with_refinement)
+
+
+def run_refinement_demo(out: Path, shown: Path, jobs: int, quiet: bool) -> None:
+    """Shake paper-5x5, render textured scenes with the shaken rig, refine from the original calibration (written
+    into ``out``, named as in ``shown``)."""
     scene = get_scene(REFINE_SCENE)
     original = make_rig(scene.rig, np.random.default_rng(DEMO_SEED))
     rot, trans = REFINE_SHAKE
@@ -130,7 +153,7 @@ def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
     start = time.perf_counter()
     write_scene_dataset(data_dir, truth, SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4),
                         frames=REFINE_FRAMES, seed=DEMO_SEED, jobs=jobs, progress=not quiet, original=original)
-    print(f"      rendered in {time.perf_counter() - start:.1f} s -> {data_dir}")
+    print(f"      rendered in {time.perf_counter() - start:.1f} s -> {shown / data_dir.name}")
     capture = open_capture(data_dir, original.grid)
     from lfgraph.viz.rerun_log import RerunLogger
 
@@ -148,6 +171,6 @@ def run_refinement_demo(out: Path, jobs: int, quiet: bool) -> None:
     print("errors against the shaken truth (RMS over views):")
     print(format_table(["calibration", "rot_err_deg", "max_rot_err_deg", "transfer_at_infinity_px", "pos_err_mm"],
                        rows))
-    print(f"      refined calibration -> {out / 'refined.json'}")
-    print(f"      rerun recording of the refinement (input and refined rig, per-frame tracks) -> {recording}; open it "
-          f"with: .venv/bin/rerun {recording}")
+    print(f"      refined calibration -> {shown / 'refined.json'}")
+    print(f"      rerun recording of the refinement (input and refined rig, per-frame tracks) -> "
+          f"{shown / recording.name}; open it with: .venv/bin/rerun {shown / recording.name}")

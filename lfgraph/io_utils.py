@@ -1,9 +1,11 @@
-"""Atomic file output: nothing half-written ever appears under the final name."""
+"""Atomic file output: nothing half-written ever appears under the final name, and a command that fails leaves
+none of the files it created (`run_outputs`, `staged_folder`)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -56,7 +58,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     final = Path(path)
     check_replaceable(final)
+    new_folders = _missing_folders(final.parent)
     final.parent.mkdir(parents=True, exist_ok=True)
+    _record(*new_folders)
     fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
     os.close(fd)
     tmp_path = Path(tmp)
@@ -64,8 +68,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp_path
         check_replaceable(final)
         # mkstemp creates 0600; give the file the mode a plain open() would (or keep the replaced file's)
-        os.chmod(tmp_path, final.stat().st_mode & 0o777 if final.exists() else default_mode(0o666))
+        existed = final.exists()
+        os.chmod(tmp_path, final.stat().st_mode & 0o777 if existed else default_mode(0o666))
         os.replace(tmp_path, final)
+        if not existed:
+            _record(final)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -81,3 +88,97 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write bytes to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+# ------------------------------------------------------------------ outputs of a run that fails are removed
+_ledger: list[Path] | None = None  # paths a command created (files, then folders), while `run_outputs` is active
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """``path`` and its ancestors that do not exist yet, outermost first."""
+    out = []
+    for p in (path, *path.parents):
+        if p.exists():
+            break
+        out.append(p)
+    return out[::-1]
+
+
+def _record(*paths: Path) -> None:
+    if _ledger is not None:
+        _ledger.extend(paths)
+
+
+@contextlib.contextmanager
+def run_outputs() -> Iterator[list[Path]]:
+    """Within it, every file `atomic_path` creates (it did not exist before) and every folder it makes for one are
+    recorded; if the block fails (any exception, Ctrl-C), they are removed again — newest first, folders only when
+    empty — so a failed command leaves none of its outputs (``lfgraph calibrate -o … --save … --plots …`` stopped
+    after writing the calibration used to leave it, the recording and half the figures). Files written by other
+    processes are not seen: commands that write a folder of them use `staged_folder`."""
+    global _ledger
+    outer, _ledger = _ledger, []
+    try:
+        yield _ledger
+    except BaseException as exc:
+        if getattr(exc, "keep_outputs", False):  # the command's own outputs are complete (a cut --stdout stream)
+            raise
+        for p in reversed(_ledger):
+            with contextlib.suppress(OSError):
+                p.rmdir() if p.is_dir() and not p.is_symlink() else p.unlink()
+        raise
+    finally:
+        _ledger = outer
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_partials(final: Path) -> None:
+    """Remove ``.NAME.PID.*.tmp`` folders that a killed earlier run (its process is gone) left beside ``final``."""
+    if not final.parent.is_dir():
+        return
+    for stale in final.parent.glob(f".{final.name}.*.tmp"):
+        pid = stale.name[len(final.name) + 2:].split(".")[0]
+        if stale.is_dir() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def staged_folder(final: str | os.PathLike, replaceable: bool = False) -> Iterator[Path]:
+    """Yield a temporary folder beside ``final`` (``.NAME.PID.XXXX.tmp``, the user's umask); when the block succeeds
+    it takes ``final``'s place, when it fails (any exception, Ctrl-C) it is removed, so ``final`` is either what it
+    was or complete (a kill -9 leaves only the hidden temporary, removed by the next run).
+
+    ``final`` must be absent or an empty folder, or — with ``replaceable`` (the caller checked it holds only what
+    it may replace) — a folder that is replaced whole on success.
+    """
+    final = Path(final)
+    if final.is_symlink() or (final.exists() and not final.is_dir()):
+        raise OutputError(f"{final}: is not a folder; refusing to replace it")
+    if final.is_dir() and any(final.iterdir()) and not replaceable:
+        raise OutputError(f"{final}: is not empty; give a new or empty folder")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_partials(final)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
+    tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700
+    try:
+        yield tmp
+        old = None
+        if final.is_dir():
+            old = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
+            os.rmdir(old)
+            final.rename(old)
+        tmp.rename(final)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

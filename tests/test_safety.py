@@ -293,3 +293,45 @@ def test_a_guessed_layout_is_said_and_a_wrong_grid_is_summarised(tmp_path, capsy
     code, text = run(["calibrate", tmp_path / "frames", "--grid", "1000x1000", "--board", "7x5", "--square-mm", "15",
                       "-o", tmp_path / "c.json"], capsys)
     assert code == EXIT_BAD_INPUT and "check --grid" in text and len(text) < 2000
+
+
+# ------------------------------------------------------------------------------------------- interrupted runs
+def test_a_command_stopped_late_leaves_none_of_its_outputs(boards, tmp_path, capsys, monkeypatch):
+    """Ctrl-C after the calibration and the first figure were written: neither stays (a half set of outputs)."""
+    from lfgraph.io_utils import write_bytes_atomic
+    from lfgraph.viz import figures
+
+    def first_figure_then_ctrl_c(calib, obs, report, out_dir):
+        write_bytes_atomic(Path(out_dir) / "coverage.png", b"\x89PNG")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figures, "calibration_report_figures", first_figure_then_ctrl_c)
+    out, plots = tmp_path / "o.json", tmp_path / "figs" / "run1"
+    code, text = run(["calibrate", boards, "--grid", "2x2", "--board", "7x5", "--square-mm", "15", "-o", out,
+                      "--plots", plots, "--quiet"], capsys)
+    assert code == 130 and "interrupted" in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # o.json, figs/run1/coverage.png and its folders: gone
+
+
+def test_an_interrupted_synth_leaves_no_partial_folder(tmp_path):
+    """Ctrl-C while frames are being rendered: the set appears whole or not at all (it is rendered beside its
+    final name, in a hidden temporary folder, and renamed into place at the end)."""
+    proc = subprocess.Popen([sys.executable, "-m", "lfgraph", "synth", "scene", "scene", "--scene", "small-2x2",
+                             "--frames", "40", "--jobs", "1", "--quiet"], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None and not list(tmp_path.glob(".scene.*/001")):
+        time.sleep(0.05)
+    assert proc.poll() is None, "the render finished before it could be interrupted"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "interrupted" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_demo_replaces_only_its_own_folder(tmp_path, capsys):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    code, text = run(["demo", "--scene", "small-2x2", "--out", out, "--no-refine", "--quiet"], capsys)
+    assert code == EXIT_BAD_INPUT and "notes.txt" in text and (out / "notes.txt").read_text() == "mine"

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 from lfgraph.cli import calibrate, fleet, interop, rectify, refine, selfcal, study, synth
 from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_INTERNAL, EXIT_OK, EXIT_USAGE, UsageError
+from lfgraph.io_utils import run_outputs
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_DRIFT", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
 
@@ -84,7 +85,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.quiet = True
     configure_logging(args.verbose, args.log_quiet or getattr(args, "quiet", False))
     try:
-        return int(args.func(args) or 0)
+        with run_outputs():  # a command that fails leaves none of the files it created
+            return int(args.func(args) or 0)
     except UsageError as exc:
         parser.error(str(exc))
         return EXIT_USAGE

@@ -306,7 +306,9 @@ def rerun_session(args: argparse.Namespace, grid, logging: bool, kind: str = "ca
         with logger:
             yield logger
     except StdoutClosed as exc:  # | head: the recording was cut, the command's own outputs were written
-        raise OSError(f"--stdout: {exc}; every other output of the command was written") from None
+        err = OSError(f"--stdout: {exc}; every other output of the command was written")
+        err.keep_outputs = True  # type: ignore[attr-defined]  (`lfgraph.io_utils.run_outputs` keeps them)
+        raise err from None
     if logger.path is not None:
         print(f"rerun recording: {logger.path} (open it with: rerun {logger.path})")
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 from typing import Any
 
@@ -38,40 +37,15 @@ def _rectify_frame_task(task: tuple) -> int:
     return frame
 
 
-def _remove_stale_partials(out: Path) -> None:
-    """Remove ``.OUT.PID.*`` folders that a killed earlier run left beside ``out`` (its process is gone)."""
-    import shutil
-
-    if not out.parent.is_dir():
-        return
-    for stale in out.parent.glob(f".{out.name}.*"):
-        pid = stale.name[len(out.name) + 2:].split(".")[0]
-        if stale.is_dir() and pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(stale, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def cmd_rectify(args: argparse.Namespace) -> int:
     with reports_to_stderr(args):
         return _rectify(args)
 
 
 def _rectify(args: argparse.Namespace) -> int:
-    import shutil
-    import tempfile
-
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
-    from lfgraph.io_utils import default_mode
+    from lfgraph.io_utils import staged_folder
     from lfgraph.parallel import run_tasks
     from lfgraph.rectification import attach, compute_rectification
     from lfgraph.rectification_checks import check_compatible
@@ -96,20 +70,10 @@ def _rectify(args: argparse.Namespace) -> int:
             logger.rig(calib)
             logger.rectified(calib, remap_views(capture.load_frame(0, grayscale=False), build_maps(calib, rect)))
     out_layout = "folders" if capture.layout in ("pairs", "views", "video") else capture.layout
-    out.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_partials(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", dir=out.parent))
-    tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700; the output folder gets the user's umask
-    try:
+    with staged_folder(out) as tmp:  # the folder appears complete or not at all
         tasks = [(capture, f, rectified.to_dict(), args.crop, tmp, out_layout) for f in range(len(capture))]
         run_tasks(_rectify_frame_task, tasks, args.jobs, desc="rectifying", unit="frame", progress=not args.quiet)
         rectified.save(tmp / "calibration.json")
-        if out.exists():
-            out.rmdir()  # empty, checked above
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     print(f"wrote {len(capture)} rectified frames ({out_layout}) and {out / 'calibration.json'} "
           f"(with the rectification) to {out}")
     return EXIT_OK

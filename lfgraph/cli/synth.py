@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from lfgraph.cli.args import EXIT_OK, UsageError, grid_size, image_size, jobs_default, non_negative, positive_int
+from lfgraph.io_utils import staged_folder
 
 
 def _synth_rig(args: argparse.Namespace, named):
@@ -34,34 +35,29 @@ def _synth_rig(args: argparse.Namespace, named):
 SYNTH_FILES = frozenset({"truth.json", "truth_corners.npz", "original.json", ".lfgraph-detections.npz"})
 
 
-def _prepare_out(args: argparse.Namespace) -> None:
+def _prepare_out(args: argparse.Namespace) -> bool:
     """Refuse, before rendering, an output that exists and is not an empty folder: rendering into an old capture
-    kept its other frames and files (a mix of two data sets). ``--overwrite`` empties a folder that holds an earlier
-    synthetic set (its ``truth.json`` says so); any other folder is never emptied."""
-    import shutil
-
+    kept its other frames and files (a mix of two data sets). ``--overwrite`` lets a folder that holds an earlier
+    synthetic set (its ``truth.json`` says so) be replaced once the new one is complete; any other folder is never
+    replaced. Returns whether ``args.out`` is such a set to replace."""
     out = Path(args.out)
     if not out.exists():
-        return
+        return False
     if not out.is_dir():
         raise UsageError(f"{out} is a file; give a folder for the synthetic set")
     if not any(out.iterdir()):
-        return
+        return False
     if not args.overwrite:
         raise UsageError(f"{out} exists and is not empty; rendering into it would mix two data sets. Choose a new "
-                         f"folder, or pass --overwrite to empty it first")
+                         f"folder, or pass --overwrite to replace it")
     if not (out / "truth.json").is_file():
-        raise UsageError(f"{out} holds files that are not a synthetic set (no truth.json); --overwrite only empties a "
-                         f"folder an earlier `lfgraph synth` wrote")
+        raise UsageError(f"{out} holds files that are not a synthetic set (no truth.json); --overwrite only replaces "
+                         f"a folder an earlier `lfgraph synth` wrote")
     foreign = sorted(c.name for c in out.iterdir() if not (c.name in SYNTH_FILES or (c.is_dir() and c.name.isdigit())))
     if foreign:
         raise UsageError(f"{out} holds files `lfgraph synth` did not write ({', '.join(foreign[:5])}"
                          f"{', ...' if len(foreign) > 5 else ''}); --overwrite would delete them: move them first")
-    for child in out.iterdir():
-        if child.is_dir() and not child.is_symlink():
-            shutil.rmtree(child)
-        else:
-            child.unlink()
+    return True
 
 
 def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
@@ -89,10 +85,10 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     calib = make_rig(rig, rng)
     truth = make_checkerboard_truth(calib, cfg, rng)
-    _prepare_out(args)
     start = time.perf_counter()
-    write_checkerboard_dataset(args.out, calib, truth, cfg, seed=args.seed, layout=args.layout, jobs=args.jobs,
-                               progress=not args.quiet)
+    with staged_folder(args.out, replaceable=_prepare_out(args)) as tmp:  # complete, or not there at all
+        write_checkerboard_dataset(tmp, calib, truth, cfg, seed=args.seed, layout=args.layout, jobs=args.jobs,
+                                   progress=not args.quiet)
     seconds = time.perf_counter() - start
     seen = truth.board_visible
     print(f"wrote {cfg.frames} frames x {calib.num_views} views ({args.layout}) to {args.out} in {seconds:.1f} s")
@@ -115,10 +111,10 @@ def cmd_synth_scene(args: argparse.Namespace) -> int:
     frames = args.frames if args.frames is not None else named.frames
     original, truth = knocked_rig(named, args.shake_rot_deg, args.shake_trans_mm, args.shake_axis, args.seed)
     shaken = truth is not original
-    _prepare_out(args)
     start = time.perf_counter()
-    write_scene_dataset(args.out, truth, cfg, frames=frames, seed=args.seed, layout=args.layout, jobs=args.jobs,
-                        progress=not args.quiet, original=original if shaken else None)
+    with staged_folder(args.out, replaceable=_prepare_out(args)) as tmp:  # complete, or not there at all
+        write_scene_dataset(tmp, truth, cfg, frames=frames, seed=args.seed, layout=args.layout, jobs=args.jobs,
+                            progress=not args.quiet, original=original if shaken else None)
     seconds = time.perf_counter() - start
     print(f"wrote {frames} frames x {truth.num_views} views ({args.layout}) to {args.out} in {seconds:.1f} s")
     print(f"ground truth: {Path(args.out) / 'truth.json'}"
@@ -151,7 +147,8 @@ def add_parsers(sub: Any) -> None:
         p.add_argument("--jobs", type=positive_int, default=jobs_default(), help="worker processes")
         p.add_argument("--quiet", action="store_true", help="no progress bar")
         p.add_argument("--overwrite", action="store_true",
-                       help="empty OUT first when it holds an earlier synthetic set (refused otherwise)")
+                       help="replace OUT when it holds an earlier synthetic set, once the new one is complete "
+                            "(refused otherwise)")
 
     cb = synth_sub.add_parser("checkerboard", help="checkerboard captures rendered as images")
     common_synth(cb, "paper-4x4")

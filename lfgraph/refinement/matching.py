@@ -34,9 +34,10 @@ class MatchSettings:
             paper-5x5 (4 frames): transfer error at infinity 0.024-0.035 px with it, 0.015-0.089 px without.
         unique_margin: the repeated-texture filter (None: off). A track is dropped when its reference patch
             (``klt_window_px`` square) matches another place within ``unique_radius_px`` no worse than
-            ``unique_margin`` (NCC) below its worst match in the other views: on a periodic texture KLT locks one period off, every patch matches at NCC > 0.99, and
-            when most tracks lock alike no later filter sees it (issue 24's sweep, keyboard texture: 250 of 1007
-            tracks of a pair and 654 of 659 of a 3x1 line were wrong).
+            ``unique_margin`` (NCC) below its worst match in the other views, at a peak of its own (separated by a
+            valley of `UNIQUE_VALLEY`): on a periodic texture KLT locks whole periods off, every patch matches at
+            NCC > 0.99, and when most tracks lock alike no later filter sees it (issue 24's sweep, keyboard
+            texture: 250 of 1007 tracks of a pair and 654 of 659 of a 3x1 line were wrong).
         unique_radius_px: how far the repeated-texture filter looks: the periods that locked KLT's 3-level
             pyramid in the sweep were 30-60 px, in any direction (knocked views are not rectified).
     """
