@@ -300,3 +300,10 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
         m = undo_radtan(target[idx], np.array([[i.k1, i.k2, i.p1, i.p2] for i in sub])[:, :, None])
         out[idx] = m if lens == RADTAN else lift_unified(m, np.array([i.xi for i in sub])[:, None])
     return out
+
+def lens_table(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Every view's lens in one array, for the bulk solvers: ((V, 11) fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, xi;
+    (V,) each view's lens as its index in `LENSES`). `lfgraph.lens_math.lens_distort` applies them."""
+    table = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2, i.k3, i.k4, i.xi] for i in intrinsics],
+                     dtype=np.float64).reshape(-1, 11)
+    return table, np.array([LENSES.index(i.lens) for i in intrinsics], dtype=np.int64)

@@ -43,6 +43,8 @@ class DriftReport:
         frames_dropped: frames whose tracks were mostly mismatches.
         input_sigma_inf_px: (V,) 1-sigma transfer error at infinity of the calibration itself (from the marginals
             ``calibrate`` stored), or None when it stored none.
+        intrinsics_mismatch_px: (RMS with the poses alone, with the intrinsics free too) px when other intrinsics
+            explain the tracks far better than any poses: the calibration does not fit this camera.
     """
 
     rms_px: float
@@ -56,6 +58,7 @@ class DriftReport:
     input_sigma_inf_px: np.ndarray | None = None
     heldout_px: tuple[float, float] = (float("nan"), float("nan"))
     notes: tuple[str, ...] = field(default=())
+    intrinsics_mismatch_px: tuple[float, float] | None = None
 
     def drifted(self, min_px: float) -> list:
         """Views judged DRIFTED whose change moves the transfer at infinity by more than ``min_px``."""
@@ -104,6 +107,8 @@ class DriftReport:
             "input_sigma_inf_px": None if self.input_sigma_inf_px is None else
             {calib.grid.name(v): _finite_or_none(x) for v, x in enumerate(self.input_sigma_inf_px)},
             "views": [v.as_dict() for v in self.verdicts],
+            "intrinsics_mismatch_rms_px": None if self.intrinsics_mismatch_px is None else
+            dict(zip(("poses_alone", "intrinsics_free"), self.intrinsics_mismatch_px, strict=True)),
         }
 
 
@@ -203,11 +208,13 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     sigma = float("nan")
     heldout = (float("nan"), float("nan"))
     notes: list[str] = []
+    mismatch = None
     try:
         result = assess(calib, px, ok, config, SilentObserver(), track_coverage(calib, px, ok), n_frames, frame_of)
         verdicts, sigma = result.verdicts, result.sigma_px
         heldout = (result.heldout_before_px, result.heldout_after_px)
+        mismatch = result.intrinsics_mismatch
     except (RuntimeError, ValueError) as exc:  # too few tracks for a graph: no verdict rather than a wrong one
         notes.append(f"no per-view verdict: {exc}")
     return DriftReport(rms, view_rms, counts, align_points(calib, rect, px, ok), n_frames, verdicts, sigma,
-                       tuple(dropped), input_transfer_sigma_px(calib), heldout, tuple(notes))
+                       tuple(dropped), input_transfer_sigma_px(calib), heldout, tuple(notes), mismatch)

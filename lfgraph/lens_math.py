@@ -1,5 +1,5 @@
 """The lens models' arithmetic on arrays of normalised coordinates (`lfgraph.camera` documents the models): each
-model's distortion, its Jacobian (radtan), and the iterative inverses, vectorised over points and views."""
+model's distortion, its Jacobian, and the iterative inverses, vectorised over points and views."""
 
 from __future__ import annotations
 
@@ -47,6 +47,38 @@ def unified_to_plane(x: np.ndarray, y: np.ndarray, xi) -> tuple[np.ndarray, np.n
     """Mei's projection of the ray through normalised ``(x, y)`` from the unit sphere shifted by ``xi``."""
     d = 1.0 + xi * np.sqrt(x * x + y * y + 1.0)
     return x / d, y / d
+
+
+FISHEYE_SMALL_R = 1e-6  # normalised radius below which the fisheye Jacobian takes its limit at the axis
+
+
+def fisheye_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, k3, k4) -> tuple[np.ndarray, ...]:
+    """(xd, yd, d xd/dx, d xd/dy = d yd/dx, d yd/dy) of `distort_fisheye_xy`.
+
+    With r = |(x, y)|, theta = atan r and s = theta_d / r, the map is s (x, y); its Jacobian is s I + g (x, y)(x, y)^T
+    with g = (ds/dr) / r, which tends to 2 (k1 - 1/3) on the axis."""
+    r = np.hypot(x, y)
+    small = r < FISHEYE_SMALL_R
+    rs = np.where(small, 1.0, r)
+    theta = np.arctan(rs)
+    t2 = theta * theta
+    theta_d = fisheye_theta_d(theta, k1, k2, k3, k4)
+    dtheta_d = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+    s = np.where(small, 1.0, theta_d / rs)
+    g = np.where(small, 2.0 * (k1 - 1.0 / 3.0), (dtheta_d * rs / (1.0 + rs * rs) - theta_d) / rs**3)
+    return x * s, y * s, s + g * x * x, g * x * y, s + g * y * y
+
+
+def unified_jacobian(x: np.ndarray, y: np.ndarray, xi, k1, k2, p1, p2) -> tuple[np.ndarray, ...]:
+    """(xd, yd, d xd/dx, d xd/dy, d yd/dx, d yd/dy) of Mei's model: `unified_to_plane`, then `distort_xy`."""
+    rho = np.sqrt(x * x + y * y + 1.0)
+    d = 1.0 + xi * rho
+    c = xi / (rho * d * d)
+    mx, my = x / d, y / d
+    m00, m01, m11 = 1.0 / d - c * x * x, -c * x * y, 1.0 / d - c * y * y  # d m / d (x, y), symmetric
+    d00, d01, d11 = distortion_jacobian(mx, my, k1, k2, p1, p2)
+    xd, yd = distort_xy(mx, my, k1, k2, p1, p2)
+    return xd, yd, d00 * m00 + d01 * m01, d00 * m01 + d01 * m11, d01 * m00 + d11 * m01, d01 * m01 + d11 * m11
 
 
 def undo_radtan(target: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -121,3 +153,50 @@ def lift_unified(m: np.ndarray, xi: np.ndarray) -> np.ndarray:
         xy = m * (factor / np.where(ok, z, 1.0))[..., None]
     xy[~ok] = np.nan
     return xy
+
+
+def _radtan_map(x, y, k1, k2, p1, p2, k3, k4, xi, jacobian: bool) -> tuple[np.ndarray, ...]:
+    xd, yd = distort_xy(x, y, k1, k2, p1, p2)
+    if not jacobian:
+        return xd, yd
+    d00, d01, d11 = distortion_jacobian(x, y, k1, k2, p1, p2)
+    return xd, yd, d00, d01, d01, d11
+
+
+def _fisheye_map(x, y, k1, k2, p1, p2, k3, k4, xi, jacobian: bool) -> tuple[np.ndarray, ...]:
+    if not jacobian:
+        return distort_fisheye_xy(x, y, k1, k2, k3, k4)
+    xd, yd, d00, d01, d11 = fisheye_jacobian(x, y, k1, k2, k3, k4)
+    return xd, yd, d00, d01, d01, d11
+
+
+def _unified_map(x, y, k1, k2, p1, p2, k3, k4, xi, jacobian: bool) -> tuple[np.ndarray, ...]:
+    if not jacobian:
+        return distort_xy(*unified_to_plane(x, y, xi), k1, k2, p1, p2)
+    return unified_jacobian(x, y, xi, k1, k2, p1, p2)
+
+
+_MAPS = (_radtan_map, _fisheye_map, _unified_map)  # in `lfgraph.camera.LENSES` order
+
+
+def lens_distort(code: np.ndarray, coef: np.ndarray, x: np.ndarray, y: np.ndarray,
+                 jacobian: bool = False) -> tuple[np.ndarray, ...]:
+    """Each point's own lens applied to normalised coordinates, all models at once.
+
+    Args:
+        code: lens of each point, its index in `lfgraph.camera.LENSES` (0 radtan, 1 fisheye, 2 unified); same shape
+            as ``x``.
+        coef: (7, *x.shape) k1, k2, p1, p2, k3, k4, xi of each point's lens.
+        x, y: undistorted normalised coordinates.
+        jacobian: also return the Jacobian of the map.
+
+    Returns:
+        (xd, yd), or (xd, yd, d xd/dx, d xd/dy, d yd/dx, d yd/dy) with ``jacobian``.
+    """
+    out = [np.empty(np.shape(x)) for _ in range(6 if jacobian else 2)]
+    for c, lens_map in enumerate(_MAPS):
+        m = code == c
+        if m.any():
+            for o, value in zip(out, lens_map(x[m], y[m], *(k[m] for k in coef), jacobian=jacobian), strict=True):
+                o[m] = value
+    return tuple(out)

@@ -105,14 +105,20 @@ def cmd_check(args: argparse.Namespace) -> int:
     uncertain = [v.name for v in judged if v.verdict == "UNCERTAIN"]
     # no view confirmed OK (every one UNCERTAIN, or no verdict at all): the frames cannot tell, which is not "OK"
     undecided = not drifted and (not judged or len(uncertain) == len(judged))
-    verdict = "DRIFT" if drifted else "UNCERTAIN" if undecided else "OK"
+    mismatch = report.intrinsics_mismatch_px
+    verdict = "MISMATCH" if mismatch is not None else "DRIFT" if drifted else "UNCERTAIN" if undecided else "OK"
     if args.json:
         print(json_text({"calibration": str(args.calibration), "capture": str(args.input), "max_px": args.max_px,
                           "verdict": verdict, **report.to_dict(calib),
                           "depth_error_m": {"depths_m": depths, "per_view": report.depth_errors(calib, depths)}},
                          indent=1))
-        return EXIT_DRIFT if drifted else EXIT_OK
+        return EXIT_DRIFT if drifted or mismatch is not None else EXIT_OK
     print(drift_text(calib, report, depths))
+    if mismatch is not None:
+        print(f"MISMATCH: this calibration does not fit this camera: other intrinsics explain the tracks far better "
+              f"than any poses ({mismatch[0]:.3f} px RMS with the poses alone, {mismatch[1]:.3f} px with the "
+              f"intrinsics free); is it another camera's? Re-calibrate")
+        return EXIT_DRIFT
     if drifted:
         names = ", ".join(f"{v.name} ({v.transfer_change_px:.2f} px at infinity, {v.change_sigma:.1f} sigma)"
                           for v in drifted)
@@ -143,8 +149,8 @@ def add_parsers(sub: Any) -> None:
     rc.set_defaults(func=cmd_rectify)
 
     ck = sub.add_parser("check", help="drift check: does the calibration still fit an ordinary capture? "
-                                      "(exit 3 when a view drifted; prints UNCERTAIN, exit 0, when no view can be "
-                                      "confirmed OK)")
+                                      "(exit 3 when a view drifted or the calibration does not fit the camera; "
+                                      "prints UNCERTAIN, exit 0, when no view can be confirmed OK)")
     ck.add_argument("calibration", type=Path, help="calibration.json")
     ck.add_argument("input", type=Path, help="capture folder of any textured scene")
     ck.add_argument("--tolerance-px", "--max-px", dest="max_px", type=positive_float, default=0.1,

@@ -48,26 +48,38 @@ def _observations(valid: np.ndarray, pixels: np.ndarray) -> tuple[list[int], lis
     return vs.tolist(), js.tolist(), pixels[vs, js]
 
 
+_GTSAM_SUFFIX = {"radtan": "Cal3DS2", "fisheye": "Cal3Fisheye", "unified": "Cal3Unified"}  # by Intrinsics.lens
+
+
+def _by_lens(name: str, lens: str):
+    """GTSAM's ``name`` class for a lens model (``TriangulationFactor`` + ``Cal3Fisheye``, ...)."""
+    return getattr(gtsam, name + _GTSAM_SUFFIX[lens])
+
+
 def triangulation_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
                           noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactorGraph:
-    """Landmarks seen by constant cameras (`TriangulationFactorCal3DS2`): (V, N, 2) pixels, (V, N) valid."""
+    """Landmarks seen by constant cameras (`TriangulationFactorCal3DS2`, or its Cal3Fisheye / Cal3Unified twin by
+    each view's lens): (V, N, 2) pixels, (V, N) valid."""
     graph = gtsam.NonlinearFactorGraph()
-    cams = [gtsam.PinholeCameraCal3DS2(to_pose3(calib.ref_T_view[v]), calib.intrinsics[v].to_gtsam())
+    lens = [i.lens for i in calib.intrinsics]
+    cams = [_by_lens("PinholeCamera", lens[v])(to_pose3(calib.ref_T_view[v]), calib.intrinsics[v].to_gtsam())
             for v in range(calib.num_views)]
     vs, js, meas = _observations(valid, pixels)
     for v, j, uv in zip(vs, js, meas, strict=True):
-        graph.add(gtsam.TriangulationFactorCal3DS2(cams[v], uv, noise, landmark_key(j)))
+        graph.add(_by_lens("TriangulationFactor", lens[v])(cams[v], uv, noise, landmark_key(j)))
     return graph
 
 
 def projection_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
                        noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactorGraph:
-    """Landmarks seen by free poses with constant intrinsics (`GenericProjectionFactorCal3DS2`)."""
+    """Landmarks seen by free poses with constant intrinsics (`GenericProjectionFactorCal3DS2`, or its Cal3Fisheye /
+    Cal3Unified twin by each view's lens)."""
     graph = gtsam.NonlinearFactorGraph()
     cals = [calib.intrinsics[v].to_gtsam() for v in range(calib.num_views)]
+    factor = [_by_lens("GenericProjectionFactor", i.lens) for i in calib.intrinsics]
     vs, js, meas = _observations(valid, pixels)
     for v, j, uv in zip(vs, js, meas, strict=True):
-        graph.add(gtsam.GenericProjectionFactorCal3DS2(uv, noise, view_pose_key(v), landmark_key(j), cals[v]))
+        graph.add(factor[v](uv, noise, view_pose_key(v), landmark_key(j), cals[v]))
     return graph
 
 

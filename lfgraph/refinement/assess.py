@@ -18,6 +18,7 @@ The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,7 @@ import numpy as np
 from lfgraph.calibration import Calibration
 from lfgraph.observer import SilentObserver
 from lfgraph.refinement.config import RefineConfig
-from lfgraph.refinement.fit import fit_auto
+from lfgraph.refinement.fit import fit_auto, fit_tracks
 from lfgraph.refinement.posterior import (
     GROUPS,
     ROTATION,
@@ -56,6 +57,11 @@ HELDOUT_CONSISTENCY = 10.0  # held-out RMS of the candidate at most this x the f
 # legitimate thin fits predicted held-out tracks at up to ~5x (one frame of a 3x3 rig: 0.40 px vs 0.08 px); fits of
 # mismatches at 17-39x (keyboard textures in benchmarks/sweep.py)
 # ... floored at MIN_TRACK_RMS_PX; a refit leaving more than MAX_TRACK_SIGMA_PX has fitted mismatches (verdicts)
+INTRINSICS_CHECK_SIGMA_PX = 0.2  # px per coordinate: a poses-only fit about to change views that leaves more than
+# this is compared with a fit whose intrinsics are free too (rendered knocks leave 0.03-0.1 px; another unit's
+# calibration of the same model 0.33 px)
+INTRINSICS_MISMATCH_RATIO = 0.5  # ... other intrinsics explain the tracks when that fit's RMS is below this share of
+# the poses-only fit's: another unit 0.27-0.29; the own unit knocked (small-2x2, sweep seeds 3, 16, 17, 59) 1.2-2.7
 
 
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
@@ -112,7 +118,8 @@ class Assessment:
 
     ``heldout_before_px`` / ``heldout_after_px``: RMS reprojection of the held-out folds' tracks with the input and
     with the refits that did not see them (NaN when no change was tested); ``significant``: views whose change was
-    significant; ``fit``: the full MAP fit (`lfgraph.refinement.fit.FitResult`)."""
+    significant; ``fit``: the full MAP fit (`lfgraph.refinement.fit.FitResult`); ``intrinsics_mismatch``: (RMS with
+    the poses alone, with the intrinsics free too) px when other intrinsics explained the tracks far better."""
 
     calib: Calibration
     verdicts: tuple[ViewVerdict, ...]
@@ -122,6 +129,7 @@ class Assessment:
     sigma_px: float
     fit: object
     posterior: Posterior | None
+    intrinsics_mismatch: tuple[float, float] | None = None
 
 
 def _change_vector(before: Calibration, after: Calibration, v: int) -> np.ndarray:
@@ -260,6 +268,24 @@ def undetermined_changes(calib: Calibration, post: Posterior | None, sig_views: 
     return unsure
 
 
+def intrinsics_mismatch(calib: Calibration, px: np.ndarray, ok: np.ndarray, fit, config: RefineConfig,
+                        observer) -> tuple[float, float] | None:
+    """(RMS of the poses-only fit, RMS with the intrinsics free too) (px) when other intrinsics explain the tracks far
+    better than any poses (`INTRINSICS_MISMATCH_RATIO`): the calibration is probably another unit's, and the poses
+    would absorb its intrinsics (issue 27's trial: rotations 0.61 -> 1.17 deg, positions 0.35 -> 7.7 mm, "DRIFTED").
+    None when it does not, or when the fit freed intrinsics or left at most `INTRINSICS_CHECK_SIGMA_PX`, or for a
+    stereo pair: there the second view's pan is held (the hidden rotation gauge), so a real pan knock only a
+    principal point can absorb looks the same (sweep #101, #187: pairs knocked 1.4-1.8 deg)."""
+    if fit.last_stage.frees_intrinsics or not fit.sigma_px > INTRINSICS_CHECK_SIGMA_PX or calib.num_views < 3 \
+            or any(i.lens != "radtan" for i in calib.intrinsics):  # free intrinsics: radtan only
+        return None
+    free = fit_tracks(calib, px, ok, dataclasses.replace(config, stages="points,all"), SilentObserver())
+    poses_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
+    free_rms = finite_rms(reprojection_errors(free.calib, free.points, free.pixels, free.valid))
+    observer.log(f"poses alone fit the tracks to {poses_rms:.4f} px; with the intrinsics free too, {free_rms:.4f} px")
+    return (poses_rms, free_rms) if free_rms < INTRINSICS_MISMATCH_RATIO * poses_rms else None
+
+
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
            coverage: float, frames: int, frame_of: np.ndarray | None = None,
            sigma_estimate: float | None = None) -> Assessment:
@@ -305,11 +331,14 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         unsure_mismatch = set()
     unsure = undetermined_changes(calib, post, sig_views, significant, size_px, config, rays)
     sig_views -= set(unsure)
+    foreign = intrinsics_mismatch(calib, px, ok, fit, config, observer) if sig_views else None
+    if foreign is not None:  # nothing the poses suggest is applied
+        unsure_mismatch, sig_views = unsure_mismatch | sig_views, set()
     candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms = heldout_test(
         calib, fit, px, ok, sig_views, fold_calibs, fold_tests, config, observer)
     out = candidate if accepted else calib
     dec = Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
-                    accepted, inconsistent, heldout_before, heldout_after, fit_rms)
+                    accepted, inconsistent, heldout_before, heldout_after, fit_rms, foreign)
     written_size = change_size_px(calib, out, significant)
     own = input_sigmas(calib)
     gauge_sigma = view_priors(calib, config.drift).pose_sigmas
@@ -327,6 +356,6 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),
                                     1e3 * d[3:], dk, change_px, s_rot, s_pos, s_int, float(pred),
                                     int(fit.valid[v].sum()), applied, reason, needs))
-    return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post)
+    return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post, foreign)
 
 

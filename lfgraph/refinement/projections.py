@@ -1,6 +1,7 @@
 """The refinement's points and poses stages as a `lfgraph.schur` problem: the projections of every landmark into
-every view evaluated in bulk in numpy (GTSAM's Cal3DS2 projection residual and Jacobians, checked against GTSAM's
-factors in tests/test_schur.py), the priors and gauges as a small GTSAM graph on the camera variables."""
+every view evaluated in bulk in numpy (GTSAM's Cal3DS2, Cal3Fisheye and Cal3Unified projection residuals and
+Jacobians, checked against GTSAM's factors in tests/test_schur.py), the priors and gauges as a small GTSAM graph on
+the camera variables."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from lfgraph.bulk_noise import BulkNoise, NotBulk
 from lfgraph.camera import distort_xy, distortion_jacobian
+from lfgraph.lens_math import lens_distort
 from lfgraph.schur_system import (
     NotReducible,
     ReducedSystem,
@@ -21,18 +23,20 @@ from lfgraph.schur_system import (
 
 class ProjectionProblem:
     """Landmarks seen by views with constant intrinsics (GTSAM's ``GenericProjectionFactorCal3DS2`` /
-    ``TriangulationFactorCal3DS2``), evaluated in bulk in numpy, plus a small GTSAM graph of everything else on the
-    camera variables (pose priors, gauges). The state is (camera `gtsam.Values`, (N, 3) landmarks).
+    ``TriangulationFactorCal3DS2`` and their Cal3Fisheye and Cal3Unified twins), evaluated in bulk in numpy, plus a
+    small GTSAM graph of everything else on the camera variables (pose priors, gauges). The state is (camera
+    `gtsam.Values`, (N, 3) landmarks).
 
     The residual and Jacobians are GTSAM's: ``h(x) - z`` whitened by the noise model (a robust model's weights
     applied as GTSAM applies them: `lfgraph.bulk_noise`), the pose perturbed on the right (``pose * Exp([w, v])``),
-    the Cal3DS2 model fx, fy, cx, cy, k1, k2, p1, p2 without skew.
+    each view's lens model (`lfgraph.camera.LENSES`) without skew.
 
     Args:
         graph: the other factors (on camera keys only); values: their variables (the camera state).
         view, landmark: (M,) view and landmark index of each observation; uv: (M, 2) pixels.
         noise: the measurement noise model of every observation (a 2-D Gaussian, optionally robust);
-        intrinsics: (V, 8) fx, fy, cx, cy, k1, k2, p1, p2.
+        intrinsics, lenses: (V, 11) fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, xi and (V,) each view's lens, its index
+            in `LENSES` (`lfgraph.camera.lens_table`).
         pose_keys: (V,) key of each view's pose in ``values`` (poses free), or None with ``fixed_poses`` (V, 4, 4).
 
     Raises:
@@ -42,7 +46,8 @@ class ProjectionProblem:
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, view: np.ndarray,
                  landmark: np.ndarray, uv: np.ndarray, noise: gtsam.noiseModel.Base, intrinsics: np.ndarray,
-                 n_landmarks: int, pose_keys: list[int] | None = None, fixed_poses: np.ndarray | None = None):
+                 lenses: np.ndarray, n_landmarks: int, pose_keys: list[int] | None = None,
+                 fixed_poses: np.ndarray | None = None):
         self.graph = graph
         self.view, self.landmark = np.asarray(view, dtype=np.int64), np.asarray(landmark, dtype=np.int64)
         self.uv = np.asarray(uv, dtype=np.float64)
@@ -63,7 +68,9 @@ class ProjectionProblem:
             pair = pair[order]
             if np.any(pair[1:] == pair[:-1]):
                 raise NotReducible("a landmark observed twice by one view")
-        self.obs_intr = [np.ascontiguousarray(self.intr[self.view, i]) for i in range(8)]
+        self.obs_intr = [np.ascontiguousarray(self.intr[self.view, i]) for i in range(11)]
+        lenses = np.asarray(lenses, dtype=np.int64)
+        self.obs_lens = None if not np.any(lenses) else lenses[self.view]  # None: every view radtan (Cal3DS2)
         # every landmark seen by every view (observations in view-major order): per-view matrix products
         self.full = self.n_landmarks > 0 and len(self.view) == self.n_views * self.n_landmarks
         if fixed_poses is not None:
@@ -101,14 +108,22 @@ class ProjectionProblem:
         if not np.all(z > 0):
             return None
         x, y = pc[:, 0] / z, pc[:, 1] / z
-        fx, fy, cx, cy, k1, k2, p1, p2 = self.obs_intr
-        xd, yd = distort_xy(x, y, k1, k2, p1, p2)
+        fx, fy, cx, cy, k1, k2, p1, p2 = self.obs_intr[:8]
+        if self.obs_lens is None:
+            xd, yd = distort_xy(x, y, k1, k2, p1, p2)
+        else:
+            lens = lens_distort(self.obs_lens, self.obs_intr[4:], x, y, jacobian=jacobians)
+            xd, yd = lens[:2]
         e = self.noise.whiten(np.stack([fx * xd + cx - self.uv[:, 0], fy * yd + cy - self.uv[:, 1]], axis=1))
         if not jacobians:
             return e
-        d00, d01, d11 = distortion_jacobian(x, y, k1, k2, p1, p2)
+        if self.obs_lens is None:
+            d00, d01, d11 = distortion_jacobian(x, y, k1, k2, p1, p2)
+            d10 = d01
+        else:
+            d00, d01, d10, d11 = lens[2:]
         s = 1.0 / self.noise.isotropic_sigma if self.noise.isotropic_sigma is not None else 1.0
-        a00, a01, a10, a11 = s * fx * d00, s * fx * d01, s * fy * d01, s * fy * d11  # d pixel / d (x, y)
+        a00, a01, a10, a11 = s * fx * d00, s * fx * d01, s * fy * d10, s * fy * d11  # d pixel / d (x, y)
         iz = 1.0 / z
         # d pixel / d pc = A [[1/z, 0, -x/z], [0, 1/z, -y/z]]
         jpc = np.empty((len(z), 2, 3))

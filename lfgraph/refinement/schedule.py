@@ -57,12 +57,16 @@ FOREIGN_RMS_PX = 1.0  # tracks that fit the input this badly, and refits of the 
 # a calibration of another camera (a knocked rig's refits predict better, even when the folds disagree)
 
 
-def check_radtan(calib: Calibration, what: str) -> None:
-    """Refuse views of another lens model than radtan, by name: the refinement's fast solvers model only radtan."""
+def check_lenses(calib: Calibration, config: RefineConfig, what: str) -> None:
+    """Every lens model refines its poses (each view projected through its own lens); stages that free intrinsics
+    (``intrinsics``, ``all``: the paper's schedule) model radtan lenses only: refuse other views by name there."""
+    if not any(stage.frees_intrinsics for stage in config.stages):
+        return
     other = [f"{calib.grid.name(v)} ({i.lens})" for v, i in enumerate(calib.intrinsics) if i.lens != "radtan"]
     if other:
-        raise ValueError(f"{what}: views {', '.join(other)} have a wide-angle lens model; refinement handles radtan "
-                         f"lenses only so far")
+        raise ValueError(f"{what}: views {', '.join(other)} have a wide-angle lens model; the stages "
+                         f"{', '.join(s for s in config.stages if s.frees_intrinsics)} free intrinsics, which "
+                         f"lfgraph models for radtan lenses only: use the default stages (poses)")
 
 
 def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
@@ -88,7 +92,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
 
     Raises:
         ValueError: a frame whose shape, dtype or size does not match the calibration (named), no frame, no
-            track survives the filters (too little texture), or a view with a non-radtan lens model.
+            track survives the filters (too little texture), or a view with a non-radtan lens model in a schedule
+            that frees intrinsics (``--stages paper``).
         TypeError: ``calib``, ``config`` or ``frames`` of the wrong kind (named).
     """
     if not isinstance(calib, Calibration):
@@ -97,8 +102,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
     if config is not None and not isinstance(config, RefineConfig):
         raise TypeError(f"refine: config must be a lfgraph.RefineConfig, got {type(config).__name__}")
     check_frames_argument(frames, "refine")
-    check_radtan(calib, "refine")
     config = config or RefineConfig()
+    check_lenses(calib, config, "refine")
     obs = resolve(observer)
     # A frame's KLT does not depend on the calibration: it runs in a worker thread (OpenCV releases the GIL) while
     # the frames so far are refitted, and only judging its tracks waits for that fit. Results are unchanged.
@@ -258,14 +263,19 @@ def refinement_warnings(coverage: float, counts: list[dict[str, int]], dropped: 
         warnings.append(f"frames {', '.join(map(str, dropped))} dropped: most of their tracks disagree with the other "
                         f"frames' (mismatches)")
     if not result.accepted:
-        warnings.append("no view changed: " + ("no change was significant against its posterior sigma"
-                                               if np.isnan(result.heldout_before_px) else
-                                               f"refits did not predict held-out tracks better "
-                                               f"({result.heldout_before_px:.4f} px input vs "
-                                               f"{result.heldout_after_px:.4f} px refined)")
-                        + "; the input calibration is kept")
-        if before > FOREIGN_RMS_PX and not result.heldout_after_px < result.heldout_before_px:
+        b, a = result.heldout_before_px, result.heldout_after_px
+        foreign = result.intrinsics_mismatch
+        why = (f"other intrinsics explain the tracks far better than any poses ({foreign[0]:.4f} px RMS with the poses "
+               f"alone, {foreign[1]:.4f} px with the intrinsics free)" if foreign is not None else
+               "no change was significant against its posterior sigma" if np.isnan(b) else
+               f"refits did not predict held-out tracks better ({b:.4f} px input vs {a:.4f} px refined)"
+               if not a < b else
+               f"refits predict held-out tracks better than the input ({b:.4f} -> {a:.4f} px) but far worse than "
+               f"they fit their own ({result.fit.sigma_px:.4f} px per coordinate): the frames disagree")
+        warnings.append(f"no view changed: {why}; the input calibration is kept")
+        if before > FOREIGN_RMS_PX:
             warnings.append(f"the tracks fit the input calibration at {before:.2f} px RMS and no refit of the views' "
-                            f"poses explains them: is this calibration for this camera (focal length, lens, image "
-                            f"size, view order)? Re-calibrate rather than refine")
+                            f"poses explains them consistently: is this calibration for this camera (focal length, "
+                            f"principal point, lens, image size, view order)? Re-calibrate rather than refine (or, "
+                            f"if it is, the tracks are mismatched: a repeated texture)")
     return warnings

@@ -13,6 +13,7 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.camera import lens_table
 from lfgraph.factors import scene_graph
 from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
 from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
@@ -101,7 +102,7 @@ def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: n
     if stage not in (Stage.POINTS, Stage.POSES):
         return None
     vs, js = np.nonzero(valid)
-    intr = np.array([i.as_vector() for i in calib.intrinsics])
+    intr, lenses = lens_table(calib.intrinsics)
     if stage == Stage.POINTS:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     else:
@@ -113,11 +114,11 @@ def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: n
             return None
     try:
         if stage == Stage.POINTS:
-            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, len(points),
-                                        fixed_poses=np.asarray(calib.ref_T_view))
+            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, lenses,
+                                        len(points), fixed_poses=np.asarray(calib.ref_T_view))
         else:
-            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, len(points),
-                                        pose_keys=[view_pose_key(v) for v in range(calib.num_views)])
+            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, lenses,
+                                        len(points), pose_keys=[view_pose_key(v) for v in range(calib.num_views)])
     except NotReducible:
         return None
     state = (values, np.asarray(points, dtype=np.float64))

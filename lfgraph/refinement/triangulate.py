@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import distort_xy, undistort_views
+from lfgraph.camera import distort_xy, lens_table, undistort_views
+from lfgraph.lens_math import lens_distort
 
 
 def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -57,8 +58,8 @@ def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
 
 def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.ndarray,
                         valid: np.ndarray) -> np.ndarray:
-    """(V, N) Euclidean reprojection error of each observation (NaN where not observed); all views at once (the
-    model of `lfgraph.camera.Intrinsics.project`)."""
+    """(V, N) Euclidean reprojection error of each observation (NaN where not observed); all views at once, each
+    through its own lens (the model of `lfgraph.camera.Intrinsics.project`)."""
     out = np.full(valid.shape, np.nan)
     ok = np.all(np.isfinite(points_ref), axis=1)
     if not ok.any() or valid.shape[0] == 0:
@@ -68,12 +69,17 @@ def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.n
     rt = np.swapaxes(poses[:, :3, :3], 1, 2)  # view_T_ref: R^T, -R^T t
     t = -np.einsum("vij,vj->vi", rt, poses[:, :3, 3])
     pc = np.matmul(pts[None], np.swapaxes(rt, 1, 2)) + t[:, None, :]  # (V, n, 3)
-    k = np.array([i.as_vector() for i in calib.intrinsics])[:, :, None]
+    table, lenses = lens_table(calib.intrinsics)
+    k = table[:, :, None]
     z = pc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         zz = np.where(z > 0, z, np.nan)
         x, y = pc[..., 0] / zz, pc[..., 1] / zz
-    xd, yd = distort_xy(x, y, k[:, 4], k[:, 5], k[:, 6], k[:, 7])
+    if not np.any(lenses):  # every view radtan
+        xd, yd = distort_xy(x, y, k[:, 4], k[:, 5], k[:, 6], k[:, 7])
+    else:
+        coef = np.broadcast_to(k[:, 4:], (len(k), 7, x.shape[1])).transpose(1, 0, 2)  # (7, V, n)
+        xd, yd = lens_distort(np.broadcast_to(lenses[:, None], x.shape), coef, x, y)
     px = pixels[:, ok]
     err = np.hypot(k[:, 0] * xd + k[:, 2] - px[..., 0], k[:, 1] * yd + k[:, 3] - px[..., 1])
     sub = out[:, ok]

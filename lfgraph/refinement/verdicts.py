@@ -115,6 +115,7 @@ class Decision:
     heldout_before: float
     heldout_after: float
     fit_rms: float
+    foreign: tuple[float, float] | None = None  # (poses-only RMS, RMS with the intrinsics free) px: another unit's?
 
     @property
     def disagreement(self) -> float:
@@ -161,6 +162,11 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits predict "
                            f"held-out tracks {dec.disagreement:.0f}x worse than they fit their own (mismatches, or "
                            f"too few tracks): kept"), ask
+    if v in dec.unsure_mismatch and dec.foreign is not None:
+        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but other intrinsics explain the tracks "
+                           f"far better than any poses ({dec.foreign[0]:.3f} px RMS with the poses alone, "
+                           f"{dec.foreign[1]:.3f} px with the intrinsics free): this calibration is probably another "
+                           f"camera's (re-calibrate): kept"), ()
     if v in dec.unsure_mismatch:
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
                            f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a "
