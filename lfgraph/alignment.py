@@ -40,6 +40,7 @@ class Alignment:
     n_points: int
 
     def as_dict(self) -> dict[str, float | int]:
+        """The figures and counts as a JSON-ready dict keyed by the field names."""
         return {"row_px": self.row_px, "col_px": self.col_px, "proportionality_px": self.proportionality_px,
                 "n_row": self.n_row, "n_col": self.n_col, "n_points": self.n_points}
 

@@ -138,6 +138,7 @@ class BoardSpec:
 
     @property
     def num_corners(self) -> int:
+        """Number of inner corners, cols x rows (the corners OpenCV detects)."""
         return self.cols * self.rows
 
     def __str__(self) -> str:

@@ -29,6 +29,7 @@ def _images(folder: Path) -> list[Path]:
 
 
 def video_files(folder: Path) -> list[Path]:
+    """Video files directly in ``folder`` (`VIDEO_EXTENSIONS`, any case), in natural order (``v2`` before ``v10``)."""
     return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS),
                   key=lambda p: _natural_key(p.name))
 
@@ -110,6 +111,20 @@ def _view_folder_frames(root: Path, grid: ViewGrid, missing: str) -> tuple[list[
 
 
 def detect_layout(root: Path, grid: ViewGrid) -> str:
+    """Guess the layout of the capture folder ``root`` from the files in it.
+
+    Args:
+        root: the capture folder.
+        grid: the camera array (the ``views`` layout needs one folder per view).
+
+    Returns:
+        ``hci`` or ``folders`` (input_CamNNN or rRR_cCC images, at the top or in frame folders), ``pairs`` (every image
+        named left*/right*), ``mosaic`` (other images), ``video``, or ``views`` (no top-level images or videos, one
+        image folder per view of a grid of two or more views).
+
+    Raises:
+        CaptureError: no images, frame folders or videos found, or the folder holds inputs of more than one layout.
+    """
     images = _images(root)
     subdirs = [p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")]
     view_named = [p for p in images if _VIEW_RE.match(p.stem) or _HCI_RE.match(p.stem)]

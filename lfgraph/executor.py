@@ -26,6 +26,11 @@ class Executor:
         self.kind, self.jobs, self._pool, self._client = kind, jobs, pool, client
 
     def run(self, fn: Callable[[Any], Any], tasks: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
+        """Run ``fn(task)`` for every task and yield ``(task, result)`` as each finishes.
+
+        In completion order on a process pool or a Dask cluster, in task order in this process (one job). A task's
+        exception is raised when its result is reached.
+        """
         tasks = list(tasks)
         if self._client is not None:
             from distributed import as_completed as dask_completed

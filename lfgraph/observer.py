@@ -79,18 +79,28 @@ class BaseObserver:
             LOG.info(message)
 
     def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        """Called by ``refine`` (every stage) and ``calibrate`` (its joint graph) after every Levenberg–Marquardt
+        iteration: ``iteration`` its number, ``error_before`` / ``error_after`` the graph error (GTSAM's: 0.5 x the sum
+        of squared whitened residuals; for ``refine`` in units of the stage's `measurement_sigma`). No-op here."""
         pass
 
     def frame(self, index: int, images: np.ndarray) -> None:
+        """Called by ``refine`` as it starts on frame ``index`` (0-based) with that frame's (V, H, W) images, before its
+        tracks are judged. No-op here."""
         pass
 
     def stage_start(self, name: str, measurements: int) -> None:
+        """Called by ``refine`` before each stage is optimised: ``name`` the stage (``points``, ``poses``, ``clean``,
+        ...), ``measurements`` the number of valid 2-D observations it uses. No-op here."""
         pass
 
     def stage_end(self, event: StageEnd) -> None:
+        """Called by ``refine`` after each stage has been optimised, with its `StageEnd`. No-op here."""
         pass
 
     def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        """Called by ``refine`` after each stage with the observations its outlier rejection dropped: (V, K, 2)
+        pixels and (V, K) validity (K = 0 when none was dropped, always after ``clean``). No-op here."""
         pass
 
     def measurement_sigma(self, sigma_px: float) -> None:
@@ -110,6 +120,7 @@ class SilentObserver(BaseObserver):
     """Hears nothing, logs nothing: for fits whose stages are not the result (held-out refits, screening passes)."""
 
     def log(self, message: str) -> None:
+        """Drop the line."""
         pass
 
 
@@ -120,39 +131,48 @@ class Observers(BaseObserver):
         self.observers = tuple(o for o in observers if o is not None)
 
     def log(self, message: str) -> None:
+        """Pass the line to every observer, in order."""
         for o in self.observers:
             o.log(message)
 
     def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        """Pass the call to every observer, in order."""
         for o in self.observers:
             o.iteration(iteration, error_before, error_after)
 
     def frame(self, index: int, images: np.ndarray) -> None:
+        """Pass the call to every observer, in order."""
         for o in self.observers:
             o.frame(index, images)
 
     def stage_start(self, name: str, measurements: int) -> None:
+        """Pass the call to every observer, in order."""
         for o in self.observers:
             o.stage_start(name, measurements)
 
     def stage_end(self, event: StageEnd) -> None:
+        """Pass the call to every observer, in order."""
         for o in self.observers:
             o.stage_end(event)
 
     def outliers(self, name: str, pixels_px: np.ndarray, valid: np.ndarray) -> None:
+        """Pass the call to every observer, in order."""
         for o in self.observers:
             o.outliers(name, pixels_px, valid)
 
     def measurement_sigma(self, sigma_px: float) -> None:
+        """Pass the call to every observer that has this optional method (`tell`)."""
         for o in self.observers:
             tell(o, "measurement_sigma", sigma_px)
 
     def run_start(self, kind: str, calib: Calibration | None) -> None:
+        """Pass the call to every observer that has this optional method (`tell`)."""
         for o in self.observers:
             tell(o, "run_start", kind, calib)
 
     def run_end(self, kind: str, before: Calibration | None, after: Calibration, report: Any,
                 data: Any = None) -> None:
+        """Pass the call to every observer that has this optional method (`tell`)."""
         for o in self.observers:
             tell(o, "run_end", kind, before, after, report, data)
 

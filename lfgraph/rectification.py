@@ -158,6 +158,7 @@ class Rectification:
         return self.rect_R_view.shape[0]
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON-ready ``rectification`` entry of ``calibration.json`` (read by `from_dict`); pitch in mm."""
         return {
             "source_size_px": list(self.source_size_px), "image_size_px": list(self.image_size_px),
             "crop": self.crop, "crop_rect_px": list(self.crop_rect_px),

@@ -129,14 +129,18 @@ class GraphProblem:
         self._known: tuple[gtsam.Values, float] | None = None  # the last re-solved state and its error
 
     def error(self, state: gtsam.Values) -> float:
+        """GTSAM's graph error at ``state`` (for the state the last `retract` re-solved, the error it found)."""
         if self._known is not None and self._known[0] is state:
             return self._known[1]
         return float(self.graph.error(state))
 
     def system(self, state: gtsam.Values) -> ReducedSystem:
+        """The undamped normal equations of the graph linearised at ``state`` (`ReducedSystem`: 3x3 landmark blocks)."""
         return reduced_system(self.graph.linearize(state), self.layout)
 
     def retract(self, state: gtsam.Values, dl: np.ndarray, dc: np.ndarray) -> gtsam.Values:
+        """``state`` moved by a landmark step ``dl`` (N, 3) and a camera step ``dc`` (C,); with ``landmark_iterations``
+        the landmarks are then solved again with the cameras held (see the class docstring)."""
         state = state.retract(vector_values(self.layout, full_step(self.layout, dl, dc)))
         if not self.landmark_iterations or not self.layout.n_landmarks:
             return state

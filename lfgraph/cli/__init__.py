@@ -24,6 +24,7 @@ LOG_FORMAT = "%(message)s"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``lfgraph`` argument parser: the global flags (``--version``, ``-v``, ``-q``) and every module's commands."""
     from lfgraph import __version__
 
     parser = argparse.ArgumentParser(
@@ -79,6 +80,13 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``lfgraph`` command with ``argv`` (default: ``sys.argv[1:]``) and return its exit code.
+
+    A command's own code (0 when it returns None) on success; bad input (ValueError, OSError) prints ``lfgraph: error:
+    ...`` and returns 1, an interrupt returns 130, any other exception prints an internal-error note and returns 4. Bad
+    arguments and a `UsageError` exit through argparse (SystemExit, code 2). A failed command leaves none of the files
+    it created (`run_outputs`).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.log_quiet and hasattr(args, "quiet"):

@@ -23,6 +23,8 @@ MAX_IMAGE_SIDE_PX = 16384  # larger "images" are typing mistakes (and would exha
 
 
 def image_size(text: str) -> tuple[int, int]:
+    """argparse type: ``WIDTHxHEIGHT`` (e.g. ``960x960``) as (width, height) px, each side positive and at most
+    `MAX_IMAGE_SIDE_PX`; argparse's type error otherwise."""
     try:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
@@ -53,6 +55,7 @@ def image_sizes(text: str) -> tuple[tuple[int, int], dict[str, tuple[int, int]]]
 
 
 def grid_size(text: str) -> tuple[int, int]:
+    """argparse type: ``ROWSxCOLS`` as (rows, cols) (`lfgraph.grid.parse_grid`; its ValueError becomes a type error)."""
     from lfgraph.grid import parse_grid
 
     try:
@@ -73,18 +76,22 @@ def _bounded(text: str, kind: type, minimum: float, inclusive: bool, what: str) 
 
 
 def positive_int(text: str) -> int:
+    """argparse type: a whole number >= 1."""
     return _bounded(text, int, 1, True, "a whole number")
 
 
 def view_index(text: str) -> int:
+    """argparse type: a view index, a whole number >= 0 (not checked against a grid here)."""
     return _bounded(text, int, 0, True, "a view index (a whole number)")
 
 
 def non_negative(text: str) -> float:
+    """argparse type: a finite number >= 0."""
     return _bounded(text, float, 0.0, True, "a number")
 
 
 def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
     return _bounded(text, float, 0.0, False, "a number")
 
 
@@ -262,10 +269,13 @@ def json_text(obj: object, indent: int | None = 1) -> str:
 
 
 def jobs_default() -> int:
+    """Default ``--jobs``: the number of CPUs (`os.cpu_count`), at least 1."""
     return max(1, os.cpu_count() or 1)
 
 
 def number_list(text: str, kind: type, minimum: float, what: str) -> list:
+    """Comma-separated ``kind`` values (empty items skipped), each finite and >= ``minimum``; argparse's type error
+    naming ``what`` otherwise, and when there is none."""
     try:
         values = [kind(x) for x in text.split(",") if x.strip()]
     except ValueError:
@@ -276,10 +286,12 @@ def number_list(text: str, kind: type, minimum: float, what: str) -> list:
 
 
 def floats(text: str) -> list[float]:
+    """argparse type: comma-separated numbers >= 0 (`number_list`)."""
     return number_list(text, float, 0.0, "numbers")
 
 
 def ints(text: str) -> list[int]:
+    """argparse type: comma-separated whole numbers >= 1 (`number_list`)."""
     return number_list(text, int, 1, "whole numbers")
 
 

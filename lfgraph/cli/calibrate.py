@@ -28,6 +28,7 @@ from lfgraph.cli.args import (
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    """``lfgraph info``: print a calibration file as a table (``--json``: its summary as JSON); returns 0."""
     from lfgraph.calibration import Calibration
     from lfgraph.report import calibration_summary
 
@@ -88,6 +89,8 @@ MAX_MISSED_LISTED = 10  # images without a detected board named in the output
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """``lfgraph calibrate``: calibrate from board captures (or loaded detections) and save the result; returns 0 (the
+    report goes to stderr when ``--stdout`` carries a rerun recording)."""
     with reports_to_stderr(args):
         return _calibrate(args)
 
@@ -154,6 +157,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    """``lfgraph evaluate``: print a calibration's errors against a ground truth (``--json``: as JSON); returns 0."""
 
     from lfgraph.calibration import Calibration
     from lfgraph.evaluation import evaluate_calibration

@@ -38,6 +38,8 @@ def _rectify_frame_task(task: tuple) -> int:
 
 
 def cmd_rectify(args: argparse.Namespace) -> int:
+    """``lfgraph rectify``: rectify every frame of a capture into a new folder, with the calibration and its
+    rectification; returns 0 (the report goes to stderr when ``--stdout`` carries a rerun recording)."""
     with reports_to_stderr(args):
         return _rectify(args)
 
@@ -80,6 +82,12 @@ def _rectify(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    """``lfgraph check``: does the calibration still fit a capture? Prints the figures and a verdict (MISMATCH, DRIFT,
+    UNCERTAIN or OK; ``--json``: as JSON).
+
+    Returns 3 (`EXIT_DRIFT`) when a view drifted or the calibration does not fit the camera, else 0. Bad ``--depths``,
+    ``--drift`` or ``--tolerance-px`` values are a `UsageError`.
+    """
     from lfgraph.calibration import Calibration
     from lfgraph.capture import open_capture
     from lfgraph.drift import check

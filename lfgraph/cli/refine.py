@@ -24,6 +24,8 @@ from lfgraph.cli.args import (
 
 
 def cmd_refine(args: argparse.Namespace) -> int:
+    """``lfgraph refine``: refine a calibration from a textured scene capture and save the result; returns 0 (the
+    report goes to stderr when ``--stdout`` carries a rerun recording)."""
     with reports_to_stderr(args):
         return _refine(args)
 

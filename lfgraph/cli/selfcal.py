@@ -30,6 +30,8 @@ def _focal_px(args: argparse.Namespace, image_width_px: int) -> float:
 
 
 def cmd_calibrate_scene(args: argparse.Namespace) -> int:
+    """``lfgraph calibrate-scene``: calibrate from design values and textured scene frames (no target), rectify unless
+    ``--no-rectify``, save, and print the report (``--report-json``: also as JSON); returns 0."""
     import json
 
     from tqdm import tqdm

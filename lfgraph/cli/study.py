@@ -29,6 +29,8 @@ PLOT_DEPTHS = 100  # depths sampled for the --plot curve (the table has --steps)
 
 
 def cmd_depth_error(args: argparse.Namespace) -> int:
+    """``lfgraph depth-error``: the depth error (m) a reprojection error (px) causes over a range of depths, as a table
+    or JSON, and with ``--plot`` as a PNG and PDF figure; returns 0."""
 
     import numpy as np
 
@@ -87,6 +89,8 @@ def _study_common(args: argparse.Namespace) -> None:
 
 
 def cmd_study_shake(args: argparse.Namespace) -> int:
+    """``lfgraph study shake``: refine shaken rigs for every shake level, stage schedule and kernel, write the rows and
+    plots and print the mean over seeds; returns 0."""
     with reports_to_stderr(args):
         return _study_shake(args)
 
@@ -146,6 +150,8 @@ def _shake_summary(rows) -> str:
 
 
 def cmd_study_calibration(args: argparse.Namespace) -> int:
+    """``lfgraph study calibration``: calibration accuracy against frame count and corner noise, write the rows and
+    plots and print the RMS over seeds; returns 0."""
     import numpy as np
 
     from lfgraph.datasets.scenes import get_scene

@@ -61,6 +61,8 @@ def _prepare_out(args: argparse.Namespace) -> bool:
 
 
 def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
+    """``lfgraph synth checkerboard``: render a named scene's checkerboard captures (optionally another board or frame
+    count) with the ground truth into ``args.out``; returns 0."""
     import dataclasses
 
     import numpy as np
@@ -99,6 +101,8 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
 
 
 def cmd_synth_scene(args: argparse.Namespace) -> int:
+    """``lfgraph synth scene``: render textured scene frames of a named scene's rig, optionally shaken first, with the
+    ground truth (and the rig before the shake) into ``args.out``; returns 0."""
     import dataclasses
 
     from lfgraph.datasets.scene import write_scene_dataset
@@ -123,6 +127,7 @@ def cmd_synth_scene(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """``lfgraph demo``: `lfgraph.demo.run_demo` in ``args.out``; returns its exit code."""
     from lfgraph.demo import run_demo
 
     return run_demo(Path(args.out), jobs=args.jobs, quiet=args.quiet, scene_name=args.scene,

@@ -89,6 +89,8 @@ class ViewRays:
 
     @classmethod
     def compute(cls, intrinsics: Intrinsics, image_size_px: tuple[int, int]) -> ViewRays:
+        """The pixel-centre rays of a view with ``intrinsics`` and ``image_size_px`` (width, height), from the per-lens
+        cache of `sample_rays`."""
         return cls(sample_rays(intrinsics, (int(image_size_px[0]), int(image_size_px[1])), 1))
 
     def derivatives(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

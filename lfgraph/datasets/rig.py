@@ -56,6 +56,7 @@ class RigConfig:
 
     @property
     def grid(self) -> ViewGrid:
+        """The `ViewGrid` of ``rows``, ``cols`` and ``reference``."""
         return ViewGrid(self.rows, self.cols, self.reference)
 
 

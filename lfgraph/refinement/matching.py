@@ -308,7 +308,8 @@ class Tracker(Protocol):
     everywhere at once. It must be picklable to run in a process pool (studies, fleets).
     """
 
-    def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks: ...
+    def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks:
+        """Track features through one frame's (V, H, W) uint8 views of ``grid``: (V, N, 2) positions, filter counts."""
 
 
 @dataclass(frozen=True)

@@ -151,6 +151,8 @@ class ProjectionProblem:
         return e, jl, jp
 
     def error(self, state) -> float:
+        """Cost at ``state``: the observations' noise-model error plus the other factors' GTSAM error; inf when a
+        landmark is behind a camera."""
         e = self._residuals(state, False)
         if e is None:
             return float("inf")
@@ -158,6 +160,12 @@ class ProjectionProblem:
         return self.noise.cost(e) + other
 
     def system(self, state) -> ReducedSystem:
+        """The undamped normal equations at ``state`` in Schur form (`ReducedSystem`): landmark blocks from the bulk
+        projections; camera blocks from the pose Jacobians (when the poses are free) and the other factors.
+
+        Raises:
+            NotReducible: a landmark behind a camera at ``state``.
+        """
         out = self._residuals(state, True)
         if out is None:
             raise NotReducible("a landmark behind a camera at the linearisation point")
@@ -199,6 +207,8 @@ class ProjectionProblem:
         return ReducedSystem(V.reshape(-1, 3, 3), W, g_l, H, g_c)
 
     def retract(self, state, dl: np.ndarray, dc: np.ndarray):
+        """``state`` moved by a landmark step ``dl`` (N, 3), added to the landmarks, and a camera step ``dc`` (C,),
+        retracted on the camera values."""
         values, points = state
         if self.n_c:  # no landmark keys in this layout: its columns are the camera columns
             values = values.retract(vector_values(self.layout, dc))

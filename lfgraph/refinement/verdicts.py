@@ -63,6 +63,8 @@ class ViewVerdict:
     needs: tuple[str, ...] = field(default=())
 
     def as_dict(self) -> dict:
+        """JSON-ready figures: the view's name under ``view``, the verdict, reason and needs, arrays as lists of
+        floats."""
         def f(x):
             return [float(v) for v in np.ravel(x)] if np.ndim(x) else float(x)
 

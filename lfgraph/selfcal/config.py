@@ -71,6 +71,7 @@ class Design:
 
     @property
     def grid(self) -> ViewGrid:
+        """The `ViewGrid` of ``rows``, ``cols`` and ``reference``."""
         return ViewGrid(self.rows, self.cols, self.reference)
 
     @property
@@ -186,6 +187,7 @@ class SelfCalConfig:
 
     @property
     def noise(self) -> Noise:
+        """The normalised noise of the early stages (``robust`` after `as_noise`)."""
         return self.robust  # type: ignore[return-value]
 
     def sigmas(self, design: Design) -> DesignSigmas:

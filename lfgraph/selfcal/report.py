@@ -39,13 +39,16 @@ class Mode:
 
     @property
     def ratio(self) -> float:
+        """Posterior sigma over prior sigma (near 1: the frames added little to the design)."""
         return self.posterior_sigma / self.prior_sigma
 
     @property
     def from_prior(self) -> bool:
+        """Whether the design prior, not the frames, set this mode (``ratio`` above `PRIOR_LIMITED`)."""
         return bool(self.ratio > PRIOR_LIMITED)
 
     def as_dict(self) -> dict:
+        """The fields, ``ratio`` and ``from_prior`` as a JSON-ready dict."""
         return {"name": self.name, "unit": self.unit, "posterior_sigma": self.posterior_sigma,
                 "prior_sigma": self.prior_sigma, "ratio": self.ratio, "from_prior": self.from_prior,
                 "effect": self.effect}
@@ -100,6 +103,7 @@ class StageResult:
     rms_px: float
 
     def as_dict(self) -> dict:
+        """The fields as a JSON-ready dict."""
         return {"free": list(self.free), "tracks": self.tracks, "iterations": self.iterations, "rms_px": self.rms_px}
 
 
@@ -131,6 +135,7 @@ class SelfCalReport:
 
     @property
     def from_prior(self) -> list[Mode]:
+        """The modes that the design priors rather than the frames determined (`Mode.from_prior`)."""
         return [m for m in self.modes if m.from_prior]
 
     @property
@@ -142,6 +147,7 @@ class SelfCalReport:
         return "prior-limited" if self.from_prior or not self.distortion_estimated else "good"
 
     def as_dict(self) -> dict:
+        """The report as a JSON-ready dict (what ``--report-json`` writes), with the verdict and without the tracks."""
         return {"verdict": self.verdict, "scale_from": "design pitch", "gauges": list(self.gauges),
                 "coverage": self.coverage.as_dict(), "stages": [s.as_dict() for s in self.stages],
                 "noise_px": self.noise_px, "rms_px": self.rms_px, "distortion_estimated": self.distortion_estimated,

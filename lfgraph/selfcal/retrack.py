@@ -58,11 +58,13 @@ class Patches:
     inside: np.ndarray
 
     def subset(self, keep: np.ndarray) -> Patches:
+        """The patches of the tracks ``keep`` selects (an (N,) mask or indices)."""
         return Patches(self.ref[keep], self.ref_origin[keep], self.views[:, keep], self.origin[:, keep],
                        self.inside[:, keep])
 
     @staticmethod
     def concatenate(parts: list[Patches]) -> Patches:
+        """The patches of several parts joined along the track axis, in order."""
         return Patches(np.concatenate([p.ref for p in parts]), np.concatenate([p.ref_origin for p in parts]),
                        np.concatenate([p.views for p in parts], axis=1),
                        np.concatenate([p.origin for p in parts], axis=1),

@@ -152,6 +152,8 @@ class Posterior:
     position_mm: np.ndarray
 
     def as_dict(self) -> dict:
+        """JSON-ready sigmas per view: fx_px, fy_px, cx_px, cy_px, k1, k2, and rotation_deg and position_mm (3 values
+        each)."""
         fields = [f for f, _ in SIGMA_FIELDS]
         return {"views": [{**{f: float(self.intrinsics[v, i]) for i, f in enumerate(fields)},
                            "rotation_deg": self.rotation_deg[v].tolist(), "position_mm": self.position_mm[v].tolist()}

@@ -49,9 +49,11 @@ class PooledTracks:
 
     @property
     def num_tracks(self) -> int:
+        """Number of pooled tracks, N."""
         return self.pixels.shape[1]
 
     def subset(self, keep: np.ndarray) -> PooledTracks:
+        """The tracks ``keep`` selects, with their patches; ``frames_used`` is counted again from the kept tracks."""
         return PooledTracks(self.pixels[:, keep], self.valid[:, keep], self.frame[keep], self.frames_seen,
                             int(len(np.unique(self.frame[keep]))),
                             None if self.patches is None else self.patches.subset(keep))
@@ -141,18 +143,23 @@ class Coverage:
 
     @property
     def depth_ratio(self) -> float:
+        """Far over near depth (95th over 5th percentile); NaN when the near depth is not positive."""
         return self.depth_m[2] / self.depth_m[0] if self.depth_m[0] > 0 else float("nan")
 
     def missing_regions(self) -> list[str]:
+        """Names of the image regions (``top-left`` ... ``bottom-right``) in which some view sees fewer than
+        `MIN_REGION_TRACKS` tracks."""
         return [REGION_NAMES[r][c] for r in range(REGIONS) for c in range(REGIONS)
                 if self.regions[r, c] < MIN_REGION_TRACKS]
 
     @property
     def distortion_covered(self) -> bool:
+        """Whether enough observations (`MIN_CORNER_TRACKS` per view) reach `CORNER_RADIUS` to estimate k1 and k2."""
         return self.corner_tracks >= MIN_CORNER_TRACKS
 
     @property
     def k1_covered(self) -> bool:
+        """Whether enough observations (`MIN_CORNER_TRACKS` per view) reach `K1_RADIUS` to estimate k1."""
         return self.k1_tracks >= MIN_CORNER_TRACKS
 
     def problems(self, min_frames: int) -> list[str]:
@@ -175,6 +182,7 @@ class Coverage:
         return out
 
     def as_dict(self) -> dict:
+        """The figures, ``depth_ratio``, the missing regions and both coverage flags as a JSON-ready dict."""
         return {"frames": self.frames, "tracks": self.tracks, "depth_m": list(self.depth_m),
                 "disparity_px_per_step": list(self.disparity_px), "depth_ratio": self.depth_ratio,
                 "missing_regions": self.missing_regions(), "corner_tracks": self.corner_tracks,

@@ -228,6 +228,7 @@ class RerunLogger(SceneLog, BaseObserver):
             self.calibration_result(after, data, report, self.frames_source)
 
     def iteration(self, iteration: int, error_before: float, error_after: float) -> None:
+        """`Observer.iteration`: one step on the ``iteration`` timeline (`on_iteration`)."""
         self.on_iteration(iteration, error_before, error_after)
 
     def frame(self, index: int, images: np.ndarray) -> None:
@@ -241,6 +242,8 @@ class RerunLogger(SceneLog, BaseObserver):
         self._sigma_px = float(sigma_px)
 
     def stage_start(self, name: str, measurements: int) -> None:
+        """A stage starts: a line on ``optimizer/stages`` at its first iteration, and ``measurements`` set for the RMS
+        (`set_measurements`)."""
         self._stage_first.append(self.iteration_count + 1)
         self.rec.set_time("iteration", sequence=self.iteration_count + 1)
         self.rec.log("optimizer/stages", rr.TextLog(f"frame {self._frame}: stage {name} starts", level="INFO"))

@@ -40,6 +40,7 @@ def jpeg_image(image: np.ndarray) -> rr.EncodedImage | rr.Image:
 
 
 def frame_images(frames: Callable[[int], np.ndarray] | Sequence[np.ndarray] | None, f: int) -> np.ndarray | None:
+    """Frame ``f``'s images from ``frames`` (a loader ``f -> (V, H, W)`` or a sequence); None without frames."""
     if frames is None:
         return None
     return frames(f) if callable(frames) else frames[f]
@@ -110,6 +111,8 @@ class SceneLog:
                      static=True)
 
     def boards(self, ref_T_board: np.ndarray, object_points_m: np.ndarray) -> None:  # noqa: N803
+        """Each frame's board pose ``ref_T_board`` (F, 4, 4) and its corners ``object_points_m`` (C, 3, metres) under
+        ``world/boards`` (static); frames with a non-finite pose are skipped."""
         for f, pose in enumerate(ref_T_board):
             if not np.all(np.isfinite(pose)):
                 continue
@@ -118,6 +121,8 @@ class SceneLog:
             self.rec.log(f"{path}/corners", rr.Points3D(object_points_m, radii=0.0008), static=True)
 
     def landmarks(self, points_ref: np.ndarray, mean_error_px: np.ndarray) -> None:
+        """The (N, 3) landmarks ``points_ref`` (reference frame) as ``world/landmarks``, coloured by their (N,) mean
+        reprojection error (px); non-finite points are left out."""
         ok = np.all(np.isfinite(points_ref), axis=1)
         self.rec.log("world/landmarks", rr.Points3D(points_ref[ok], colors=colour_by(mean_error_px[ok],
                                                                                        RESIDUAL_COLOUR_MAX_PX),
