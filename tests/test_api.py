@@ -47,13 +47,23 @@ def scene_dir(tmp_path_factory):
     return out
 
 
-def test_readme_python_section_runs_as_written(scene_dir, monkeypatch):
+README_BLOCK_LINES = 15  # issue 28: each of the card's three uses is a README block of at most this many lines
+
+
+def test_readme_python_section_runs_as_written(scene_dir, monkeypatch, capsys):
     monkeypatch.chdir(scene_dir)
     blocks = python_blocks((ROOT / "README.md").read_text(encoding="utf-8"), "## Python")
     assert len(blocks) >= 4, "the README shows the three uses and the graph hook"
+    assert all(len(b.strip().splitlines()) <= README_BLOCK_LINES for b in blocks[:3])
     namespace: dict = {}
     for block in blocks:
+        assert not re.search(r"^\s*(from|import) lfgraph\.", block, flags=re.M), "no import below lf.*"
         exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102  the README is the test subject
+    # each use prints the README's headline figures against the truth: transfer at infinity, rotation, position
+    printed = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines() if line.strip()}
+    assert len(printed["input"]) == len(printed["refined"]) == 3
+    assert float(printed["refined"][0]) < float(printed["input"][0])  # px at infinity: the knock was repaired
+    assert {"gaussian", "huber", "tukey"} <= set(printed) and "rerun" in printed
     assert lf.Calibration.load("refined.json").num_views == 4
     assert Path("run.rrd").stat().st_size > 0 and not list(Path(".").glob(".run.rrd.*"))
     # the README's recording of a refine run opens in refine's layout, with both rigs (issue 28: it showed the
