@@ -26,6 +26,8 @@ EYE_RIG_SIZES = 10  # the default 3-D eye is closer than this many rig sizes to 
 RMS_CHART_REL = 0.1  # the RMS chart (graph error, priors included) against the stage's own RMS of the tracks
 JPEG_CORNER_TOLERANCE_PX = 0.5  # median gap of OpenCV's corners (no sub-pixel step) on the JPEG to the logged ones
 
+CHANGE_LABEL_CHARS = 40  # a view's change label in the 3-D view stays about this short (readable on a 5x5)
+
 
 def read_rrd(path, index):
     """(column names, static row, rows on ``index``) of a recording as {column: list}; pyarrow, no pandas (bar
@@ -214,7 +216,11 @@ def test_refine_recording(scene, tmp_path):
                                    refined.ref_T_view[v][:3, 3], atol=1e-9)
         assert static[f"/views/{name}:Pinhole:image_from_camera"][0] is not None
     labels = static["/world/change:Arrows3D:labels"][0]
-    assert len(labels) == refined.num_views and all("deg" in s and "mm" in s for s in labels)
+    # one short label per view, naming it (issue 28: a 5x5's 25 long labels overlapped)
+    assert [s.split()[0].rstrip(":") for s in labels] == [refined.grid.name(v) for v in range(refined.num_views)]
+    ref = refined.grid.reference
+    assert "arrows x" in labels[ref] and all(len(s) <= CHANGE_LABEL_CHARS for s in labels), labels
+    assert all("°" in s and "mm" in s for v, s in enumerate(labels) if v != ref), labels
     assert not np.allclose(refined.ref_T_view, original.ref_T_view)  # the shake was refined: the rigs differ
     # per frame: that frame's image and tracks
     images = last_per_frame(rows, "/views/r01_c01/image:EncodedImage:blob")

@@ -20,7 +20,9 @@ JPEG_QUALITY = 80  # per-frame images are stored as JPEG (a recording of every f
 POINT_RADIUS_UI = 2.0  # observed points, in screen points (negative radii in rerun), whatever the zoom
 FRUSTUM_BASELINE_SHARE = 0.4  # each camera's frustum is drawn this share of the smallest baseline deep
 FRUSTUM_DEPTH_M = 0.02  # frustum depth of a single view (no baseline)
-RIG_EYE_BASELINES = (-1.5, -2.0, -3.5)  # the default 3-D eye: left, above and behind the rig centre, in rig sizes
+RIG_EYE_BASELINES = (-0.3, -0.45, -1.7)  # the default 3-D eye: a little left of, above and behind the rig centre, in
+# rig sizes: nearly along the views, so that the grid spreads over the picture (from further up and to the side a
+# 5x5's rows fell onto each other, labels and all)
 OUTLIER_COLOUR = (255, 40, 40)
 OBSERVED_COLOUR = (80, 160, 255)
 REPROJECTED_COLOUR = (255, 255, 255)

@@ -91,7 +91,8 @@ class SceneLog:
     def rig_change(self, before: Calibration, after: Calibration) -> None:
         """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
         longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, labelled with the change of
-        rotation (deg), position (mm) and focal length (px) and the factor."""
+        rotation (deg), position (mm) and focal length (px, where it changed); the reference view's label gives the
+        factor."""
         from lfgraph.geometry import rotation_angle_deg
 
         rot_deg = np.array([rotation_angle_deg(a[:3, :3] @ b[:3, :3].T)
@@ -104,8 +105,12 @@ class SceneLog:
         longest_m = float(np.max(np.linalg.norm(move, axis=1)))
         scale = nice_factor(CHANGE_ARROW_BASELINE_SHARE * smallest_baseline_m(before) / longest_m) \
             if longest_m > 0 else 1.0
-        labels = [f"{after.grid.name(v)}: {rot_deg[v]:.3f} deg, {pos_mm[v]:.2f} mm, f {focal_px[v]:.2f} px "
-                  f"(arrow x{scale:g})" for v in range(after.num_views)]
+        # one short label per view (a 5x5's 25 long labels overlapped): the focal change only where there is one,
+        # the arrows' exaggeration once, on the reference view (which does not move)
+        focal = [f" f {focal_px[v]:.2f} px" if focal_px[v] >= 0.005 else "" for v in range(after.num_views)]
+        labels = [f"{after.grid.name(v)} {rot_deg[v]:.2f}° {pos_mm[v]:.1f} mm{focal[v]}"
+                  if v != after.grid.reference else f"{after.grid.name(v)}: reference (arrows x{scale:g})"
+                  for v in range(after.num_views)]
         self.rec.log("world/change", rr.Arrows3D(origins=start, vectors=move * scale, colors=CHANGE_COLOUR,
                                                  labels=labels, radii=0.02 * smallest_baseline_m(before)),
                      static=True)
