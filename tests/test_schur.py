@@ -75,8 +75,12 @@ def test_schur_lm_reaches_gtsams_minimum_and_marginals():
         assert np.max(np.abs(cov[block, block] - expected)) < SAME_COVARIANCE * np.max(np.abs(expected))
 
 
-def test_bulk_projections_match_gtsam_factors():
-    rig, pix, valid = scene(seed=5)
+@pytest.mark.parametrize("lens", ["radtan", "fisheye", "unified"])
+def test_bulk_projections_match_gtsam_factors(lens):
+    """The points and poses stages on the bulk path reach the minimum of GTSAM's own factors for each lens model
+    (Cal3DS2; Cal3Fisheye and Cal3Unified: issue 25), with GTSAM's marginals."""
+    rig, pix, valid = scene(seed=5, lens=lens)
+    assert {i.lens for i in rig.intrinsics} == {lens}
     points = triangulate_dlt(rig, pix, valid)
     noise = RobustKernel("none")
     priors = view_priors(rig, DriftModel())
@@ -90,36 +94,12 @@ def test_bulk_projections_match_gtsam_factors():
     # and its posterior is GTSAM's
     model = measurement_noise(noise, 0.05)
     problem, state = stage_problem(Stage.POSES, rig, pix, valid, points, model, priors=priors)
+    assert (problem.obs_lens is None) == (lens == "radtan")  # wide lenses: the general projections, not the shortcut
     cov = problem_covariance(problem, state)
     graph, values = stage_graph(Stage.POSES, rig, pix, valid, points, model, priors=priors)
     marginals = gtsam.Marginals(graph, values)
     block = camera_block(problem.layout, view_pose_key(4))
     expected = marginals.marginalCovariance(view_pose_key(4))
-    assert np.max(np.abs(cov[block, block] - expected)) < SAME_COVARIANCE * np.max(np.abs(expected))
-
-
-@pytest.mark.parametrize("lens", ["fisheye", "unified"])
-def test_bulk_projections_of_wide_lenses_match_gtsam_factors(lens):
-    """Issue 25: the points and poses stages of a fisheye (Cal3Fisheye) and a unified (Cal3Unified) rig on the bulk
-    path reach the minimum of GTSAM's own factors for those models, with GTSAM's marginals."""
-    rig, pix, valid = scene(seed=5, lens=lens)
-    assert {i.lens for i in rig.intrinsics} == {lens}
-    points = triangulate_dlt(rig, pix, valid)
-    noise = RobustKernel("none")
-    priors = view_priors(rig, DriftModel())
-    for stage in (Stage.POINTS, Stage.POSES):
-        bulk_calib, bulk_pts, _ = run_stage(stage, rig, pix, valid, points, noise, 0.05, priors=priors)
-        graph_calib, graph_pts, _ = run_stage(stage, rig, pix, valid, points, noise, 0.05, priors=priors,
-                                              hooks=(gtsam_route,))
-        np.testing.assert_allclose(bulk_calib.ref_T_view, graph_calib.ref_T_view, atol=STAGE_TOL_OFFSET)
-        np.testing.assert_allclose(bulk_pts, graph_pts, atol=STAGE_TOL_OFFSET * 10)
-    model = measurement_noise(noise, 0.05)
-    problem, state = stage_problem(Stage.POSES, rig, pix, valid, points, model, priors=priors)
-    assert problem.obs_lens is not None  # the wide-lens projections, not the radtan shortcut
-    cov = problem_covariance(problem, state)
-    graph, values = stage_graph(Stage.POSES, rig, pix, valid, points, model, priors=priors)
-    expected = gtsam.Marginals(graph, values).marginalCovariance(view_pose_key(4))
-    block = camera_block(problem.layout, view_pose_key(4))
     assert np.max(np.abs(cov[block, block] - expected)) < SAME_COVARIANCE * np.max(np.abs(expected))
 
 
