@@ -369,6 +369,11 @@ def message_line(text: str) -> str:
     return lines[-1][:300] if lines else ""
 
 
+def _temporary(path: str) -> bool:
+    """A temporary file, or anything inside a temporary folder (``.NAME.PID.XXXX.tmp/...``)."""
+    return any(TEMP_RE.match(part) for part in Path(path).parts)
+
+
 def classify(case: Case, d: Path, res: Result, changed: list[str], new: list[str]) -> tuple[str, str]:
     notes = list(res.notes)
     if res.timed_out:
@@ -379,7 +384,7 @@ def classify(case: Case, d: Path, res: Result, changed: list[str], new: list[str
                and Path(c).name not in CACHE_NAMES]
     if changed:
         return "DATA_LOSS", "; ".join([f"input changed/deleted: {', '.join(changed[:4])}", *notes])
-    temps = [n for n in new if TEMP_RE.match(Path(n).name)]
+    temps = [n for n in new if _temporary(n)]
     locks = [n for n in new if n.endswith(".lock")]
     if locks:
         notes.append("left lock file(s) " + ", ".join(locks[:3]))
@@ -427,7 +432,10 @@ def classify(case: Case, d: Path, res: Result, changed: list[str], new: list[str
             notes.append("and left " + ", ".join(unexpected_new[:3]))
         return "INTERNAL", "; ".join(notes)
     if case.kind == "sigkill":
-        if unexpected_new and not all(TEMP_RE.match(Path(n).name) for n in unexpected_new):
+        if unexpected_new and not all(_temporary(n) for n in unexpected_new):
+            # a run that finished its work before the kill landed leaves its whole output: not a loss, if it is whole
+            if case.check is not None and case.check(case, d, res)[0]:
+                return "CORRECT", "; ".join(["finished before the kill: " + case.check(case, d, res)[1], *notes])
             return "DATA_LOSS", "; ".join(["left " + ", ".join(unexpected_new[:4]), *notes])
         if temps:
             notes.append("temporary files left (unavoidable after SIGKILL)")
@@ -1986,7 +1994,7 @@ def build_cases() -> list[Case]:
         [*C40, "--jobs", "2"], 2.0, use("cb40"), kind="sigkill")
     sig("sigkill-rectify-j2", "rectify", "kill -9 of the parent mid-rectify (--jobs 2)",
         ["rectify", "cal.json", "cb40", "-o", "rect", "--jobs", "2", "--quiet"], 0.7, use("cb40", "cal.json"),
-        kind="sigkill")
+        kind="sigkill", check=exists_check("rect/calibration.json", "rect/039/r01_c01.png"))
 
     def pipe_outputs(*names):
         def check(case, d, res):

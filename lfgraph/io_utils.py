@@ -109,6 +109,12 @@ def _record(*paths: Path) -> None:
         _ledger.extend(paths)
 
 
+def record_created(path: str | os.PathLike) -> None:
+    """Tell `run_outputs` that the running command created ``path`` (a file renamed into place by a writer other
+    than `atomic_path`, e.g. a rerun recording): a failure later removes it too."""
+    _record(Path(path))
+
+
 @contextlib.contextmanager
 def run_outputs() -> Iterator[list[Path]]:
     """Within it, every file `atomic_path` creates (it did not exist before) and every folder it makes for one are

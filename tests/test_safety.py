@@ -297,7 +297,8 @@ def test_a_guessed_layout_is_said_and_a_wrong_grid_is_summarised(tmp_path, capsy
 
 # ------------------------------------------------------------------------------------------- interrupted runs
 def test_a_command_stopped_late_leaves_none_of_its_outputs(boards, tmp_path, capsys, monkeypatch):
-    """Ctrl-C after the calibration and the first figure were written: neither stays (a half set of outputs)."""
+    """Ctrl-C after the calibration, the recording and the first figure were written: none stays (a half set of
+    outputs)."""
     from lfgraph.io_utils import write_bytes_atomic
     from lfgraph.viz import figures
 
@@ -308,9 +309,9 @@ def test_a_command_stopped_late_leaves_none_of_its_outputs(boards, tmp_path, cap
     monkeypatch.setattr(figures, "calibration_report_figures", first_figure_then_ctrl_c)
     out, plots = tmp_path / "o.json", tmp_path / "figs" / "run1"
     code, text = run(["calibrate", boards, "--grid", "2x2", "--board", "7x5", "--square-mm", "15", "-o", out,
-                      "--plots", plots, "--quiet"], capsys)
+                      "--plots", plots, "--save", tmp_path / "r.rrd", "--quiet"], capsys)
     assert code == 130 and "interrupted" in text
-    assert sorted(p.name for p in tmp_path.iterdir()) == []  # o.json, figs/run1/coverage.png and its folders: gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # o.json, r.rrd, figs/run1/coverage.png, folders: gone
 
 
 def test_an_interrupted_synth_leaves_no_partial_folder(tmp_path):

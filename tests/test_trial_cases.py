@@ -163,6 +163,8 @@ def test_api_arguments_of_the_wrong_kind_are_named(rig, call, message):
     (lambda: ViewGrid(2.5, 2), "whole number"),
     (lambda: lf.RobustKernel("tukey", 1e-300), "threshold must be a number from"),
     (lambda: lf.CalibrateConfig(focal_px=1e9), "focal_px must be positive and at most"),
+    (lambda: __import__("lfgraph.selfcal", fromlist=["Design"]).Design(2, 2, 10.0, 1e9, (320, 240)),
+     "field of view"),  # calibrate-scene --focal-px 1e9 ended in exit 4 (the marginals failed)
     (lambda: lf.DriftModel(roll_deg=1e-300) if hasattr(lf, "DriftModel") else
      __import__("lfgraph.refinement.config", fromlist=["DriftModel"]).DriftModel(roll_deg=1e-300), "from 0.001"),
 ])

@@ -34,6 +34,8 @@ DEFAULT_STAGES: tuple[tuple[str, ...], ...] = (
     ("rotation", "position", "focal", "principal", "distortion"),
 )
 
+FIELD_OF_VIEW_DEG = (1.0, 170.0)  # the horizontal field of view a nominal focal length may give (a camera)
+
 
 @dataclass(frozen=True)
 class Design:
@@ -67,6 +69,11 @@ class Design:
         w, h = (int(x) for x in self.image_size_px)
         if w <= 0 or h <= 0:
             raise ValueError(f"image size must be positive, got {self.image_size_px}")
+        fov_deg = float(np.degrees(2 * np.arctan(w / (2 * self.focal_px))))
+        if not FIELD_OF_VIEW_DEG[0] <= fov_deg <= FIELD_OF_VIEW_DEG[1]:  # --focal-px 1e9 failed deep in the marginals
+            raise ValueError(f"focal_px {self.focal_px:g} gives a {fov_deg:.3g} deg field of view across {w} px; a "
+                             f"camera's is {FIELD_OF_VIEW_DEG[0]:g}-{FIELD_OF_VIEW_DEG[1]:g} deg: give the nominal "
+                             f"focal length in pixels (or the lens and the sensor width in mm)")
         object.__setattr__(self, "image_size_px", (w, h))
 
     @property

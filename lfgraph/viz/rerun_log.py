@@ -40,7 +40,7 @@ import rerun as rr
 
 from lfgraph.calibration import Calibration
 from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import check_replaceable
+from lfgraph.io_utils import check_replaceable, record_created
 from lfgraph.observer import WARNING_PREFIX, BaseObserver, StageEnd
 from lfgraph.viz.blueprint import (
     APP_ID,
@@ -362,6 +362,9 @@ class RerunLogger(SceneLog, BaseObserver):
         if self._tmp is not None:
             if success:
                 check_replaceable(self._final)
+                existed = self._final.exists()
                 os.replace(self._tmp, self._final)
+                if not existed:
+                    record_created(self._final)  # a command failing after this removes it (`run_outputs`)
             else:
                 self._tmp.unlink(missing_ok=True)
