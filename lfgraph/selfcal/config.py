@@ -113,8 +113,11 @@ def focal_from_lens(focal_mm: float, sensor_width_mm: float, image_width_px: int
 
 # Tracking from design values: views may be a few degrees and 15+ px of principal point off the ideal grid, so KLT
 # searches two pyramid levels higher than the refinement does (3 levels kept 2 of 922 features through paper-5x5's
-# 25 views with 1 deg rotations, 5 levels and a 21 px window 179; 0.1 s per frame either way).
-SELFCAL_MATCH = MatchSettings(klt_levels=5, klt_window_px=21)
+# 25 views with 1 deg rotations, 5 levels and a 21 px window 179; 0.1 s per frame either way). The repeated-texture
+# filter of `refine` is off here: self-calibration re-tracks every track from the reference patch and its measured
+# figures (README, benchmarks/targetless.py) predate the filter; `match=MatchSettings(..., unique_margin=0.02)` turns
+# it on.
+SELFCAL_MATCH = MatchSettings(klt_levels=5, klt_window_px=21, unique_margin=None)
 
 
 @dataclass(frozen=True)
