@@ -171,20 +171,28 @@ def staged_folder(final: str | os.PathLike, replaceable: bool = False) -> Iterat
         raise OutputError(f"{final}: is not a folder; refusing to replace it")
     if final.is_dir() and any(final.iterdir()) and not replaceable:
         raise OutputError(f"{final}: is not empty; give a new or empty folder")
+    new_folders = _missing_folders(final.parent)
     final.parent.mkdir(parents=True, exist_ok=True)
+    _record(*new_folders)
     remove_stale_partials(final)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
     tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700
     try:
         yield tmp
-        old = None
-        if final.is_dir():
-            old = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
-            os.rmdir(old)
-            final.rename(old)
-        tmp.rename(final)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    old = None
+    if final.is_dir():  # an earlier set the caller may replace: set aside until the new one is in place
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
+        os.rmdir(old)
+        final.rename(old)
+    try:
+        tmp.rename(final)
+    except BaseException:
+        if old is not None:
+            old.rename(final)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
