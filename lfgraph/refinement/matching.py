@@ -165,8 +165,8 @@ def _patches(image: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
 
 def _ncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N,) normalised cross-correlation of paired patches (N, k, k)."""
-    a = a.reshape(len(a), -1) - a.reshape(len(a), -1).mean(axis=1, keepdims=True)
-    b = b.reshape(len(b), -1) - b.reshape(len(b), -1).mean(axis=1, keepdims=True)
+    a, b = a.reshape(len(a), -1), b.reshape(len(b), -1)
+    a, b = a - a.mean(axis=1, keepdims=True), b - b.mean(axis=1, keepdims=True)
     return np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1) + 1e-9)
 
 

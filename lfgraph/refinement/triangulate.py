@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import distort_xy, lens_table, undistort_views
+from lfgraph.camera import lens_table, undistort_views
 from lfgraph.lens_math import lens_distort
 
 
@@ -75,11 +75,8 @@ def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.n
     with np.errstate(divide="ignore", invalid="ignore"):
         zz = np.where(z > 0, z, np.nan)
         x, y = pc[..., 0] / zz, pc[..., 1] / zz
-    if not np.any(lenses):  # every view radtan
-        xd, yd = distort_xy(x, y, k[:, 4], k[:, 5], k[:, 6], k[:, 7])
-    else:
-        coef = np.broadcast_to(k[:, 4:], (len(k), 7, x.shape[1])).transpose(1, 0, 2)  # (7, V, n)
-        xd, yd = lens_distort(np.broadcast_to(lenses[:, None], x.shape), coef, x, y)
+    coef = np.broadcast_to(k[:, 4:], (len(k), 7, x.shape[1])).transpose(1, 0, 2)  # (7, V, n)
+    xd, yd = lens_distort(np.broadcast_to(lenses[:, None], x.shape), coef, x, y)
     px = pixels[:, ok]
     err = np.hypot(k[:, 0] * xd + k[:, 2] - px[..., 0], k[:, 1] * yd + k[:, 3] - px[..., 1])
     sub = out[:, ok]
