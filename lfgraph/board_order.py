@@ -251,5 +251,6 @@ def order_symmetric_boards(obs: BoardObservations) -> tuple[BoardObservations, B
     valid = obs.valid.copy()
     corners[flipped] = corners[flipped][:, ::-1]
     valid[flipped] = valid[flipped][:, ::-1]
-    out = BoardObservations(obs.board, obs.grid, obs.image_size_px, corners, valid, obs.frame_names, obs.sources)
+    out = BoardObservations(obs.board, obs.grid, obs.image_size_px, corners, valid, obs.frame_names, obs.sources,
+                            obs.view_sizes_px)
     return out, BoardOrderReport(flipped, status, support, shared, tuple(messages))

@@ -84,8 +84,10 @@ class CaptureSet:
         frame_names: one name per frame, in order.
         files: per frame, the view files in row-major order (one file for a mosaic; the view's video for
             ``video``); None for a view image missing from its frame (only with ``missing="unseen"``).
-        image_size_px: (width, height) of one view, from the first frame.
+        image_size_px: (width, height) of the first view, from the first frame.
         notes: what the user should know about the input (videos of different lengths, missing view images).
+        view_sizes_px: (V,) (width, height) per view for a rig of mixed image sizes (from each view's first image);
+            None when every view is ``image_size_px``.
     """
 
     root: Path
@@ -95,13 +97,33 @@ class CaptureSet:
     files: tuple[tuple[Path | None, ...], ...]
     image_size_px: tuple[int, int]
     notes: tuple[str, ...] = ()
+    view_sizes_px: tuple[tuple[int, int], ...] | None = None
 
     def __post_init__(self) -> None:
-        w, h = self.image_size_px
-        if min(w, h) < MIN_IMAGE_SIDE_PX:
-            first = next((p for views in self.files for p in views if p is not None), self.root)
-            raise CaptureError(f"{first}: the views are {w}x{h} px; a view needs at least {MIN_IMAGE_SIDE_PX} px on "
-                               f"each side to show a board or a scene")
+        if self.view_sizes_px is not None and len(set(self.view_sizes_px)) == 1:
+            object.__setattr__(self, "view_sizes_px", None)
+        for v in range(self.grid.num_views):
+            w, h = self.size_of(v)
+            if min(w, h) < MIN_IMAGE_SIDE_PX:
+                first = next((p for views in self.files for p in views if p is not None), self.root)
+                raise CaptureError(f"{first}: the views are {w}x{h} px; a view needs at least {MIN_IMAGE_SIDE_PX} px "
+                                   f"on each side to show a board or a scene")
+
+    def size_of(self, view: int) -> tuple[int, int]:
+        """(width, height) of one view's images, px."""
+        return self.image_size_px if self.view_sizes_px is None else self.view_sizes_px[view]
+
+    @property
+    def sizes_px(self) -> tuple[tuple[int, int], ...]:
+        """(V,) (width, height) of every view, px."""
+        return tuple(self.size_of(v) for v in range(self.grid.num_views))
+
+    def require_one_size(self, what: str) -> None:
+        """Refuse a rig of mixed image sizes for work that needs (V, H, W) frames (tracking), naming the sizes."""
+        if self.view_sizes_px is not None:
+            kinds = ", ".join(f"{self.grid.name(v)} {w}x{h}" for v, (w, h) in enumerate(self.view_sizes_px))
+            raise CaptureError(f"{self.root}: the views have different image sizes ({kinds}); {what} needs views of "
+                               f"one size (calibrate and rectify take mixed rigs)")
 
     def __len__(self) -> int:
         return len(self.frame_names)
@@ -123,8 +145,9 @@ class CaptureSet:
         missing)."""
         return self.files[frame]
 
-    def load_frame(self, frame: int, grayscale: bool = True) -> np.ndarray:
-        """(V, H, W) uint8 grayscale (or (V, H, W, 3) BGR) images of one frame; checks every size."""
+    def load_frame(self, frame: int, grayscale: bool = True) -> np.ndarray | list[np.ndarray]:
+        """(V, H, W) uint8 grayscale (or (V, H, W, 3) BGR) images of one frame; checks every size. A rig of mixed
+        image sizes (`view_sizes_px`) gives a list of V arrays, each its view's size."""
         if self.layout == "mosaic":
             path = self.files[frame][0]
             views = split_mosaic(_read(path, grayscale), self.grid, path)
@@ -133,7 +156,8 @@ class CaptureSet:
                 raise CaptureError(f"{path}: views are {w}x{h} px but the first frame's are "
                                    f"{self.image_size_px[0]}x{self.image_size_px[1]}")
             return views
-        return np.stack([self.load_view(frame, v, grayscale) for v in range(self.grid.num_views)])
+        views = [self.load_view(frame, v, grayscale) for v in range(self.grid.num_views)]
+        return views if self.view_sizes_px is not None else np.stack(views)
 
     def is_missing(self, frame: int, view: int) -> bool:
         """The frame has no image of this view (``missing="unseen"``): its board counts as not seen."""
@@ -144,7 +168,7 @@ class CaptureSet:
         if self.layout == "mosaic":
             return self.load_frame(frame, grayscale)[view]
         path = self.files[frame][view]
-        w, h = self.image_size_px
+        w, h = self.size_of(view)
         if path is None:
             return np.zeros((h, w) if grayscale else (h, w, 3), np.uint8)
         if self.layout == "video":
@@ -154,11 +178,11 @@ class CaptureSet:
         else:
             img = _read(path, grayscale)
         h, w = img.shape[:2]
-        if (w, h) != self.image_size_px:
-            first = next(p for p in self.files[0] if p is not None)
+        if (w, h) != self.size_of(view):
             what = f"frame {frame} is" if self.layout == "video" else "image is"
-            raise CaptureError(f"{path}: {what} {w}x{h} px but {first} is "
-                               f"{self.image_size_px[0]}x{self.image_size_px[1]}; all views must have one size")
+            want = self.size_of(view)
+            raise CaptureError(f"{path}: {what} {w}x{h} px but view {self.grid.name(view)} is {want[0]}x{want[1]} px "
+                               f"in the first frame that has it; a view keeps one size")
         return img
 
     def __iter__(self) -> Iterator[np.ndarray]:
@@ -174,10 +198,6 @@ def _open_videos(root: Path, grid: ViewGrid) -> CaptureSet:
         raise CaptureError(f"{root}: {len(videos)} videos ({', '.join(p.name for p in videos)}) but the {grid} grid "
                            f"has {grid.num_views} views (one video per view, in name order, row-major)")
     infos = [video_info(p) for p in videos]
-    for p, (_, size) in zip(videos, infos, strict=True):
-        if size != infos[0][1]:
-            raise CaptureError(f"{p}: frames are {size[0]}x{size[1]} px but {videos[0]} has {infos[0][1][0]}x"
-                               f"{infos[0][1][1]}; all views must have one size")
     counts = [n for n, _ in infos]
     n = min(counts)
     notes = []
@@ -186,7 +206,8 @@ def _open_videos(root: Path, grid: ViewGrid) -> CaptureSet:
         notes.append(f"the videos differ in length ({lengths} frames); frames are matched by index, so only the "
                      f"first {n} are used")
     names = tuple(f"{f:05d}" for f in range(n))
-    return CaptureSet(root, "video", grid, names, tuple(tuple(videos) for _ in range(n)), infos[0][1], tuple(notes))
+    return CaptureSet(root, "video", grid, names, tuple(tuple(videos) for _ in range(n)), infos[0][1], tuple(notes),
+                      tuple(size for _, size in infos))
 
 
 def as_grid(grid: ViewGrid | tuple[int, int] | str) -> ViewGrid:
@@ -250,24 +271,19 @@ def open_capture(path: str | os.PathLike, grid: ViewGrid | tuple[int, int], layo
         if h_all % grid.rows or w_all % grid.cols:
             raise CaptureError(f"{first[0]}: a {w_all}x{h_all} mosaic does not divide into a {grid} grid"
                                + (f"; {guessed}" if guessed else ""))
-        size = (w_all // grid.cols, h_all // grid.rows)
-    else:
-        present = [p for p in first if p is not None]
-        sizes = []
-        for p in present:
-            img = _read(p, True)
-            sizes.append((img.shape[1], img.shape[0]))
-        for p, s in zip(present, sizes, strict=True):
-            if s != sizes[0]:
-                raise CaptureError(f"{p}: image is {s[0]}x{s[1]} px but {present[0]} is {sizes[0][0]}x"
-                                   f"{sizes[0][1]}; all views must have one size")
-        size = sizes[0]
+        size, sizes = (w_all // grid.cols, h_all // grid.rows), None
+    else:  # each view's size from its first image (a view missing from the first frame: its first frame)
+        firsts = [next((views[v] for views in files if views[v] is not None), None) for v in range(grid.num_views)]
+        sizes = [_read(p, True).shape[1::-1] if p is not None else None for p in firsts]
+        size = next(s for s in sizes if s is not None)
+        sizes = tuple(tuple(int(x) for x in (s or size)) for s in sizes)
     notes = [guessed] if guessed else []
     absent = [(names[f], grid.name(v)) for f, views in enumerate(files) for v, p in enumerate(views) if p is None]
     if absent:
         listed = ", ".join(f"{name}/{view}" for name, view in absent[:5]) + (", ..." if len(absent) > 5 else "")
         notes.append(f"{len(absent)} view image(s) missing, counted as 'board not seen': {listed}")
-    return CaptureSet(root, layout, grid, tuple(names), tuple(files), size, tuple(notes))
+    return CaptureSet(root, layout, grid, tuple(names), tuple(files), tuple(int(x) for x in size), tuple(notes),
+                      sizes)
 
 
 def write_frame(out_dir: str | os.PathLike, frame_name: str, images: np.ndarray, grid: ViewGrid,

@@ -352,5 +352,6 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
                 pass  # a read-only input folder only costs the next run a re-detection
     valid = np.all(np.isfinite(corners), axis=-1)
     sources = tuple(tuple("(missing)" if p is None else str(p) for p in files) for files in capture.files)
-    obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources)
+    obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources,
+                            capture.view_sizes_px)
     return obs, from_cache

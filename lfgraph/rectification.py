@@ -9,6 +9,7 @@ intrinsics ``K_r``; its look-up table maps each rectified pixel to the original 
 Relation to the paper:
 - K_r (paper eq. for K_r): mean fx, mean fy, principal point at the image centre ``((w-1)/2, (h-1)/2)`` in OpenCV's
   pixel convention (the paper writes w/2, h/2). With ``crop="valid"`` the principal point moves with the crop.
+  A rig of mixed image sizes is rectified to the rig's ``image_size_px``, each view's focal length scaled to it.
 - Common rotation: the paper sums the N Rodrigues vectors (the reference's is zero) and divides by N-1, which
   for small angles is the mean of the *non-reference* rotations — the reference view counts for nothing and a rig
   whose views are all turned the same way relative to the grid stays turned. Here: the chordal L2 mean of all N
@@ -42,6 +43,8 @@ from lfgraph.rectification_checks import check_rectifiable
 
 CROPS = ("valid", "full")
 VALID_GRID_STEP_PX = 4  # the common valid region is found on a grid of this step (then shrunk by one step)
+ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a rectified ray that its view's lens maps back to itself
+MIN_CROP_PX = 16  # a common region smaller than this is no rectified image (the views barely overlap)
 
 
 def _chordal_mean(rotations: np.ndarray) -> np.ndarray:
@@ -227,12 +230,6 @@ def _source_of(rect: np.ndarray, K: np.ndarray, rect_R_view: np.ndarray, intr: I
     return px
 
 
-ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a rectified ray that its view's lens maps back to itself
-
-
-MIN_CROP_PX = 16  # a common region smaller than this is no rectified image (the views barely overlap)
-
-
 def _largest_valid_rect(valid: np.ndarray) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) inclusive rectangle with every cell valid: shrink the side holding most invalid cells."""
     h, w = valid.shape
@@ -284,8 +281,9 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
     rect_R_ref = common_rotation(ref_R_view, u_fit, v_fit)  # noqa: N806
     o, u, v = rectangular_grid(grid, centres, rect_R_ref)
     rect_R_view = rect_R_ref[None] @ ref_R_view  # noqa: N806
-    fx = float(np.mean([i.fx for i in calib.intrinsics]))
-    fy = float(np.mean([i.fy for i in calib.intrinsics]))
+    sizes = np.array([calib.image_size(i) for i in range(grid.num_views)], dtype=np.float64)
+    focal = np.array([(i.fx, i.fy) for i in calib.intrinsics])
+    fx, fy = (float(x) for x in np.mean(focal * (w, h) / sizes, axis=0))  # each focal at the output's size
     K_full = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fy, (h - 1) / 2.0], [0.0, 0.0, 1.0]])  # noqa: N806
     if crop == "valid":
         step = VALID_GRID_STEP_PX
@@ -295,7 +293,8 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
         valid = np.ones(len(pts), dtype=bool)
         for i in range(grid.num_views):
             src = _source_of(pts, K_full, rect_R_view[i], calib.intrinsics[i])
-            valid &= (src[:, 0] >= 0) & (src[:, 0] <= w - 1) & (src[:, 1] >= 0) & (src[:, 1] <= h - 1)
+            wi, hi = calib.image_size(i)  # a rig of mixed sizes: each view's own image bounds its pixels
+            valid &= (src[:, 0] >= 0) & (src[:, 0] <= wi - 1) & (src[:, 1] >= 0) & (src[:, 1] <= hi - 1)
         x0, y0, x1, y1 = _largest_valid_rect(valid.reshape(gy.shape))
         # grid cells are `step` apart: stay one step inside so every pixel between samples is valid too
         px0, py0 = int(xs[min(x0 + 1, x1)]), int(ys[min(y0 + 1, y1)])

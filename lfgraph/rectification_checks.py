@@ -1,7 +1,9 @@
 """Whether a calibration can be rectified at all (`check_rectifiable`: views at distinct positions, lens models that
-do not fold over inside the image, one image size) and whether it describes a capture (`check_compatible`)."""
+do not fold over inside the image) and whether it describes a capture (`check_compatible`)."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -23,10 +25,6 @@ def check_rectifiable(calib: Calibration) -> None:
         RectificationError: naming the views or the view and its coefficients.
     """
     grid = calib.grid
-    if calib.view_image_sizes_px is not None:
-        kinds = ", ".join(sorted({f"{w}x{h}" for w, h in calib.view_image_sizes_px}))
-        raise RectificationError(f"the views have different image sizes ({kinds}); rectifying a rig of mixed sizes "
-                                 f"is not supported yet")
     centres = calib.ref_T_view[:, :3, 3]
     gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     neighbours = [gaps[a, b] for a in range(grid.num_views) for b in range(a + 1, grid.num_views)
@@ -38,8 +36,8 @@ def check_rectifiable(calib: Calibration) -> None:
                 raise RectificationError(
                     f"views {grid.name(a)} and {grid.name(b)} are at one position ({1e3 * gaps[a, b]:.3f} mm apart, "
                     f"neighbours are {1e3 * scale:.1f} mm): the grid's directions are undefined; check the calibration")
-    w, h = calib.image_size_px
     for v, intr in enumerate(calib.intrinsics):
+        w, h = calib.image_size(v)
         if intr.lens != "radtan":  # wide models: their field may end inside the image; the crop keeps what maps
             centre = intr.undistort(np.array([[intr.cx, intr.cy], [(w - 1) / 2.0, (h - 1) / 2.0]]))
             if not np.all(np.isfinite(centre)):
@@ -65,10 +63,16 @@ def check_rectifiable(calib: Calibration) -> None:
                 f"calibration")
 
 
-def check_compatible(calib: Calibration, grid: ViewGrid, image_size_px: tuple[int, int], source: str) -> None:
-    """Refuse a capture the calibration does not describe (grid, image size)."""
+def check_compatible(calib: Calibration, grid: ViewGrid,
+                     image_size_px: tuple[int, int] | Sequence[tuple[int, int]], source: str) -> None:
+    """Refuse a capture the calibration does not describe (grid, image sizes). ``image_size_px``: the capture's one
+    (width, height) or (V,) per-view sizes (`CaptureSet.sizes_px`), px."""
     if (calib.grid.rows, calib.grid.cols) != (grid.rows, grid.cols):
         raise RectificationError(f"{source}: the capture is a {grid} grid but the calibration is {calib.grid}")
-    if tuple(image_size_px) != tuple(calib.image_size_px):
-        raise RectificationError(f"{source}: views are {image_size_px[0]}x{image_size_px[1]} px but the calibration "
-                                 f"is for {calib.image_size_px[0]}x{calib.image_size_px[1]} px")
+    sizes = np.broadcast_to(np.asarray(image_size_px, dtype=np.int64).reshape(-1, 2), (grid.num_views, 2))
+    for v, (w, h) in enumerate(sizes.tolist()):
+        want = calib.image_size(v)
+        if (w, h) != tuple(want):
+            where = "views are" if calib.view_image_sizes_px is None and len(set(map(tuple, sizes.tolist()))) == 1 \
+                else f"view {grid.name(v)} is"
+            raise RectificationError(f"{source}: {where} {w}x{h} px but the calibration is for {want[0]}x{want[1]} px")

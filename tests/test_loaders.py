@@ -80,11 +80,14 @@ def test_unreadable_image(tmp_path):
 def test_images_of_different_sizes(tmp_path):
     _folders(tmp_path)
     cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((20, 32), np.uint8))
-    with pytest.raises(CaptureError, match=r"r01_c01.png: image is 32x20 px but .*r00_c00.png is 32x24"):
-        open_capture(tmp_path, GRID)
-    cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((24, 32), np.uint8))
     cv2.imwrite(str(tmp_path / "001" / "r01_c01.png"), np.zeros((20, 32), np.uint8))
-    with pytest.raises(CaptureError, match=r"001/r01_c01.png: image is 32x20"):
+    mixed = open_capture(tmp_path, GRID)  # a rig of mixed sizes: each view keeps its first image's size
+    assert mixed.sizes_px[3] == (32, 20) and mixed.sizes_px[0] == (32, 24)
+    assert [img.shape for img in mixed.load_frame(1)][2:] == [(24, 32), (20, 32)]
+    with pytest.raises(CaptureError, match=r"r00_c00 32x24, .*r01_c01 32x20\); refine needs views of one size"):
+        mixed.require_one_size("refine")
+    cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((24, 32), np.uint8))
+    with pytest.raises(CaptureError, match=r"001/r01_c01.png: image is 32x20 px but view r01_c01 is 32x24"):
         open_capture(tmp_path, GRID).load_frame(1)
 
 

@@ -125,8 +125,9 @@ def _calibrate(args: argparse.Namespace) -> int:
         capture = open_capture(args.input, grid, args.layout or "auto", missing=args.missing_view or "error")
         check_output_file(args.output, inputs=capture.all_paths())
         check_side_outputs(args, inputs=capture.all_paths(), outputs=[args.output])
-        print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of "
-              f"{capture.image_size_px[0]}x{capture.image_size_px[1]} px; board {board}")
+        sizes = ", ".join(dict.fromkeys(f"{w}x{h}" for w, h in capture.sizes_px))
+        print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of {sizes} px; "
+              f"board {board}")
         for note in capture.notes:
             print(f"note: {note}")
         obs, cached = detect_capture(capture, board, jobs=args.jobs, progress=not args.quiet, cache=not args.no_cache)

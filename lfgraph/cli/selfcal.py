@@ -56,6 +56,7 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     capture = open_capture(args.input, ViewGrid(rows, cols, reference), args.layout)
+    capture.require_one_size("calibrate-scene")
     inputs = [p for f in range(len(capture)) for p in capture.paths(f)]
     check_output_file(args.output, inputs=inputs)
     if args.report_json is not None:

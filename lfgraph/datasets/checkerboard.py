@@ -177,9 +177,9 @@ def make_checkerboard_truth(calib: Calibration, config: CheckerboardConfig, rng:
             view_T_board = view_T_ref @ poses[f]  # noqa: N806
             if _board_faces_view(view_T_board):
                 corners[v, f] = calib.intrinsics[v].project(transform_points(view_T_board, obj))
-                visible[v, f] = board_visible_in_view(calib.intrinsics[v], calib.image_size_px, view_T_board, board,
+                visible[v, f] = board_visible_in_view(calib.intrinsics[v], calib.image_size(v), view_T_board, board,
                                                       config.margin_px)
-    valid = in_image(corners, calib.image_size_px)
+    valid = np.stack([in_image(corners[v], calib.image_size(v)) for v in range(n_views)])
     return CheckerboardTruth(board, poses, corners, valid, visible)
 
 
@@ -206,11 +206,11 @@ def iter_view_images(calib: Calibration, truth: CheckerboardTruth, config: Check
                      view: int, frames: range | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(frame, image)`` for one view, reusing its rays. Noise is seeded by (seed, frame, view)."""
     intr = calib.intrinsics[view]
-    rays = ViewRays.compute(intr, calib.image_size_px)
+    rays = ViewRays.compute(intr, calib.image_size(view))
     view_T_ref = calib.view_T_ref(view)  # noqa: N806
     for f in frames if frames is not None else range(truth.ref_T_board.shape[0]):
         rng = np.random.default_rng([seed, f, view])
-        yield f, render_checkerboard_view(intr, calib.image_size_px, view_T_ref @ truth.ref_T_board[f], truth.board,
+        yield f, render_checkerboard_view(intr, calib.image_size(view), view_T_ref @ truth.ref_T_board[f], truth.board,
                                           config, rng, rays)
 
 
@@ -252,6 +252,8 @@ def write_checkerboard_dataset(out_dir: str | os.PathLike, calib: Calibration, t
     """
     if layout not in ("folders", "mosaic"):
         raise ValueError(f"layout must be 'folders' or 'mosaic', got {layout!r}")
+    if layout == "mosaic" and calib.view_image_sizes_px is not None:
+        raise ValueError("a rig of mixed image sizes cannot be tiled into a mosaic; use the folders layout")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     truth_path = out / "truth_corners.npz"

@@ -229,10 +229,10 @@ def _nice_scale(longest: float, target: float) -> float:
 
 def coverage_figure(obs: Any, stem: str | os.PathLike) -> list[Path]:
     """Per view (in the array's layout): detected corners per image cell."""
-    w, h = obs.image_size_px
     fig, axes = _grid_axes(obs.grid, "coverage: detected corners per image cell (white: none)")
     counts = []
     for v in range(obs.num_views):
+        w, h = obs.size_of(v)
         px = obs.corners_px[v][obs.valid[v]]
         c, _, _ = np.histogram2d(px[:, 0], px[:, 1], bins=COVERAGE_BINS, range=[[0, w], [0, h]])
         counts.append(c.T)
@@ -241,6 +241,7 @@ def coverage_figure(obs: Any, stem: str | os.PathLike) -> list[Path]:
         r, c = obs.grid.position(v)
         ax = axes[r, c]
         shown = np.ma.masked_equal(counts[v], 0)  # white: no corner in that cell
+        w, h = obs.size_of(v)
         im = ax.imshow(shown, extent=(0, w, h, 0), cmap="viridis", vmin=1, vmax=vmax, interpolation="nearest")
         ax.set_title(obs.grid.name(v), fontsize=9)
         ax.tick_params(labelsize=7)
@@ -252,11 +253,11 @@ def coverage_figure(obs: Any, stem: str | os.PathLike) -> list[Path]:
 
 def residual_figure(obs: Any, residuals_px: np.ndarray, stem: str | os.PathLike) -> list[Path]:
     """Per view: mean residual magnitude per image cell (colour) and the mean residual vector (arrows)."""
-    w, h = obs.image_size_px
     nx, ny = COVERAGE_BINS
     fig, axes = _grid_axes(obs.grid, "")
     maps = []
-    for v in range(obs.num_views):
+    sizes = [obs.size_of(v) for v in range(obs.num_views)]  # (width, height) per view, px
+    for v, (w, h) in enumerate(sizes):
         m = obs.valid[v] & np.all(np.isfinite(residuals_px[v]), axis=-1)
         px, res = obs.corners_px[v][m], residuals_px[v][m]
         ix = np.clip((px[:, 0] / w * nx).astype(int), 0, nx - 1)
@@ -270,16 +271,15 @@ def residual_figure(obs: Any, residuals_px: np.ndarray, stem: str | os.PathLike)
         with np.errstate(invalid="ignore", divide="ignore"):
             maps.append((mag / n, dx / n, dy / n))
     vmax = max([float(np.nanmax(m[0])) for m in maps if np.isfinite(m[0]).any()] + [1e-3])
-    cx = (np.arange(nx) + 0.5) * w / nx
-    cy = (np.arange(ny) + 0.5) * h / ny
-    gx, gy = np.meshgrid(cx, cy)
     longest = max([float(np.nanmax(np.hypot(m[1], m[2]))) for m in maps if np.isfinite(m[1]).any()] + [0.0])
-    scale = _nice_scale(longest, ARROW_CELL_SHARE * min(w / nx, h / ny))
+    scale = _nice_scale(longest, ARROW_CELL_SHARE * min(min(w / nx, h / ny) for w, h in sizes))
     fig.suptitle(f"residuals over the image: mean |r| per cell (colour), mean residual (arrows, drawn {scale:g}x)")
     for v in range(obs.num_views):
         r, c = obs.grid.position(v)
         ax = axes[r, c]
         mag, dx, dy = maps[v]
+        w, h = sizes[v]
+        gx, gy = np.meshgrid((np.arange(nx) + 0.5) * w / nx, (np.arange(ny) + 0.5) * h / ny)
         im = ax.imshow(mag, extent=(0, w, h, 0), cmap="magma", vmin=0, vmax=vmax, interpolation="nearest")
         ok = np.isfinite(dx)
         ax.quiver(gx[ok], gy[ok], dx[ok] * scale, dy[ok] * scale, color="cyan",

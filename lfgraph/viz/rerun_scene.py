@@ -85,7 +85,7 @@ class SceneLog:
         """View ``v`` of ``calib`` at ``path``: its pose and pinhole (a frustum ``depth_m`` deep), static."""
         pose = calib.ref_T_view[v]
         self.rec.log(path, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
-        self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=list(calib.image_size_px),
+        self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=list(calib.image_size(v)),
                                       image_plane_distance=depth_m, color=colour), static=True)
 
     def rig_change(self, before: Calibration, after: Calibration) -> None:

@@ -1,0 +1,111 @@
+"""Issue 25: a rig of mixed image sizes (views of twice the resolution beside the others) rendered, calibrated from its
+images, rectified to one image size with rows aligned, and refused by name where tracking needs one size."""
+
+import dataclasses
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from lfgraph.board import BoardSpec
+from lfgraph.calibration import Calibration
+from lfgraph.capture import open_capture
+from lfgraph.chessboard import detect_board
+from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.datasets.board_render import render_checkerboard_view
+from lfgraph.datasets.checkerboard import CheckerboardConfig, make_checkerboard_truth, write_checkerboard_dataset
+from lfgraph.datasets.rig import make_rig
+from lfgraph.datasets.scenes import get_scene
+from lfgraph.geometry import make_T
+from lfgraph.rectification import build_maps, compute_rectification, remap_views
+
+FAR_BOARD_PX = 0.1  # as tests/test_rectify.py: corners detected in rectified renders of a board at >= 20 m
+FOCAL_REL = 0.003  # each view's focal length from its own rendered images, relative to the truth (measured 0.05 %)
+PRINCIPAL_PX = 1.5  # each view's principal point from its own images, in that view's pixels (measured <= 0.66 px)
+POSITION_MM = 0.5  # each view's position relative to the reference, 10 mm pitch (measured <= 0.17 mm)
+SCALE = 2  # the sharper views: twice the rig's resolution, the same field of view
+
+
+def _mixed_rig() -> Calibration:
+    """small-2x2 with views r00_c00 and r01_c01 at 640x480: the same field as the 320x240 views."""
+    calib = make_rig(get_scene("small-2x2").rig, np.random.default_rng(2))
+    w, h = calib.image_size_px
+    intr = list(calib.intrinsics)
+    for v in (0, 3):
+        i = intr[v]
+        intr[v] = dataclasses.replace(i, fx=SCALE * i.fx, fy=SCALE * i.fy, cx=SCALE * (i.cx + 0.5) - 0.5,
+                                      cy=SCALE * (i.cy + 0.5) - 0.5)
+    sizes = tuple((SCALE * w, SCALE * h) if v in (0, 3) else (w, h) for v in range(calib.num_views))
+    return calib.replace(intrinsics=tuple(intr), view_image_sizes_px=sizes)
+
+
+def test_far_board_rows_align_across_views_of_different_sizes():
+    calib = _mixed_rig()
+    board = BoardSpec(9, 6, 1.2)
+    cfg = CheckerboardConfig(board=board, noise_sigma=0.0, blur_sigma_px=0.8)
+    rect = compute_rectification(calib)
+    maps = build_maps(calib, rect)
+    assert rect.image_size_px[0] <= calib.image_size_px[0] and rect.image_size_px[1] <= calib.image_size_px[1]
+    rows, cols = [], []
+    for tilt_deg, dist in ((0.0, 22.0), (15.0, 25.0)):
+        R = cv2.Rodrigues(np.array([np.radians(tilt_deg), 0.0, 0.0]))[0]  # noqa: N806
+        ref_T_board = make_T(R, [-4.8, -3.0, dist])  # noqa: N806
+        images = [render_checkerboard_view(calib.intrinsics[v], calib.image_size(v), calib.view_T_ref(v) @ ref_T_board,
+                                           board, cfg) for v in range(calib.num_views)]
+        assert images[0].shape == (480, 640) and images[1].shape == (240, 320)
+        rectified = remap_views(images, maps)
+        assert rectified.shape[1:] == rect.image_size_px[::-1]
+        corners = [detect_board(img, board) for img in rectified]
+        assert all(c is not None for c in corners)
+        rows += [corners[a][:, 1] - corners[b][:, 1] for a, b in calib.grid.horizontal_pairs()]
+        cols += [corners[a][:, 0] - corners[b][:, 0] for a, b in calib.grid.vertical_pairs()]
+    assert np.sqrt(np.mean(np.concatenate(rows) ** 2)) <= FAR_BOARD_PX
+    assert np.sqrt(np.mean(np.concatenate(cols) ** 2)) <= FAR_BOARD_PX
+
+
+@pytest.fixture(scope="module")
+def mixed_capture(tmp_path_factory):
+    truth_calib = _mixed_rig()
+    scene = get_scene("small-2x2")
+    cfg = dataclasses.replace(scene.checkerboard, frames=12)
+    truth = make_checkerboard_truth(truth_calib, cfg, np.random.default_rng(8))
+    out = tmp_path_factory.mktemp("mixed") / "capture"
+    write_checkerboard_dataset(out, truth_calib, truth, cfg, seed=8, jobs=2, progress=False)
+    return out, truth_calib
+
+
+def test_mixed_capture_calibrates_from_its_images_and_rectifies(mixed_capture, tmp_path, capsys):
+    capture_dir, truth = mixed_capture
+    capture = open_capture(capture_dir, truth.grid)
+    assert capture.sizes_px == truth.view_image_sizes_px
+    assert [img.shape for img in capture.load_frame(0)] == [(480, 640), (240, 320), (240, 320), (480, 640)]
+    calib_path = tmp_path / "calibration.json"
+    assert main(["calibrate", str(capture_dir), "--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--quiet",
+                 "-o", str(calib_path)]) == 0
+    assert "640x480, 320x240 px" in capsys.readouterr().out
+    calib = Calibration.load(calib_path)
+    assert [calib.image_size(v) for v in range(4)] == list(truth.view_image_sizes_px)
+    assert json.loads(calib_path.read_text())["views"][1].get("image_size_px") in (None, [320, 240])
+    for est, true in zip(calib.intrinsics, truth.intrinsics, strict=True):
+        assert abs(est.fx / true.fx - 1) < FOCAL_REL and abs(est.fy / true.fy - 1) < FOCAL_REL
+        assert np.hypot(est.cx - true.cx, est.cy - true.cy) < PRINCIPAL_PX
+    assert np.max(np.linalg.norm(calib.ref_T_view[:, :3, 3] - truth.ref_T_view[:, :3, 3], axis=1)) < POSITION_MM / 1e3
+    out = tmp_path / "rectified"
+    assert main(["rectify", str(calib_path), str(capture_dir), "-o", str(out), "--quiet", "--jobs", "1"]) == 0
+    sizes = {cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).shape for p in out.glob("*/r*.png")}
+    assert len(sizes) == 1 and len(list(out.glob("*/r*.png"))) == 4 * 12
+
+
+def test_tracking_commands_refuse_a_mixed_capture_by_name(mixed_capture, tmp_path, capsys):
+    capture_dir, truth = mixed_capture
+    calib_path = tmp_path / "truth.json"
+    truth.save(calib_path)
+    assert main(["refine", str(calib_path), str(capture_dir), "-o", str(tmp_path / "r.json")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "r00_c00 640x480, r00_c01 320x240" in err and "refine needs views of one size" in err
+    assert not (tmp_path / "r.json").exists()
+    uniform = truth.replace(view_image_sizes_px=None)
+    uniform.save(calib_path)
+    assert main(["check", str(calib_path), str(capture_dir)]) == EXIT_BAD_INPUT
+    assert "view r00_c00 is 640x480 px but the calibration is for 320x240 px" in capsys.readouterr().err
