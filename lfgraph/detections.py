@@ -20,10 +20,12 @@ from lfgraph.chessboard import detect_board
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
+from lfgraph.wide_boards import second_pass
 
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
-CACHE_VERSION = 6  # bump when detection changes (3: ChArUco; 4: window + saddle fit; 5: video; 6: off-grid check)
+CACHE_VERSION = 7  # bump when detection changes (3: ChArUco; 4: window + saddle fit; 5: video; 6: off-grid check;
+#                   7: the wide-view second pass)
 PLANAR_TOLERANCE_M = 1e-6  # object points with |z| above this are not a planar target in its own z = 0 plane
 
 
@@ -218,6 +220,21 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
     return out
 
 
+def _wide_pass(capture: CaptureSet, board: BoardSpec, corners: np.ndarray, progress: bool) -> np.ndarray:
+    """`lfgraph.wide_boards.second_pass` over the capture's images (each revisited image loaded alone); says what
+    it found."""
+    def load(view: int, frame: int) -> np.ndarray:
+        return capture.load_frame(frame)[view] if capture.layout == "mosaic" else capture.load_view(frame, view)
+
+    out, report = second_pass(load, board, corners, capture.sizes_px, progress)
+    if report.wide_views:
+        names = ", ".join(capture.grid.name(v) for v in report.wide_views)
+        logging.getLogger("lfgraph").info(
+            f"wide views ({names}): {report.recovered} boards found in a turned virtual pinhole, {report.dropped} "
+            f"dropped (a corner off the view's rough fisheye model), {report.rerefined} refined again")
+    return out
+
+
 def _cache_key(capture: CaptureSet, board: BoardSpec) -> str:
     files = []
     # a video layout lists the same view videos for every frame: each file once, with the number of frames used
@@ -256,6 +273,15 @@ BOARD_SCAN_IMAGES = 2  # ... and this many without the asked board scanned for t
 _PROBE_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
 
 
+def _refuse_larger(found_other: tuple[tuple[int, int], str] | None, asked: tuple[int, int]) -> None:
+    """Raise when a probe found a board with more inner corners than asked (the asked one would be found inside it)."""
+    if found_other is not None and found_other[0][0] * found_other[0][1] > asked[0] * asked[1]:
+        (c, r), name = found_other
+        raise CaptureError(f"{name} shows a {c}x{r} board, larger than --board {asked[0]}x{asked[1]} (found "
+                           f"inside it, the asked board would sit at another offset in every frame): give the "
+                           f"board's full inner-corner count (squares minus one per side)")
+
+
 def check_board_size(capture: CaptureSet, board: BoardSpec) -> None:
     """Refuse, in seconds, a ``--board`` that does not match the images: a checkerboard with more inner corners
     than asked (the detector would "find" the asked board inside it, every frame at another offset), or one that is
@@ -276,7 +302,7 @@ def check_board_size(capture: CaptureSet, board: BoardSpec) -> None:
                   key=lambda cr: (-cr[0] * cr[1], (cr[0] >= cr[1]) != (asked[0] >= asked[1]),
                                   abs(cr[0] - asked[0]) + abs(cr[1] - asked[1])))
     found_asked, found_other = False, None
-    probed = scanned = 0
+    probed, unscanned = 0, []
     for f in range(min(BOARD_PROBE_FRAMES, len(capture))):
         try:
             images = capture.load_frame(f)
@@ -294,17 +320,17 @@ def check_board_size(capture: CaptureSet, board: BoardSpec) -> None:
                         if cv2.findChessboardCorners(gray, size, flags=_PROBE_FLAGS)[0]:
                             found_other = (size, name)
                             break
-            elif found_other is None and scanned < BOARD_SCAN_IMAGES:
-                scanned += 1
-                for size in scan:
-                    if cv2.findChessboardCorners(gray, size, flags=_PROBE_FLAGS)[0]:
-                        found_other = (size, name)
-                        break
-            if found_other is not None and found_other[0][0] * found_other[0][1] > asked[0] * asked[1]:
-                (c, r), name = found_other
-                raise CaptureError(f"{name} shows a {c}x{r} board, larger than --board {asked[0]}x{asked[1]} (found "
-                                   f"inside it, the asked board would sit at another offset in every frame): give the "
-                                   f"board's full inner-corner count (squares minus one per side)")
+            elif len(unscanned) < BOARD_SCAN_IMAGES:
+                unscanned.append((gray, name))
+            _refuse_larger(found_other, asked)
+    # images without the asked board are scanned for the size that is there only when no probed image shows it
+    # (a wide lens or a board half out of view hides it in some images: ~35 slow searches each, for nothing)
+    for gray, name in unscanned if not found_asked and found_other is None else ():
+        found_other = next(((size, name) for size in scan
+                            if cv2.findChessboardCorners(gray, size, flags=_PROBE_FLAGS)[0]), None)
+        _refuse_larger(found_other, asked)
+        if found_other is not None:
+            break
     if not found_asked and found_other is not None:
         (c, r), name = found_other
         raise CaptureError(f"no {asked[0]}x{asked[1]} board in the first {min(BOARD_PROBE_FRAMES, len(capture))} "
@@ -344,6 +370,8 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
         tasks = [(capture, f, board) for f in range(len(capture))]
         per_frame = run_tasks(_detect_frame, tasks, jobs, desc="detecting", unit="frame", progress=progress)
         corners = np.stack(per_frame, axis=1)
+        if board.kind != "charuco":  # wide (fisheye) views: boards the first pass missed, looked for again
+            corners = _wide_pass(capture, board, corners, progress)
         if cache:
             try:
                 with atomic_path(cache_path) as tmp, open(tmp, "wb") as fh:
