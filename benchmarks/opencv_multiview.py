@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 import lfgraph as lf
-from lfgraph.pattern.lenses import board_pose
+from lfgraph.pattern.pose_fit import board_pose
 from lfgraph.points_io import PointBoard, read_opencv_multiview
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_multiview"

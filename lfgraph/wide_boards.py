@@ -291,7 +291,8 @@ def second_pass(load: Callable[[int, int], np.ndarray], board: BoardSpec, first:
                             models=[None if fit is None else fit[0] for fit in fits])
     if not report.wide_views:
         return out, report
-    with tqdm(total=len(report.wide_views) * first.shape[1], desc="wide views", unit="image", disable=not progress) as bar:
+    total = len(report.wide_views) * first.shape[1]
+    with tqdm(total=total, desc="wide views", unit="image", disable=not progress) as bar:
         for v in report.wide_views:  # the first pass's boards: refined again, or looked for again if flagged
             intr, flagged = fits[v]
             for f in np.flatnonzero(found[v]):

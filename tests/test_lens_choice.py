@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lfgraph import Calibration, calibrate
+from lfgraph.pattern import CalibrateConfig
 from lfgraph.camera import Intrinsics
 from lfgraph.cli import main
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
@@ -82,6 +83,32 @@ def test_fisheye_rig_is_recognised_and_calibrated_to_its_floor():
             assert zp.max() < MAX_Z, (v, zp)
 
 
+UNIFIED_RAYS_PX = 0.5  # the truth's rays through the fitted unified model, at every observed corner (measured 0.30)
+UNIFIED_TRANSFER_PX = 0.15  # transfer at infinity of the fitted unified rig (measured 0.079; radtan k1, k2: 0.78)
+
+
+def test_a_unified_rig_is_fitted_from_its_board_when_named():
+    """xi, the focal length and k1, k2 trade off over the field a board covers, so the fit is judged by what it maps:
+    the true rays of every observed corner, the rig's positions and its transfer at infinity."""
+    scene = get_scene("fisheye-1x3")
+    rig = dataclasses.replace(scene.rig, lens="unified", xi=0.8, focal_px=600.0, k1=-0.15, k2=0.03)
+    truth = make_rig(rig, np.random.default_rng(0))
+    board_truth = make_checkerboard_truth(truth, scene.checkerboard, np.random.default_rng(0))
+    corners, valid = make_corner_observations(board_truth, NOISE_PX, np.random.default_rng(1), True)
+    obs = observations_from_arrays(board_truth.board, truth.grid, truth.image_size_px, corners, valid)
+    est, report = calibrate(obs, CalibrateConfig(lens="unified"))
+    assert [i.lens for i in est.intrinsics] == ["unified"] * 3 and all("xi" in s for s in report.sigmas)
+    err = evaluate_calibration(est, truth)
+    for v in range(3):
+        px = board_truth.corners_px[v][board_truth.corner_valid[v]]
+        rays = truth.intrinsics[v].undistort(px)
+        back = est.intrinsics[v].project(np.column_stack([rays, np.ones(len(rays))]))
+        assert np.max(np.linalg.norm(back - px, axis=1)) < UNIFIED_RAYS_PX, v
+        if v != truth.grid.reference:
+            assert np.max(np.abs(err.position_mm[v]) / report.sigmas[v]["position_mm"]) < MAX_Z, v
+    assert np.max(err.transfer_px) < UNIFIED_TRANSFER_PX
+
+
 def test_a_radtan_rig_keeps_radtan():
     _, obs = _synthetic("radtan")
     est, _ = calibrate(obs)
@@ -96,8 +123,7 @@ def test_lens_spec_per_view_and_its_errors():
         resolve_lenses("auto,r05_c00=fisheye", grid)
     with pytest.raises(LensSpecError, match="unknown lens"):
         resolve_lenses("kb8", grid)
-    with pytest.raises(LensSpecError, match="not yet estimated from a board"):
-        resolve_lenses("unified", grid)
+    assert resolve_lenses("unified", grid) == ("unified",) * 3
 
 
 def _mixed() -> Calibration:

@@ -223,7 +223,7 @@ def add_parsers(sub: Any) -> None:
                           "view-frames the rig cannot explain, naming them)")
     cal.add_argument("--lens", default="auto", metavar="MODEL[,VIEW=MODEL...]",
                      help="lens model: auto (default: per view, the model that predicts held-out frames best), "
-                          "radtan or fisheye; per view e.g. auto,r00_c02=fisheye")
+                          "radtan, fisheye or unified (fitted only when named); per view e.g. auto,r00_c02=fisheye")
     cal.add_argument("--board-sigma-mm", type=positive_float,
                      help="board flatness tolerance: estimate the corners' positions within it (default: rigid)")
     cal.add_argument("--focal-px", type=positive_float, help="design focal length for --init design")

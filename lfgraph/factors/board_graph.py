@@ -4,7 +4,10 @@ Each frame's board is that frame's world. A corner j seen by view v in frame f p
 ``board_T_ref(f).compose(ref_T_view(v))`` (`gtsam_unstable.ProjectionFactorPPPCCal3DS2`: pose, transform, point,
 calibration), so one ``ref_T_view`` per view and one calibration per view are shared by every frame. The factor
 follows each view's lens: `ProjectionFactorPPPCCal3DS2` (radtan) or `ProjectionFactorPPPCCal3Fisheye` (fisheye);
-GTSAM has no such factor for Cal3Unified.
+GTSAM has no such factor for Cal3Unified: a unified view observes the corner as a point of the reference frame,
+``board_point_key(f, j)`` (`gtsam.GeneralSFMFactor2Cal3Unified` with the camera at ``ref_T_view(v)``), and a stiff
+`gtsam.ReferenceFrameFactorPoint3Pose3` ties that point to the board corner through the frame's board pose
+(point = ``board_T_ref(f)^-1`` corner, `BOARD_POINT_SIGMA_M`): the same model, all in GTSAM's C++ factors.
 """
 
 from __future__ import annotations
@@ -16,11 +19,12 @@ import gtsam_unstable
 import numpy as np
 
 from lfgraph.camera import Intrinsics
-from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, view_pose_key
+from lfgraph.factors.keys import board_corner_key, board_point_key, board_pose_key, calib_key, view_pose_key
 from lfgraph.factors.noise import FREE_SIGMA, GAUGE_SIGMA, MIN_SIGMA, lens_noise, point_noise
 from lfgraph.geometry import to_pose3
 
 RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
+BOARD_POINT_SIGMA_M = 1e-6  # a unified view's board point is its frame's board corner (1 µm, as a rigid board)
 BOARD_FACTORS = {"radtan": gtsam_unstable.ProjectionFactorPPPCCal3DS2,
                  "fisheye": gtsam_unstable.ProjectionFactorPPPCCal3Fisheye}
 FIXED_RIG_FACTORS = {"radtan": gtsam.GenericProjectionFactorCal3DS2,
@@ -28,12 +32,13 @@ FIXED_RIG_FACTORS = {"radtan": gtsam.GenericProjectionFactorCal3DS2,
                      "unified": gtsam.GenericProjectionFactorCal3Unified}
 CALIBRATION_PRIORS = {"radtan": gtsam.PriorFactorCal3DS2, "fisheye": gtsam.PriorFactorCal3Fisheye,
                       "unified": gtsam.PriorFactorCal3Unified}
-BOARD_LENSES = tuple(BOARD_FACTORS)  # the lens models the joint board graph can estimate
+BOARD_LENSES = (*BOARD_FACTORS, "unified")  # the lens models the joint board graph can estimate
 
 
 def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
                            noise: gtsam.noiseModel.Base, lenses: Sequence[str] | None = None) -> int:
-    """One projection factor (`BOARD_FACTORS`, by the view's lens) per valid corner observation.
+    """One projection factor (`BOARD_FACTORS`, by the view's lens; unified: module docstring) per valid corner
+    observation. Unified views need their board points in the values (`unified_board_points`).
 
     Args:
         graph: extended in place.
@@ -47,10 +52,29 @@ def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.nda
     """
     vs, fs, cs = np.nonzero(valid)
     pts = corners_px[vs, fs, cs]
-    factors = [BOARD_FACTORS[lens] for lens in (lenses or ("radtan",) * corners_px.shape[0])]
+    lenses = tuple(lenses or ("radtan",) * corners_px.shape[0])
+    n_corners = corners_px.shape[2]
     for v, f, c, uv in zip(vs.tolist(), fs.tolist(), cs.tolist(), pts, strict=True):
-        graph.add(factors[v](uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c), calib_key(v)))
+        if lenses[v] == "unified":
+            graph.add(gtsam.GeneralSFMFactor2Cal3Unified(uv, noise, view_pose_key(v),
+                                                         board_point_key(f, c, n_corners), calib_key(v)))
+        else:
+            graph.add(BOARD_FACTORS[lenses[v]](uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c),
+                                               calib_key(v)))
+    tie = gtsam.noiseModel.Isotropic.Sigma(3, BOARD_POINT_SIGMA_M)
+    for f, c in unified_board_points(valid, lenses):
+        graph.add(gtsam.ReferenceFrameFactorPoint3Pose3(board_point_key(f, c, n_corners), board_pose_key(f),
+                                                        board_corner_key(c), tie))
     return len(vs)
+
+
+def unified_board_points(valid: np.ndarray, lenses: Sequence[str]) -> list[tuple[int, int]]:
+    """(frame, corner) of every board point a unified view observes (each once), from the (V, F, C) mask."""
+    unified = np.array([lens == "unified" for lens in lenses], dtype=bool)
+    if not unified.any():
+        return []
+    fs, cs = np.nonzero(np.any(valid[unified], axis=0))
+    return list(zip(fs.tolist(), cs.tolist(), strict=True))
 
 
 def add_fixed_rig_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
@@ -97,6 +121,10 @@ def add_gauge_prior(graph: gtsam.NonlinearFactorGraph, reference: int) -> None:
 WEAK_FOCAL_SIGMA_REL = 0.05  # 5 % of the focal length
 WEAK_PRINCIPAL_SIGMA_REL = 0.03  # 3 % of the image width
 WEAK_RADIAL_SIGMA = 0.1  # k1, k2
+# A board constrains the unified model's xi only weakly: xi, the focal length and k1, k2 trade off to ~0.01 px over
+# the field a board covers (fisheye-1x3 as unified, xi 0.8: fits with xi 0.6-1.2 and f 66-138 px off agree). A prior
+# about the start (xi = 1 from a fisheye fit) keeps that direction determined; the marginals then report it.
+UNIFIED_XI_SIGMA = 0.5
 
 
 def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[Intrinsics],
@@ -116,5 +144,6 @@ def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[
                 WEAK_RADIAL_SIGMA
         else:
             focal = principal = radial = FREE_SIGMA
-        noise = lens_noise(intr.lens, focal, principal, radial, tangential=FREE_SIGMA if tangential else MIN_SIGMA)
+        noise = lens_noise(intr.lens, focal, principal, radial, tangential=FREE_SIGMA if tangential else MIN_SIGMA,
+                           xi=UNIFIED_XI_SIGMA)
         graph.add(CALIBRATION_PRIORS[intr.lens](calib_key(v), intr.to_gtsam(), noise))

@@ -9,6 +9,7 @@ _CALIB = "k"  # Cal3DS2 of view v
 _BOARD_POSE = "b"  # board_T_ref of frame f (the reference view's pose in that frame's board)
 _BOARD_CORNER = "c"  # board corner j (board frame), shared by all frames
 _LANDMARK = "l"  # scene landmark j (reference frame)
+_BOARD_POINT = "q"  # board corner j of frame f in the reference frame (views whose lens has no board factor)
 LANDMARK_CHAR = _LANDMARK  # for solvers that eliminate landmarks (`lfgraph.schur`)
 
 
@@ -32,6 +33,11 @@ def board_corner_key(corner: int) -> int:
     return gtsam.symbol(_BOARD_CORNER, corner)
 
 
+def board_point_key(frame: int, corner: int, n_corners: int) -> int:
+    """Key of corner ``corner`` of frame ``frame``'s board in the reference frame (Point3; ``n_corners`` per board)."""
+    return gtsam.symbol(_BOARD_POINT, frame * n_corners + corner)
+
+
 def landmark_key(index: int) -> int:
     """Key of scene landmark ``index`` (Point3 in the reference frame)."""
     return gtsam.symbol(_LANDMARK, index)
@@ -41,5 +47,6 @@ def describe_key(key: int) -> str:
     """Readable name of a key, e.g. ``view pose 3`` — for error messages."""
     sym = gtsam.Symbol(key)
     names = {_VIEW_POSE: "view pose", _CALIB: "intrinsics of view", _BOARD_POSE: "board pose of frame",
-             _BOARD_CORNER: "board corner", _LANDMARK: "landmark"}
+             _BOARD_CORNER: "board corner", _LANDMARK: "landmark",
+             _BOARD_POINT: "board point (frame x corners + corner)"}
     return f"{names.get(chr(sym.chr()), chr(sym.chr()))} {sym.index()}"

@@ -100,7 +100,8 @@ def cal3ds2_noise(sigmas: Sequence[float]) -> gtsam.noiseModel.Base:
 
 
 def lens_noise(lens: str, focal_px: float, principal_px: float, distortion: float,
-               tangential: float = MIN_SIGMA, skew_px: float = MIN_SIGMA) -> gtsam.noiseModel.Base:
+               tangential: float = MIN_SIGMA, skew_px: float = MIN_SIGMA, xi: float | None = None
+               ) -> gtsam.noiseModel.Base:
     """Prior noise of one lens model in its GTSAM tangent order: ``radtan`` (Cal3DS2: fx fy s cx cy k1 k2 p1 p2),
     ``fisheye`` (Cal3Fisheye: fx fy s cx cy k1 k2 k3 k4) or ``unified`` (Cal3Unified: fx fy s cx cy k1 k2 p1 p2 xi).
 
@@ -109,13 +110,14 @@ def lens_noise(lens: str, focal_px: float, principal_px: float, distortion: floa
         distortion: sigma of the radial coefficients (k1, k2; k1..k4 for fisheye) and of xi.
         tangential: sigma of p1, p2 (radtan and unified); the default holds them at their prior.
         skew_px: sigma of the skew; the default holds it at 0 (the models have none).
+        xi: sigma of the unified model's xi; None: ``distortion``.
     """
     head = [focal_px, focal_px, skew_px, principal_px, principal_px]
     if lens == "fisheye":
         return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + [distortion] * 4))
     tail = [distortion, distortion, tangential, tangential]
     if lens == "unified":
-        return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail + [distortion]))
+        return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail + [distortion if xi is None else xi]))
     return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail))
 
 

@@ -9,7 +9,14 @@ import gtsam
 import numpy as np
 
 from lfgraph.camera import Intrinsics
-from lfgraph.factors.keys import board_corner_key, board_pose_key, calib_key, landmark_key, view_pose_key
+from lfgraph.factors.keys import (
+    board_corner_key,
+    board_point_key,
+    board_pose_key,
+    calib_key,
+    landmark_key,
+    view_pose_key,
+)
 from lfgraph.geometry import from_pose3, to_pose3
 
 
@@ -35,6 +42,15 @@ def insert_board_corners(values: gtsam.Values, object_points_m: np.ndarray) -> N
     """(C, 3) board corners (board frame, metres) under `board_corner_key`."""
     for j, p in enumerate(np.asarray(object_points_m, dtype=np.float64)):
         values.insert(board_corner_key(j), p)
+
+
+def insert_board_points(values: gtsam.Values, points: Sequence[tuple[int, int]], board_T_ref: np.ndarray,  # noqa: N803
+                        object_points_m: np.ndarray) -> None:
+    """Each (frame, corner) board point at ``board_T_ref(f)^-1`` corner (reference frame; `board_point_key`)."""
+    n = len(object_points_m)
+    for f, c in points:
+        ref_T_board = np.linalg.inv(board_T_ref[f])  # noqa: N806
+        values.insert(board_point_key(f, c, n), ref_T_board[:3, :3] @ object_points_m[c] + ref_T_board[:3, 3])
 
 
 def insert_landmarks(values: gtsam.Values, points_ref_m: np.ndarray) -> None:

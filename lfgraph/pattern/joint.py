@@ -17,6 +17,7 @@ from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.values import (
     insert_board_corners,
+    insert_board_points,
     insert_board_poses,
     insert_intrinsics,
     insert_view_poses,
@@ -48,7 +49,7 @@ class JointResult:
 
 
 def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
-                     ref_T_view: np.ndarray) -> tuple[dict[str, Any], ...]:  # noqa: N803
+                     ref_T_view: np.ndarray, lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:  # noqa: N803
     keys = gtsam.KeyVector([calib_key(v) for v in range(n_views)] + [view_pose_key(v) for v in range(n_views)])
     with gtsam_quiet():
         joint = gtsam.Marginals(graph, values).jointMarginalCovariance(keys)
@@ -61,7 +62,7 @@ def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_
         rot_cov = R @ pc[:3, :3] @ R.T
         out.append({
             "fx_px": float(kc[0]), "fy_px": float(kc[1]), "cx_px": float(kc[3]), "cy_px": float(kc[4]),
-            "k1": float(kc[5]), "k2": float(kc[6]),
+            "k1": float(kc[5]), "k2": float(kc[6]), **({"xi": float(kc[9])} if lenses[v] == "unified" else {}),
             "position_mm": [float(x) for x in 1e3 * np.sqrt(np.maximum(np.diag(pos_cov), 0.0))],
             "rotation_deg": [float(x) for x in np.degrees(np.sqrt(np.maximum(np.diag(rot_cov), 0.0)))],
         })
@@ -99,6 +100,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     insert_view_poses(values, ref_T_view)
     insert_board_poses(values, board_T_ref, frames)
     insert_board_corners(values, obj)
+    insert_board_points(values, board_graph.unified_board_points(valid, lenses), board_T_ref, obj)
     run_hooks(settings.graph_hooks, GraphContext("calibration", None, graph, values, obs.num_views))
     result = optimize(graph, values, OptimizerSettings(max_iterations=settings.max_iterations), callback)
     est = result.values
@@ -117,5 +119,5 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     sigmas = None
     if settings.marginals:
         scale = max(noise_sigma, SIGMA_FLOOR_PX) / settings.corner_sigma_px
-        sigmas = _marginal_sigmas(graph, est, n_views, scale, poses)
+        sigmas = _marginal_sigmas(graph, est, n_views, scale, poses, lenses)
     return JointResult(intr, poses, boards, corners, result, noise_sigma, sigmas)

@@ -1,6 +1,7 @@
 """Per-view lens models in pattern calibration: one view's calibration under a given model (``cv2.calibrateCamera``
-for radtan, ``cv2.fisheye.calibrate`` for fisheye), board poses under any model, and the automatic choice: the model
-that predicts held-out frames best (k-fold over the view's frames), with a radial-residual check of the one kept."""
+for radtan, ``cv2.fisheye.calibrate`` for fisheye, a one-view joint graph for unified, started from the fisheye fit),
+board poses under any model, and the automatic choice: the model that predicts held-out frames best (k-fold over the
+view's frames), with a radial-residual check of the one kept."""
 
 from __future__ import annotations
 
@@ -11,20 +12,26 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lfgraph.camera import FISHEYE, LENSES, RADTAN, Intrinsics
+from lfgraph.camera import FISHEYE, LENSES, RADTAN, UNIFIED, Intrinsics
 from lfgraph.detections import BoardObservations
-from lfgraph.geometry import make_T, rotation_from_rotvec
+from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
 from lfgraph.grid import ViewGrid
+from lfgraph.pattern.config import CalibrateConfig
+from lfgraph.pattern.joint import calibrate_joint
+from lfgraph.pattern.pose_fit import board_pose
 
 AUTO = "auto"
-FIT_LENSES = (RADTAN, FISHEYE)  # the models pattern calibration fits (the joint board graph's factors)
+FIT_LENSES = (RADTAN, FISHEYE)  # the candidates of --lens auto; unified is fitted when named (a board determines its
+#                                 xi only weakly: `lfgraph.factors.board_graph.UNIFIED_XI_SIGMA`)
+FIT_ERRORS = (cv2.error, RuntimeError)  # OpenCV's calibration failed, or GTSAM's graph (unified) could not be solved
+UNIFIED_START_XI = 1.0  # unified from a fisheye fit: xi = 1 maps angle theta to 2 tan(theta / 2) ...
+UNIFIED_START_FOCAL_SCALE = 2.0  # ... so its focal length starts at twice the fisheye's (equal near the centre)
 MONO_FLAGS = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST  # the paper's model: k1, k2, no tangential, no skew
 FISHEYE_FLAGS = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
 FISHEYE_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 HELDOUT_FOLDS = 8  # k of the k-fold held-out-frame error (every frame is held out once)
 SIMPLER_MARGIN = 0.02  # a model richer than radtan is kept only if it predicts held-out frames >= 2 % better ...
 SIMPLER_MIN_GAIN_PX = 0.005  # ... and by >= 0.005 px (noise-free data: both models fit to ~0)
-POSE_ITERATIONS = 8  # Gauss-Newton steps of a held-out board pose in distorted pixels
 RADIAL_BINS = 6  # radial residual profile: rings of equal width out to the farthest corner
 RADIAL_SIGNIFICANCE = 4.0  # a ring's mean radial residual beyond this many standard errors ...
 RADIAL_MIN_PX = 0.05  # ... and this size is a structured residual the model leaves
@@ -58,10 +65,6 @@ def resolve_lenses(spec: str | Mapping[str | int, str], grid: ViewGrid) -> tuple
         if lens not in choices:
             raise LensSpecError(f"lens for {key}: unknown model {lens!r}; choose from {', '.join(choices)}")
         out[v] = lens
-    unfit = sorted({lens for lens in out if lens not in (AUTO, *FIT_LENSES)})
-    if unfit:
-        raise LensSpecError(f"pattern calibration fits {', '.join(FIT_LENSES)} lenses; {', '.join(unfit)} is read, "
-                            f"written, rectified and exported but not yet estimated from a board")
     return tuple(out)
 
 
@@ -87,9 +90,12 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
     ``guess`` when given (OpenCV's ``CALIB_USE_INTRINSIC_GUESS``; its own initialisation otherwise).
 
     Raises:
-        cv2.error: OpenCV's calibration failed (callers decide what that means).
+        cv2.error: OpenCV's calibration failed; RuntimeError: GTSAM's unified graph could not be solved (callers
+            decide what that means; `FIT_ERRORS` holds both).
     """
     frames = [int(f) for f in (np.nonzero(obs.seen[v])[0] if frames is None else frames)]
+    if lens == UNIFIED:
+        return _fit_unified(obs, v, frames, guess)
     objs, imgs = _view_points(obs, v, frames)
     size = obs.size_of(v)
     use_guess = guess is not None and guess.lens == lens
@@ -112,39 +118,30 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
     return MonoFit(intr, float(np.sqrt(np.mean(np.concatenate(sq)))), poses)
 
 
-def board_pose(intr: Intrinsics, obj: np.ndarray, px: np.ndarray) -> np.ndarray | None:
-    """``view_T_board`` (4, 4) of one board under any lens model: PnP on the undistorted corners, then Gauss-Newton
-    on the distorted pixel error. None when the corners cannot be undistorted or PnP fails."""
-    xy = intr.undistort(px)
-    ok = np.all(np.isfinite(xy), axis=1)
-    if ok.sum() < 4:
-        return None
-    try:
-        found, rvec, tvec = cv2.solvePnP(obj[ok].astype(np.float64), xy[ok], np.eye(3), None,
-                                         flags=cv2.SOLVEPNP_ITERATIVE)
-    except cv2.error:
-        return None
-    if not found:
-        return None
-    x = np.concatenate([np.ravel(rvec), np.ravel(tvec)])
-
-    def residual(p: np.ndarray) -> np.ndarray:
-        R = rotation_from_rotvec(p[:3])  # noqa: N806
-        return (intr.project(obj @ R.T + p[3:]) - px).ravel()
-
-    for _ in range(POSE_ITERATIONS):
-        r = residual(x)
-        if not np.all(np.isfinite(r)):
-            break
-        eps = 1e-7 * np.maximum(1.0, np.abs(x))
-        J = np.stack([(residual(x + e) - r) / h for e, h in zip(np.diag(eps), eps, strict=True)], axis=1)  # noqa: N806
-        if not np.all(np.isfinite(J)):
-            break
-        step = np.linalg.lstsq(J, -r, rcond=None)[0]
-        if np.sum(residual(x + step) ** 2) >= np.sum(r**2):
-            break
-        x = x + step
-    return make_T(rotation_from_rotvec(x[:3]), x[3:])
+def _fit_unified(obs: BoardObservations, v: int, frames: list[int], guess: Intrinsics | None) -> MonoFit:
+    """View ``v`` alone under the unified model: a one-view joint graph (`calibrate_joint`), started from ``guess``
+    (a unified fit) or from the fisheye fit (`UNIFIED_START_XI`, `UNIFIED_START_FOCAL_SCALE`, its board poses)."""
+    fish = fit_mono(obs, v, FISHEYE, frames)
+    if guess is not None and guess.lens == UNIFIED:
+        start = guess
+    else:
+        f = fish.intrinsics
+        start = Intrinsics(UNIFIED_START_FOCAL_SCALE * f.fx, UNIFIED_START_FOCAL_SCALE * f.fy, f.cx, f.cy, 0.0, 0.0,
+                           xi=UNIFIED_START_XI, lens=UNIFIED)
+    keep = np.zeros(obs.num_frames, dtype=bool)
+    keep[frames] = True
+    one = BoardObservations(obs.board, ViewGrid(1, 1, 0), obs.size_of(v), obs.corners_px[v:v + 1],
+                            obs.valid[v:v + 1] & keep[None, :, None], obs.frame_names)
+    board_T_ref = np.full((obs.num_frames, 4, 4), np.nan)  # noqa: N806
+    for fr, pose in fish.view_T_board.items():
+        board_T_ref[fr] = invert_T(pose)
+    joint = calibrate_joint(one, (start,), np.eye(4)[None], board_T_ref, CalibrateConfig(marginals=False))
+    poses = {fr: invert_T(joint.board_T_ref[fr]) for fr in frames}
+    objs, imgs = _view_points(obs, v, frames)
+    intr = joint.intrinsics[0]
+    sq = [np.sum((intr.project(o @ T[:3, :3].T + T[:3, 3]) - i) ** 2, axis=1) for o, i, T in
+          zip(objs, imgs, (poses[fr] for fr in frames), strict=True)]
+    return MonoFit(intr, float(np.sqrt(np.mean(np.concatenate(sq)))), poses)
 
 
 def heldout_rms_px(obs: BoardObservations, v: int, lens: str, folds: int = HELDOUT_FOLDS,
@@ -162,7 +159,7 @@ def heldout_rms_px(obs: BoardObservations, v: int, lens: str, folds: int = HELDO
         test = frames[i::k]
         try:
             fit = fit_mono(obs, v, lens, [f for f in frames if f not in set(test)], start)
-        except cv2.error:
+        except FIT_ERRORS:
             return float("inf")
         for f in test:
             m = obs.valid[v, f]
@@ -212,20 +209,31 @@ def _clearly_better(rich: float, simple: float) -> bool:
     return rich < (1.0 - SIMPLER_MARGIN) * simple and rich < simple - SIMPLER_MIN_GAIN_PX
 
 
+def _preferred(heldout: dict[str, np.ndarray], v: int) -> str:
+    """The model view ``v`` keeps: going from the simplest (`FIT_LENSES` order), a richer one replaces the kept one
+    only where it predicts held-out frames clearly better (a model whose score is missing counts as no better)."""
+    kept = RADTAN if np.isfinite(heldout[RADTAN][v]) else None
+    for lens in FIT_LENSES[1:]:
+        score = heldout[lens][v]
+        if np.isfinite(score) and (kept is None or _clearly_better(score, heldout[kept][v])):
+            kept = lens
+    return kept or RADTAN
+
+
 def _fit_rms(obs: BoardObservations, v: int, lens: str, into: dict[str, np.ndarray],
              starts: dict[str, Intrinsics]) -> float:
     try:
         fit = fit_mono(obs, v, lens)
         into[lens][v], starts[lens] = fit.rms_px, fit.intrinsics
-    except cv2.error:
+    except FIT_ERRORS:
         into[lens][v] = float("inf")
     return float(into[lens][v])
 
 
 def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoice:
-    """Each ``auto`` view's model: the `FIT_LENSES` candidate with the lowest held-out-frame RMS, radtan unless a
-    richer model is clearly better (`SIMPLER_MARGIN` and `SIMPLER_MIN_GAIN_PX`). A richer model that does not even
-    fit the view's own frames clearly better is not cross-validated (its held-out error is shown as ``-``). Views
+    """Each ``auto`` view's model: of the `FIT_LENSES` candidates, radtan unless fisheye predicts held-out frames
+    clearly better (`SIMPLER_MARGIN` and `SIMPLER_MIN_GAIN_PX`). When fisheye does not even fit the view's own frames
+    clearly better, radtan is kept without cross-validation (held-out errors shown as ``-``). Views
     with too few frames to hold any out take the model most of the other views chose (radtan on a tie). Named
     models are kept as given."""
     n = obs.num_views
@@ -240,8 +248,7 @@ def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoic
         starts: dict[str, Intrinsics] = {}
         if not weak[v]:
             base = _fit_rms(obs, v, RADTAN, fits, starts)
-            if not any([_clearly_better(_fit_rms(obs, v, lens, fits, starts), base) for lens in FIT_LENSES
-                        if lens != RADTAN]):
+            if not _clearly_better(_fit_rms(obs, v, FISHEYE, fits, starts), base):
                 lenses[v] = RADTAN
                 continue
         for lens in FIT_LENSES:
@@ -250,11 +257,7 @@ def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoic
         if not np.any(np.isfinite(scores)):
             undecided.append(v)
             continue
-        best = FIT_LENSES[int(np.nanargmin(np.where(np.isfinite(scores), scores, np.inf)))]
-        base = table[RADTAN][v]
-        if best != RADTAN and np.isfinite(base) and not _clearly_better(table[best][v], base):
-            best = RADTAN
-        lenses[v] = best
+        lenses[v] = _preferred(table, v)
     decided = [lens for v, lens in enumerate(lenses) if lens != AUTO]
     common = max(FIT_LENSES, key=lambda lens: (decided.count(lens), lens == RADTAN)) if decided else RADTAN
     for v in undecided:

@@ -23,7 +23,7 @@ from lfgraph.pattern.initial import (
     relative_poses,
     weak_views,
 )
-from lfgraph.pattern.lenses import fit_mono
+from lfgraph.pattern.lenses import FIT_ERRORS, fit_mono
 
 
 @dataclass(frozen=True)
@@ -89,9 +89,10 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
     for v in np.nonzero(~weak)[0]:
         try:
             fit = fit_mono(obs, int(v), lenses[v])
-        except cv2.error as exc:
-            what = "fisheye.calibrate" if lenses[v] == "fisheye" else "calibrateCamera"
-            raise CalibrationInputError(f"{obs.describe(v)}: OpenCV's {what} failed ({exc.err})") from None
+        except FIT_ERRORS as exc:
+            what = {"fisheye": "OpenCV's fisheye.calibrate", "unified": "the unified one-view graph"}.get(
+                lenses[v], "OpenCV's calibrateCamera")
+            raise CalibrationInputError(f"{obs.describe(v)}: {what} failed ({getattr(exc, 'err', exc)})") from None
         known[int(v)] = fit.intrinsics
         for f, pose in fit.view_T_board.items():
             view_T_board[v, f] = pose
