@@ -35,7 +35,7 @@ def fisheye_run(tmp_path_factory):
                  "--jobs", "2", "--quiet", "--seed", "0"]) == 0
     calib_path = root / "calibration.json"
     assert main(["calibrate", str(capture), "--grid", "1x3", "--reference", "1", "--board", "9x6", "--square-mm", "30",
-                 "--quiet", "-o", str(calib_path)]) == 0
+                 "--quiet", "-o", str(calib_path), "--save", str(root / "calibrate.rrd")]) == 0
     return capture, Calibration.load(calib_path), Calibration.load(capture / "truth.json")
 
 
@@ -71,6 +71,50 @@ def test_a_fisheye_array_calibrates_from_its_renders_and_rectifies_rows_aligned(
     assert inside.sum() > 50
     print(f"far points' rectified rows differ by up to {np.max(np.ptp(rows[:, inside], axis=0)):.4f} px")
     assert np.max(np.ptp(rows[:, inside], axis=0)) < ROWS_ALIGNED_PX
+
+
+STRAIGHT_PX = 0.05  # a board row's logged corners off their straight line, in the pinhole the view is shown in
+CURVED_PX = 1.0  # ... while the same rows curve by more than this in the fisheye images (median over boards)
+JPEG_CORNER_PX = 0.5  # as tests/test_viz.py: OpenCV's corners on the logged JPEG against the logged ones
+
+
+def _row_bends_px(corners: np.ndarray) -> np.ndarray:
+    """(rows,) largest distance of a board row's corners from their best straight line, px."""
+    rows = corners.reshape(BOARD.rows, BOARD.cols, 2)
+    centred = rows - rows.mean(axis=1, keepdims=True)
+    normal = np.linalg.svd(centred)[2][:, 1]  # per row, the direction across the fitted line
+    return np.max(np.abs(np.einsum("rcj,rj->rc", centred, normal)), axis=1)
+
+
+def test_rerun_shows_fisheye_views_undistorted_to_their_pinhole(fisheye_run):
+    """rerun's Pinhole is K alone: the 2-D views of a fisheye rig are logged undistorted, so a board's rows are
+    straight there, and the logged points sit on the logged image's corners."""
+    import cv2
+
+    from test_viz import last_per_frame, read_rrd
+
+    capture_dir, calib, _ = fisheye_run
+    _, _, rows = read_rrd(capture_dir.parent / "calibrate.rrd", "frame")
+    obs, _ = detect_capture(open_capture(capture_dir, (1, 3)), BOARD, jobs=1, progress=False)
+    straight, curved, gaps = [], [], []
+    for v in range(3):
+        name = calib.grid.name(v)
+        observed = last_per_frame(rows, f"/views/{name}/observed:Points2D:positions")
+        images = last_per_frame(rows, f"/views/{name}/image:EncodedImage:blob")
+        for f, points in observed.items():
+            if len(points) != BOARD.num_corners or not obs.seen[v, f]:
+                continue
+            straight.append(_row_bends_px(np.asarray(points)).max())
+            curved.append(_row_bends_px(obs.corners_px[v, f]).max())
+            image = cv2.imdecode(np.asarray(images[f][0], dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+            found, corners = cv2.findChessboardCorners(image, BOARD.pattern_size)
+            if found:
+                gaps.append(np.median(np.linalg.norm(corners.reshape(-1, 1, 2) - np.asarray(points)[None],
+                                                     axis=-1).min(axis=1)))
+    print(f"{len(straight)} boards: rows bend {np.median(straight):.4f} px logged, {np.median(curved):.2f} px in the "
+          f"fisheye images; {len(gaps)} found again on the logged images, median gap {np.median(gaps):.3f} px")
+    assert len(straight) >= 40 and np.median(straight) < STRAIGHT_PX and np.median(curved) > CURVED_PX
+    assert len(gaps) >= 10 and np.max(gaps) < JPEG_CORNER_PX
 
 
 @pytest.mark.parametrize("scene", ["small-2x2", "paper-4x4"])

@@ -126,6 +126,8 @@ class RerunLogger(SceneLog, BaseObserver):
         self._track_frame: dict[bytes, int] = {}  # refinement track (its pixel bytes) -> the frame it came from
         self._outliers: dict[int, list[np.ndarray]] = {}  # frame -> (V, K, 2) outlying observations, NaN elsewhere
         self._last: StageEnd | None = None
+        self._shown_lenses: tuple = ()  # each view's lens, from the rig placing the 2-D views (`SceneLog._shown_px`)
+        self._pinhole_maps: dict = {}  # (view, lens, w, h) -> remap tables of a wide view's pinhole image
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         self.rec.log("optimizer/error", rr.SeriesLines(names="graph error", colors=ERROR_COLOUR), static=True)
         self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px)", colors=RMS_COLOUR), static=True)
@@ -278,9 +280,9 @@ class RerunLogger(SceneLog, BaseObserver):
             self._outliers.setdefault(int(g), []).append(px[:, frames == g])
             self.rec.set_time("frame", sequence=int(g))
             for v in range(px.shape[0]):
+                shown = self._shown_px(v, self._outlier_pixels(int(g), px.shape[0])[v])
                 self.rec.log(f"views/{self._name(v)}/outliers",
-                             rr.Points2D(self._outlier_pixels(int(g), px.shape[0])[v], radii=-1.5 * POINT_RADIUS_UI,
-                                         colors=OUTLIER_COLOUR))
+                             rr.Points2D(shown, radii=-1.5 * POINT_RADIUS_UI, colors=OUTLIER_COLOUR))
         self.rec.set_time("frame", sequence=self._frame)
 
     # ------------------------------------------------------------------------------------------- helpers
@@ -309,7 +311,7 @@ class RerunLogger(SceneLog, BaseObserver):
 
     def _log_images(self, images: np.ndarray) -> None:
         for v in range(images.shape[0]):
-            self.rec.log(f"views/{self._name(v)}/image", jpeg_image(images[v]))
+            self.rec.log(f"views/{self._name(v)}/image", jpeg_image(self._shown_image(v, images[v])))
 
     # ------------------------------------------------------------------------------------------- optimiser
     def set_measurements(self, n: int) -> None:

@@ -1,15 +1,22 @@
 """What `lfgraph.viz.RerunLogger` draws: the rigs and boards in 3-D, every view's image, points and residuals in
 2-D (each view a camera of the 3-D scene), the results of a calibration and a refinement, study rows and rectified
-images (the `SceneLog` mix-in; the logger itself, its sinks and the observer calls are in `lfgraph.viz.rerun_log`)."""
+images (the `SceneLog` mix-in; the logger itself, its sinks and the observer calls are in `lfgraph.viz.rerun_log`).
+
+A view's `Pinhole` is its K alone; rerun knows no lens model. A radtan view is shown as captured (its small
+distortion is ignored in 3-D). A wide view (fisheye, unified) is shown undistorted to the pinhole of its own K: its
+image, points, residuals and outliers in that pinhole's pixels, so the 3-D scene places them on the right rays; what
+lies outside that pinhole's field (a fisheye's periphery) is not shown."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import cv2
 import numpy as np
 import rerun as rr
 
 from lfgraph.calibration import Calibration
+from lfgraph.camera import RADTAN, Intrinsics
 from lfgraph.viz.blueprint import (
     CHANGE_ARROW_BASELINE_SHARE,
     CHANGE_COLOUR,
@@ -79,6 +86,29 @@ class SceneLog:
         other (static; a later rig — refine's result — replaces an earlier one)."""
         for v in range(calib.num_views):
             self._camera(f"views/{calib.grid.name(v)}", calib, v, depth_m)
+        self._shown_lenses = tuple(calib.intrinsics)
+
+    def _shown_px(self, v: int, px: np.ndarray, intr: Intrinsics | None = None) -> np.ndarray:
+        """(N, 2) pixels of view ``v`` where its 2-D view shows them (module docstring: a wide view's pinhole)."""
+        intr = intr or (self._shown_lenses[v] if v < len(self._shown_lenses) else None)
+        if intr is None or intr.lens == RADTAN or len(px) == 0:
+            return px
+        xy = intr.undistort(np.asarray(px, dtype=np.float64))
+        return xy * [intr.fx, intr.fy] + [intr.cx, intr.cy]
+
+    def _shown_image(self, v: int, image: np.ndarray) -> np.ndarray:
+        """View ``v``'s image as its 2-D view shows it: a wide view's resampled into the pinhole of its K."""
+        if v >= len(self._shown_lenses) or self._shown_lenses[v].lens == RADTAN:
+            return image
+        intr, (h, w) = self._shown_lenses[v], image.shape[:2]
+        cache = self._pinhole_maps
+        if (v, intr, w, h) not in cache:
+            u, r = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            rays = np.column_stack([(u.ravel() - intr.cx) / intr.fx, (r.ravel() - intr.cy) / intr.fy, np.ones(u.size)])
+            src = np.nan_to_num(intr.project(rays), nan=-1.0).reshape(h, w, 2).astype(np.float32)
+            cache[(v, intr, w, h)] = cv2.convertMaps(src, None, cv2.CV_16SC2)
+        m1, m2 = cache[(v, intr, w, h)]
+        return cv2.remap(image, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     def _camera(self, path: str, calib: Calibration, v: int, depth_m: float,
                 colour: Sequence[int] | None = None) -> None:
@@ -143,7 +173,8 @@ class SceneLog:
             name = calib.grid.name(v)
             base = f"views/{name}"
             m = valid[v] & np.all(np.isfinite(observed[v]), axis=-1) & np.all(np.isfinite(projected[v]), axis=-1)
-            obs, proj = observed[v][m], projected[v][m]
+            intr = calib.intrinsics[v]
+            obs, proj = self._shown_px(v, observed[v][m], intr), self._shown_px(v, projected[v][m], intr)
             res = obs - proj
             mag = np.linalg.norm(res, axis=1)
             self.rec.log(f"{base}/observed", rr.Points2D(obs, radii=-POINT_RADIUS_UI, colors=OBSERVED_COLOUR))
@@ -151,7 +182,7 @@ class SceneLog:
                                                             colors=REPROJECTED_COLOUR))
             self.rec.log(f"{base}/residuals", rr.Arrows2D(origins=proj, vectors=res * RESIDUAL_ARROW_SCALE,
                                                           colors=colour_by(mag, RESIDUAL_COLOUR_MAX_PX)))
-            out = np.zeros((0, 2)) if outliers is None else outliers[v]
+            out = np.zeros((0, 2)) if outliers is None else self._shown_px(v, outliers[v], intr)
             self.rec.log(f"{base}/outliers", rr.Points2D(out, radii=-1.5 * POINT_RADIUS_UI, colors=OUTLIER_COLOUR))
             if mag.size:
                 self.rec.log(f"rms/{name}", rr.Scalars(rms_of(mag)))
