@@ -3,6 +3,7 @@ started from the paper route or design values; 1-sigma uncertainties from `gtsam
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -119,5 +120,10 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     sigmas = None
     if settings.marginals:
         scale = max(noise_sigma, SIGMA_FLOOR_PX) / settings.corner_sigma_px
-        sigmas = _marginal_sigmas(graph, est, n_views, scale, poses, lenses)
+        try:
+            sigmas = _marginal_sigmas(graph, est, n_views, scale, poses, lenses)
+        except RuntimeError:  # GTSAM: an indeterminate system (e.g. a unified lens whose xi the board cannot fix)
+            logging.getLogger("lfgraph").warning(
+                "the calibration's uncertainties cannot be computed: some parameters are not determined by these "
+                "boards (GTSAM found the system indeterminate); the file has no 1-sigma figures")
     return JointResult(intr, poses, boards, corners, result, noise_sigma, sigmas)
