@@ -12,7 +12,6 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-import cv2
 from tqdm import tqdm
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -29,10 +28,7 @@ def _watch_parent(parent_pid: int) -> None:
 def die_with_parent(parent_pid: int) -> None:
     """Pool initializer: end this worker when the process that started it dies, even by ``kill -9`` (which runs no
     clean-up in the parent). Linux: the kernel sends SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon
-    thread notices that the worker was re-parented. The worker runs OpenCV on one thread: the pool is the
-    parallelism (one worker per core), and a forked child must not wait on the parent's OpenCV thread pool, whose
-    threads a fork does not copy."""
-    cv2.setNumThreads(1)
+    thread notices that the worker was re-parented."""
     armed = False
     if sys.platform.startswith("linux"):
         try:
