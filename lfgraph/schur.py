@@ -13,7 +13,7 @@ converges to the same minimum. ``marginal_covariance`` gives the camera-block ma
 (the inverse of the reduced camera system at the solution).
 
 A graph it cannot reduce (a row touching two landmarks, a key the values do not hold) raises `NotReducible`: the
-caller then falls back to GTSAM's own optimiser. `lfgraph.refinement.projections.ProjectionProblem` is the same LM
+caller then falls back to GTSAM's own optimiser. `lfgraph.projections.ProjectionProblem` is the same LM
 on the refinement's projections evaluated in bulk (no GTSAM factor per observation).
 """
 

@@ -1,4 +1,5 @@
-"""One stage of the refinement as a GTSAM graph, assembled from `lfgraph.factors.scene_graph` fragments.
+"""One stage of the refinement: its `StagePlan` (the priors from `lfgraph.factors.scene_graph`) run by the one stage
+runner, `lfgraph.stage_engine`.
 
 - ``points``: cameras constant, only landmarks move (`TriangulationFactorCal3DS2`, one small block per landmark).
 - ``intrinsics``: fx, fy, cx, cy free, distortion and poses held (`GeneralSFMFactor2Cal3DS2` + priors).
@@ -12,26 +13,16 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from lfgraph import stage_engine as engine
 from lfgraph.calibration import Calibration
-from lfgraph.camera import lens_table
 from lfgraph.factors import scene_graph
-from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
-from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
+from lfgraph.factors.hooks import GraphHook
 from lfgraph.factors.noise import Noise, measurement_noise
-from lfgraph.factors.values import (
-    insert_intrinsics,
-    insert_landmarks,
-    insert_view_poses,
-    read_intrinsics,
-    read_landmarks,
-    read_view_poses,
-)
-from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
+from lfgraph.optimize import IterationCallback, OptimizerSettings
+from lfgraph.projections import ProjectionProblem
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
-from lfgraph.refinement.projections import ProjectionProblem
-from lfgraph.schur import optimize_problem
-from lfgraph.schur_system import NotReducible
+from lfgraph.stage_engine import StagePlan
 
 STAGE_RELATIVE_TOL = 1e-7  # LM stops when an iteration lowers the cost by less than this fraction. GTSAM's 1e-10
 # costs one more iteration per stage whose cost decrease is ~1e-11 relative (measured on paper-5x5: a parameter step
@@ -55,37 +46,43 @@ def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
     return float(np.sum(old_len * new_len)) / denom if denom > 0 else 1.0
 
 
+def stage_plan(stage: Stage, calib: Calibration, scale_sigma_mm: float | None = None,
+               held_views: frozenset[int] = frozenset(), priors: ViewPriors | None = None, max_iterations: int = 100,
+               relative_tol: float = STAGE_RELATIVE_TOL) -> StagePlan:
+    """A refinement stage as the engine's `StagePlan`: its priors are the input's pose priors (MAP drift priors
+    centred on ``priors.centre``, or weak position priors of ``scale_sigma_mm``), the range gauge when scale is
+    otherwise free, and with free intrinsics their priors; held views stay where they are."""
+    stage = Stage(stage)
+    graph = gtsam.NonlinearFactorGraph()
+    centre = None if priors is None else priors.centre
+    if stage != Stage.POINTS:
+        graph.push_back(scene_graph.pose_priors(calib, stage.frees_poses, held_views, scale_sigma_mm,
+                                                None if centre is None else centre.ref_T_view,
+                                                None if priors is None else priors.pose_sigmas,
+                                                stage.frees_intrinsics))
+        free_views = [v for v in range(calib.num_views) if v != calib.grid.reference and v not in held_views]
+        # a held view fixes scale by itself; otherwise one range does, and the result is rescaled in run_stage
+        if stage.frees_poses and scale_sigma_mm is None and not held_views and free_views:
+            graph.push_back(scene_graph.range_gauge(calib if centre is None else centre))
+        if stage.frees_intrinsics:
+            graph.push_back(scene_graph.intrinsics_priors(calib, held_views, centre,
+                                                          None if priors is None else priors.intrinsics_sigmas))
+    return StagePlan(str(stage), "refinement", cameras=stage != Stage.POINTS, intrinsics=stage.frees_intrinsics,
+                     priors=graph, settings=OptimizerSettings(max_iterations=max_iterations,
+                                                              relative_error_tol=relative_tol),
+                     bulk=True, keep_distortion=True)
+
+
 def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
                 model: gtsam.noiseModel.Base, scale_sigma_mm: float | None = None,
                 held_views: frozenset[int] = frozenset(),
                 priors: ViewPriors | None = None,
                 projections: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """The graph and initial values of one free-variable stage (``intrinsics``, ``poses`` or ``all``) at ``calib``
-    and ``points``: what `run_stage` optimises, and what the posterior marginals are taken from. ``projections``
-    False: only the camera variables and their priors and gauges (`stage_problem` evaluates the projections)."""
-    stage = Stage(stage)
-    n_views = calib.num_views
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    if projections:
-        insert_landmarks(values, points)
-    poses_free = stage.frees_poses
-    intr_free = stage.frees_intrinsics
-    insert_view_poses(values, calib.ref_T_view)
-    centre = None if priors is None else priors.centre.ref_T_view
-    graph.push_back(scene_graph.pose_priors(calib, poses_free, held_views, scale_sigma_mm, centre,
-                                            None if priors is None else priors.pose_sigmas, intr_free))
-    free_views = [v for v in range(n_views) if v != calib.grid.reference and v not in held_views]
-    # a held view fixes scale by itself; otherwise one range does, and the result is rescaled in run_stage
-    if poses_free and scale_sigma_mm is None and not held_views and free_views:
-        graph.push_back(scene_graph.range_gauge(calib if priors is None else priors.centre))
-    if intr_free:
-        insert_intrinsics(values, calib.intrinsics)
-        graph.push_back(scene_graph.intrinsics_priors(calib, held_views, None if priors is None else priors.centre,
-                                                      None if priors is None else priors.intrinsics_sigmas))
-        graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
-    elif projections:
-        graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
-    return graph, values
+    """The graph and initial values of one stage at ``calib`` and ``points`` (`stage_plan` through
+    `lfgraph.stage_engine.stage_graph`): what `run_stage` optimises, and what the posterior marginals are taken
+    from. ``projections`` False: only the camera variables and their priors and gauges."""
+    plan = stage_plan(stage, calib, scale_sigma_mm, held_views, priors)
+    return engine.stage_graph(plan, calib, pixels, valid, points, model, projections)
 
 
 def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
@@ -93,36 +90,10 @@ def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: n
                   held_views: frozenset[int] = frozenset(),
                   priors: ViewPriors | None = None,
                   hooks: tuple[GraphHook, ...] = ()) -> tuple[ProjectionProblem, tuple] | None:
-    """The ``points`` or ``poses`` stage as a `ProjectionProblem` (`refinement.projections`: projections in bulk, the
-    priors, gauges and the ``hooks``' factors as GTSAM factors) and its initial state, or None where GTSAM's factors
-    are needed: a noise model the bulk path cannot apply (not a 2-D Gaussian, robust or not), free intrinsics, a
-    landmark behind a camera, a hook's factor on a variable the camera graph does not hold (a landmark; on the
-    ``points`` stage, any). The hooks see the camera graph (``ctx.graph`` without the projection factors)."""
-    stage = Stage(stage)
-    if stage not in (Stage.POINTS, Stage.POSES):
-        return None
-    vs, js = np.nonzero(valid)
-    intr, lenses = lens_table(calib.intrinsics)
-    if stage == Stage.POINTS:
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    else:
-        graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views, priors,
-                                    projections=False)
-    if hooks:
-        run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, calib.num_views, calib))
-        if not set(graph.keyVector()) <= set(values.keys()):
-            return None
-    try:
-        if stage == Stage.POINTS:
-            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, lenses,
-                                        len(points), fixed_poses=np.asarray(calib.ref_T_view))
-        else:
-            problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, lenses,
-                                        len(points), pose_keys=[view_pose_key(v) for v in range(calib.num_views)])
-    except NotReducible:
-        return None
-    state = (values, np.asarray(points, dtype=np.float64))
-    return (problem, state) if np.isfinite(problem.error(state)) else None
+    """The ``points`` or ``poses`` stage as a `ProjectionProblem` and its initial state, or None where GTSAM's factors
+    are needed (`lfgraph.stage_engine.bulk_problem`)."""
+    plan = stage_plan(stage, calib, scale_sigma_mm, held_views, priors)
+    return engine.bulk_problem(plan, calib, pixels, valid, points, model, hooks)
 
 
 def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
@@ -130,7 +101,8 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
               callback: IterationCallback | None = None, held_views: frozenset[int] = frozenset(),
               hooks: tuple[GraphHook, ...] = (),
               priors: ViewPriors | None = None) -> tuple[Calibration, np.ndarray, int]:
-    """Run one free-variable stage (``points``, ``intrinsics``, ``poses`` or ``all``).
+    """Run one free-variable stage (``points``, ``intrinsics``, ``poses`` or ``all``) on the engine
+    (`lfgraph.stage_engine.run_plan`), then restore the calibrated baselines' lengths where scale was free.
 
     Args:
         pixels: (V, N, 2) observations; valid: (V, N); points: (N, 3) initial landmarks (reference frame, m).
@@ -146,40 +118,13 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     """
     stage = Stage(stage)
     model = measurement_noise(noise, sigma_px)
-    n_views = calib.num_views
-    poses_free = stage.frees_poses
-    intr_free = stage.frees_intrinsics
     relative_tol = ROBUST_RELATIVE_TOL if isinstance(model, gtsam.noiseModel.Robust) else STAGE_RELATIVE_TOL
-    bulk = stage_problem(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views, priors, hooks)
-    if bulk is not None:  # the projections in bulk
-        with gtsam_quiet():
-            res = optimize_problem(*bulk, max_iterations=max_iterations, callback=callback,
-                                   relative_error_tol=relative_tol)
-        result_values, new_points = res.values
-        iterations = res.iterations
-    else:
-        if stage == Stage.POINTS:
-            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-            insert_landmarks(values, points)
-            graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
-        else:
-            graph, values = stage_graph(stage, calib, pixels, valid, points, model, scale_sigma_mm, held_views,
-                                        priors)
-        run_hooks(hooks, GraphContext("refinement", str(stage), graph, values, n_views, calib))
-        result = optimize(graph, values, OptimizerSettings(max_iterations=max_iterations,
-                                                           relative_error_tol=relative_tol), callback,
-                          eliminate=LANDMARK_CHAR)
-        result_values, iterations = result.values, result.iterations
-        new_points = read_landmarks(result_values, len(points)) if len(points) else points
-    if stage == Stage.POINTS:
-        return calib, new_points, iterations
-    poses = read_view_poses(result_values, n_views)
-    ref = calib.grid.reference
-    poses = np.linalg.inv(poses[ref])[None] @ poses  # exactly relative to the reference again
-    poses[ref] = np.eye(4)
-    if poses_free and scale_sigma_mm is None and not held_views:
-        scale = baseline_scale((calib if priors is None else priors.centre).ref_T_view, poses)
+    plan = stage_plan(stage, calib, scale_sigma_mm, held_views, priors, max_iterations, relative_tol)
+    out = engine.run_plan(plan, calib, pixels, valid, points, model, callback, hooks)
+    new, new_points = out.calib, out.points
+    if stage.frees_poses and scale_sigma_mm is None and not held_views:
+        scale = baseline_scale((calib if priors is None else priors.centre).ref_T_view, new.ref_T_view)
+        poses = np.array(new.ref_T_view)
         poses[:, :3, 3] *= scale
-        new_points = new_points * scale
-    intr = read_intrinsics(result_values, n_views, keep=calib.intrinsics) if intr_free else calib.intrinsics
-    return calib.replace(intrinsics=intr, ref_T_view=poses), new_points, iterations
+        new, new_points = new.replace(ref_T_view=poses), new_points * scale
+    return new, new_points, out.iterations

@@ -11,21 +11,14 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
-from lfgraph.factors import scene_graph, selfcal_graph
+from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.factors.selfcal_graph import DesignSigmas
-from lfgraph.factors.values import (
-    insert_intrinsics,
-    insert_landmarks,
-    insert_view_poses,
-    read_intrinsics,
-    read_landmarks,
-    read_view_poses,
-)
-from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
+from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
 from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 from lfgraph.schur import CameraMarginals
+from lfgraph.stage_engine import StagePlan, run_plan
 
 STAGE_RELATIVE_TOL = 1e-6  # an intermediate stage stops when an iteration gains less than this share of the error
 FINAL_RELATIVE_TOL = 1e-9  # the final stage converges fully (the marginals are taken at its optimum)
@@ -55,50 +48,33 @@ def initial_landmarks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray)
     return pts
 
 
-def _ref_frame(poses: np.ndarray, points: np.ndarray, reference: int) -> tuple[np.ndarray, np.ndarray]:
-    """Express poses and landmarks exactly relative to the reference view (the gauge holds it to ~1e-8)."""
-    inv = np.linalg.inv(poses[reference])
-    poses = inv[None] @ poses
-    poses[reference] = np.eye(4)
-    points = points @ inv[:3, :3].T + inv[:3, 3]
-    return poses, points
-
-
 def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
                   free: frozenset[str], sigmas: DesignSigmas, model: gtsam.noiseModel.Base, max_iterations: int,
                   relative_tol: float = STAGE_RELATIVE_TOL, callback: IterationCallback | None = None,
                   hooks: tuple[Callable, ...] = (), hold_gauges: bool = True, landmark_iterations: int | None = None,
                   ) -> tuple[Calibration, np.ndarray, gtsam.NonlinearFactorGraph, gtsam.Values, int]:
-    """One stage: poses and intrinsics are variables; the groups in ``free`` are pulled to the design, the rest
-    pinned at ``calib``; ``hold_gauges`` pins `selfcal_graph.intrinsics_gauges` too (intermediate stages: measured
-    on paper-4x4 with 20 frames, releasing the common zoom before distortion was free let it absorb the unmodelled
-    distortion and drift 25 % away, 110 px, beyond what 50 iterations walk back). Returns the calibration,
-    landmarks, the graph, its optimum and the LM iterations. ``landmark_iterations``: None runs GTSAM's
-    Levenberg–Marquardt; a number runs `lfgraph.schur`'s with that many embedded point iterations per step (the final
-    stage: from the staged start it walks the near-gauge valleys; from the design values, where landmarks start far
-    off, GTSAM's loop is kept: on the 2x2 test rig the first stage in `lfgraph.schur`'s loop, with or without
-    embedded iterations, lost 95 % of its tracks behind the views)"""
-    from lfgraph.factors.hooks import GraphContext, run_hooks
-
-    n = calib.num_views
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    insert_landmarks(values, points)
-    insert_view_poses(values, calib.ref_T_view)
-    insert_intrinsics(values, calib.intrinsics)
-    graph.push_back(selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference, sigmas,
-                                                  free))
+    """One stage on the one stage runner (`lfgraph.stage_engine.run_plan`): poses and intrinsics are variables; the
+    groups in ``free`` are pulled to the design, the rest pinned at ``calib``; ``hold_gauges`` pins
+    `selfcal_graph.intrinsics_gauges` too (intermediate stages: measured on paper-4x4 with 20 frames, releasing the
+    common zoom before distortion was free let it absorb the unmodelled distortion and drift 25 % away, 110 px,
+    beyond what 50 iterations walk back). Returns the calibration, landmarks, the graph, its optimum and the LM
+    iterations. ``landmark_iterations``: None runs GTSAM's Levenberg–Marquardt; a number runs `lfgraph.schur`'s with
+    that many embedded point iterations per step (the final stage: from the staged start it walks the near-gauge
+    valleys; from the design values, where landmarks start far off, GTSAM's loop is kept: on the 2x2 test rig the
+    first stage in `lfgraph.schur`'s loop, with or without embedded iterations, lost 95 % of its tracks behind the
+    views)"""
+    priors = gtsam.NonlinearFactorGraph()
+    priors.push_back(selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference, sigmas,
+                                                   free))
     pinned = selfcal_graph.intrinsics_gauges(calib.grid) if hold_gauges else None
-    graph.push_back(selfcal_graph.intrinsics_map_priors(calib.intrinsics, design.intrinsics[0], sigmas, free, pinned))
-    graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
-    run_hooks(hooks, GraphContext("selfcal", "+".join(sorted(free)), graph, values, n, calib))
+    priors.push_back(selfcal_graph.intrinsics_map_priors(calib.intrinsics, design.intrinsics[0], sigmas, free,
+                                                         pinned))
     settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol,
                                  landmark_iterations=landmark_iterations or 0)
-    result = optimize(graph, values, settings, callback,
-                      eliminate=None if landmark_iterations is None else LANDMARK_CHAR)
-    poses, pts = _ref_frame(read_view_poses(result.values, n), read_landmarks(result.values, len(points)),
-                            calib.grid.reference)
-    intr = read_intrinsics(result.values, n, tangential=False)
-    return calib.replace(intrinsics=intr, ref_T_view=poses), pts, graph, result.values, result.iterations
+    plan = StagePlan("+".join(sorted(free)), "selfcal", cameras=True, intrinsics=True, priors=priors,
+                     settings=settings, eliminate_landmarks=landmark_iterations is not None, tangential=False)
+    out = run_plan(plan, calib, pixels, valid, points, model, callback, hooks)
+    return out.calib, out.points, out.graph, out.values, out.iterations
 
 
 def zoom_to_prior(calib: Calibration, points: np.ndarray, design: Intrinsics) -> tuple[Calibration, np.ndarray]:

@@ -1,0 +1,174 @@
+"""The one stage runner below both staged-MAP wings: `refine` / `check` (`lfgraph.refinement.stages`) and
+`calibrate-scene` (`lfgraph.selfcal.solve`).
+
+A wing describes a stage as a `StagePlan`: which camera variables the graph holds (none: landmarks through constant
+cameras; poses; poses and intrinsics), the priors and gauges that pull or pin them (each wing's own prior fragments:
+drift priors centred on the input for a refinement, design priors for a self-calibration), and how to solve it.
+`run_plan` assembles the graph (`stage_graph`: landmarks seen by `TriangulationFactor`, `GenericProjectionFactor` or
+`GeneralSFMFactor2` by what is free, each view through its own lens), runs the user's graph hooks, solves it — the
+bulk projections (`lfgraph.projections`, `bulk_problem`) where the plan allows them and they apply, else GTSAM's
+Levenberg–Marquardt (landmarks eliminated first, or with embedded landmark iterations) — and reads the result back
+exactly relative to the reference view. Adding a stage is a plan; the wings keep only their priors and schedules.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.calibration import Calibration
+from lfgraph.camera import lens_table
+from lfgraph.factors import scene_graph
+from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
+from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
+from lfgraph.factors.values import (
+    insert_intrinsics,
+    insert_landmarks,
+    insert_view_poses,
+    read_intrinsics,
+    read_landmarks,
+    read_view_poses,
+)
+from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet, optimize
+from lfgraph.projections import ProjectionProblem
+from lfgraph.schur import optimize_problem
+from lfgraph.schur_system import NotReducible
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """One stage of a staged MAP fit.
+
+    Attributes:
+        name: the stage's name (graph hooks see it as ``GraphContext.stage``).
+        wing: ``refinement`` or ``selfcal`` (``GraphContext.kind``).
+        cameras: the views' poses are variables (False: the points stage, landmarks through constant cameras).
+        intrinsics: the views' intrinsics are variables too (`scene_graph.sfm_factors`).
+        priors: the camera variables' priors and gauges (what pulls the free groups and pins the rest).
+        settings: the optimiser's iterations, tolerance and embedded landmark iterations.
+        eliminate_landmarks: GTSAM's graph is solved with the landmarks eliminated first (`lfgraph.schur`); False:
+            GTSAM's own Levenberg–Marquardt and ordering.
+        bulk: the bulk projections may solve it (points and poses stages with a 2-D Gaussian or robust noise).
+        keep_distortion: intrinsics read back keep the input's distortion (the stage holds it: no round-off).
+        tangential: p1, p2 read back (False clears their round-off where priors hold them at 0).
+    """
+
+    name: str
+    wing: str
+    cameras: bool
+    intrinsics: bool
+    priors: gtsam.NonlinearFactorGraph
+    settings: OptimizerSettings
+    eliminate_landmarks: bool = True
+    bulk: bool = False
+    keep_distortion: bool = False
+    tangential: bool = True
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """What `run_plan` returns: the calibration and (N, 3) landmarks exactly relative to the reference view, the
+    Levenberg–Marquardt iterations, and the GTSAM graph with its optimum (None when the bulk projections solved it)."""
+
+    calib: Calibration
+    points: np.ndarray
+    iterations: int
+    graph: gtsam.NonlinearFactorGraph | None
+    values: gtsam.Values | None
+
+
+def stage_graph(plan: StagePlan, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+                model: gtsam.noiseModel.Base, projections: bool = True) -> tuple[gtsam.NonlinearFactorGraph,
+                                                                                   gtsam.Values]:
+    """The plan's GTSAM graph and initial values at ``calib`` and (N, 3) ``points``; ``projections`` False: only
+    the camera variables with their priors and gauges (what `bulk_problem` adds its projections to).
+
+    Args:
+        pixels: (V, N, 2) observations; valid: (V, N); model: the measurement noise.
+    """
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    if projections:
+        insert_landmarks(values, points)
+    if not plan.cameras:
+        if projections:
+            graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
+        return graph, values
+    insert_view_poses(values, calib.ref_T_view)
+    graph.push_back(plan.priors)
+    if plan.intrinsics:
+        insert_intrinsics(values, calib.intrinsics)
+        if projections:
+            graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
+    elif projections:
+        graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
+    return graph, values
+
+
+def bulk_problem(plan: StagePlan, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+                 model: gtsam.noiseModel.Base, hooks: Sequence[GraphHook] = ()
+                 ) -> tuple[ProjectionProblem, tuple] | None:
+    """The plan as a `ProjectionProblem` (projections in bulk; priors, gauges and the hooks' factors as GTSAM
+    factors) and its initial state, or None where GTSAM's factors are needed: a plan without ``bulk``, free
+    intrinsics, a noise model the bulk path cannot apply, a landmark behind a camera, a hook's factor on a variable
+    the camera graph does not hold (a landmark; on the points stage, any). The hooks see the camera graph."""
+    if not plan.bulk or plan.intrinsics:
+        return None
+    graph, values = stage_graph(plan, calib, pixels, valid, points, model, projections=False)
+    if hooks:
+        run_hooks(hooks, GraphContext(plan.wing, plan.name, graph, values, calib.num_views, calib))
+        if not set(graph.keyVector()) <= set(values.keys()):
+            return None
+    vs, js = np.nonzero(valid)
+    intr, lenses = lens_table(calib.intrinsics)
+    cameras = dict(pose_keys=[view_pose_key(v) for v in range(calib.num_views)]) if plan.cameras else \
+        dict(fixed_poses=np.asarray(calib.ref_T_view))
+    try:
+        problem = ProjectionProblem(graph, values, vs, js, pixels[vs, js], model, intr, lenses, len(points), **cameras)
+    except NotReducible:
+        return None
+    state = (values, np.asarray(points, dtype=np.float64))
+    return (problem, state) if np.isfinite(problem.error(state)) else None
+
+
+def run_plan(plan: StagePlan, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
+             model: gtsam.noiseModel.Base, callback: IterationCallback | None = None,
+             hooks: Sequence[GraphHook] = ()) -> PlanResult:
+    """Assemble, solve and read back one stage (module docstring).
+
+    Args:
+        pixels: (V, N, 2) observations; valid: (V, N); points: (N, 3) initial landmarks (reference frame, m).
+        model: the measurement noise (any GTSAM noise model, robust or not).
+        callback: the optimiser's iteration hook; hooks: user graph hooks (`lfgraph.factors.hooks`).
+    """
+    bulk = bulk_problem(plan, calib, pixels, valid, points, model, hooks)
+    graph = None
+    if bulk is not None:
+        with gtsam_quiet():
+            res = optimize_problem(*bulk, max_iterations=plan.settings.max_iterations, callback=callback,
+                                   relative_error_tol=plan.settings.relative_error_tol)
+        values, new_points = res.values
+        iterations = res.iterations
+    else:
+        graph, values = stage_graph(plan, calib, pixels, valid, points, model)
+        run_hooks(hooks, GraphContext(plan.wing, plan.name, graph, values, calib.num_views, calib))
+        result = optimize(graph, values, plan.settings, callback,
+                          eliminate=LANDMARK_CHAR if plan.eliminate_landmarks else None)
+        values, iterations = result.values, result.iterations
+        new_points = read_landmarks(values, len(points)) if len(points) else np.asarray(points, dtype=np.float64)
+    if not plan.cameras:
+        return PlanResult(calib, new_points, iterations, graph, values if graph is not None else None)
+    poses = read_view_poses(values, calib.num_views)
+    ref = calib.grid.reference
+    back = np.linalg.inv(poses[ref])  # the gauge holds the reference to ~1e-8: make it exact, landmarks alike
+    poses = back[None] @ poses
+    poses[ref] = np.eye(4)
+    new_points = new_points @ back[:3, :3].T + back[:3, 3]
+    intr = calib.intrinsics
+    if plan.intrinsics:
+        intr = read_intrinsics(values, calib.num_views, keep=calib.intrinsics if plan.keep_distortion else None,
+                               tangential=plan.tangential)
+    return PlanResult(calib.replace(intrinsics=intr, ref_T_view=poses), new_points, iterations, graph,
+                      values if graph is not None else None)
