@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from lfgraph import Calibration, calibrate
-from lfgraph.pattern import CalibrateConfig
 from lfgraph.camera import Intrinsics
 from lfgraph.cli import main
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
@@ -19,6 +18,7 @@ from lfgraph.datasets.scenes import get_scene
 from lfgraph.detections import observations_from_arrays
 from lfgraph.evaluation import evaluate_calibration
 from lfgraph.interop import export_calibration, import_calibration
+from lfgraph.pattern import CalibrateConfig
 from lfgraph.pattern.lenses import LensSpecError, resolve_lenses
 
 ONELINE = Path(__file__).parent / "data" / "opencv_oneline"

@@ -90,7 +90,6 @@ def test_rerun_shows_fisheye_views_undistorted_to_their_pinhole(fisheye_run):
     """rerun's Pinhole is K alone: the 2-D views of a fisheye rig are logged undistorted, so a board's rows are
     straight there, and the logged points sit on the logged image's corners."""
     import cv2
-
     from test_viz import last_per_frame, read_rrd
 
     capture_dir, calib, _ = fisheye_run
