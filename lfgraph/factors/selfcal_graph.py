@@ -22,15 +22,11 @@ import gtsam
 import numpy as np
 
 from lfgraph.camera import Intrinsics
+from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, cal3ds2_noise, gauge_pose_noise, pose_noise
 from lfgraph.geometry import to_pose3
 from lfgraph.grid import ViewGrid
-
-# parameter groups a stage may free, and their Cal3DS2 tangent indices (fx fy s cx cy k1 k2 p1 p2)
-INTRINSIC_GROUPS = {"focal": (0, 1), "principal": (3, 4), "distortion": (5, 6), "k1": (5,)}
-POSE_GROUPS = ("rotation", "position")
-GROUPS = ("rotation", "position", *INTRINSIC_GROUPS)
 
 
 @dataclass(frozen=True)
@@ -90,7 +86,7 @@ def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sig
         mean = _cal_vector(intr)
         sig = np.full(9, HELD_SIGMA)
         sig[[2, 7, 8]] = MIN_SIGMA
-        for group, idx in INTRINSIC_GROUPS.items():
+        for group, idx in CAL3DS2_INDICES.items():  # the groups a stage may free (`lfgraph.factors.groups`)
             if group in free:
                 mean[list(idx)] = design_vec[list(idx)]
                 sig[list(idx)] = tol[list(idx)]
@@ -115,7 +111,7 @@ def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sig
         if v == reference:
             graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(np.eye(4)), gauge_pose_noise()))
             continue
-        rot_free, pos_free = "rotation" in free, "position" in free
+        rot_free, pos_free = Group.ROTATION in free, Group.POSITION in free
         mean = np.array(current[v])
         if rot_free:
             mean[:3, :3] = design[v, :3, :3]

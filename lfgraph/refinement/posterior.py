@@ -10,6 +10,7 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.evaluation import reference_pixels
+from lfgraph.factors.groups import DRIFT_GROUPS, VIEW_DIRECTIONS, Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_gauge, rotation_gauge
@@ -20,8 +21,9 @@ from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.stages import stage_graph, stage_problem
 from lfgraph.schur import CameraMarginals
 
-GROUPS = {"pan_tilt": (0, 1), "roll": (2,), "position": (3, 4, 5), "intrinsics": (6, 7, 8, 9)}  # of the 10 directions
-ROTATION = (0, 1, 2)  # also tested jointly: a tilt and a roll each just short of significance can be clear together
+GROUPS = {g: VIEW_DIRECTIONS[g] for g in DRIFT_GROUPS}  # of the 10 directions (`lfgraph.factors.groups`)
+ROTATION = VIEW_DIRECTIONS[Group.ROTATION]  # also tested jointly: a tilt and a roll each just short of significance
+#                                            can be clear together
 TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
 
@@ -172,15 +174,15 @@ def group_mask(groups: tuple[str, ...]) -> np.ndarray:
     """(10,) the directions of parameter groups (`GROUPS` names, or ``"rotation"`` for all three rotations)."""
     keep = np.zeros(10, dtype=bool)
     for g in groups:
-        keep[list(ROTATION if g == "rotation" else GROUPS[g])] = True
+        keep[list(VIEW_DIRECTIONS[Group(g)])] = True
     return keep
 
 
 def restricted(post: Posterior, v: int, groups: tuple[str, ...]) -> Posterior:
     """``post`` with view v's covariance kept only in the directions of ``groups`` (the joint ``"rotation"`` group
     only when neither pan/tilt nor roll is among them)."""
-    if "pan_tilt" in groups or "roll" in groups:
-        groups = tuple(g for g in groups if g != "rotation")
+    if Group.PAN_TILT in groups or Group.ROLL in groups:
+        groups = tuple(g for g in groups if g != Group.ROTATION)
     keep = group_mask(groups)
     pose_cov, intr_cov, cross = post.pose_cov.copy(), post.intr_cov.copy(), post.cross.copy()
     pose_cov[v] = pose_cov[v] * np.outer(keep[:6], keep[:6])

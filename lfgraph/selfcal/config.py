@@ -9,9 +9,10 @@ import numpy as np
 
 from lfgraph.calibration import Calibration
 from lfgraph.camera import Intrinsics
+from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
-from lfgraph.factors.selfcal_graph import GROUPS, DesignSigmas
+from lfgraph.factors.selfcal_graph import DesignSigmas
 from lfgraph.grid import ViewGrid
 from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 from lfgraph.selfcal.defaults import (
@@ -179,9 +180,9 @@ class SelfCalConfig:
         if not stages:
             raise ValueError("at least one stage is needed")
         for s in stages:
-            unknown = set(s) - set(GROUPS)
+            unknown = set(s) - set(SELFCAL_GROUPS)
             if unknown or not s:
-                raise ValueError(f"a stage frees a non-empty set of {', '.join(GROUPS)}; got {s}")
+                raise ValueError(f"a stage frees a non-empty set of {', '.join(SELFCAL_GROUPS)}; got {s}")
         object.__setattr__(self, "stages", stages)
         object.__setattr__(self, "robust", as_noise(self.robust))
         object.__setattr__(self, "graph_hooks", as_hooks(self.graph_hooks, "SelfCalConfig.graph_hooks"))
