@@ -35,6 +35,21 @@ class CalibrationFileError(ValueError):
 
 
 @dataclass(frozen=True)
+class ViewSigmas:
+    """One view's posterior 1-sigma as ``calibrate`` and ``calibrate-scene`` store it (``metrics["sigmas"]``):
+    fx, fy, cx, cy (px), k1, k2, and rotation (deg) and position (mm) about / along the view's axes (3 each)."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    k1: float
+    k2: float
+    rotation_deg: tuple[float, float, float]
+    position_mm: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
 class Calibration:
     """Per-view intrinsics and poses of a camera array.
 
@@ -96,6 +111,24 @@ class Calibration:
     def num_views(self) -> int:
         """Number of views of the array (rows x cols)."""
         return self.grid.num_views
+
+    @property
+    def sigmas(self) -> tuple[ViewSigmas, ...] | None:
+        """Each view's stored posterior 1-sigma (``metrics["sigmas"]``: a list with one entry per view, or the
+        ``{"views": [...]}`` that calibrate-scene wrote before), or None where absent, short or not finite."""
+        stored = (self.metrics or {}).get("sigmas")
+        stored = stored.get("views") if isinstance(stored, Mapping) else stored
+        if not isinstance(stored, list | tuple) or len(stored) != self.num_views:
+            return None
+        try:
+            out = tuple(ViewSigmas(*(float(s[k]) for k in ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2")),
+                                   *(tuple(float(x) for x in s[k][:3]) for k in ("rotation_deg", "position_mm")))
+                        for s in stored)
+        except (KeyError, TypeError, ValueError, IndexError):
+            return None
+        ok = all(np.all(np.isfinite([*s.rotation_deg, *s.position_mm, s.fx_px, s.fy_px, s.cx_px, s.cy_px]))
+                 and len(s.rotation_deg) == 3 == len(s.position_mm) for s in out)
+        return out if ok else None
 
     def view_T_ref(self, view: int) -> np.ndarray:  # noqa: N802
         """(4, 4) OpenCV extrinsics of a view relative to the reference: ``x_view = R x_ref + t``."""

@@ -127,3 +127,15 @@ def test_constructor_validates(calib):
         calib.replace(ref_T_view=poses)
     with pytest.raises(ValueError, match="intrinsics"):
         calib.replace(intrinsics=calib.intrinsics[:-1])
+
+
+def test_stored_sigmas_read_in_either_shape_and_refused_when_broken():
+    calib = make_rig(RigConfig(rows=1, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
+    view = {"fx_px": 0.5, "fy_px": 0.6, "cx_px": 0.7, "cy_px": 0.8, "k1": 1e-3, "k2": 2e-3,
+            "rotation_deg": [0.01, 0.02, 0.03], "position_mm": [0.1, 0.2, 0.3]}
+    listed = calib.replace(metrics={"sigmas": [view, view]}).sigmas
+    assert listed == calib.replace(metrics={"sigmas": {"views": [view, view]}}).sigmas  # calibrate-scene's old shape
+    assert listed[1].cy_px == 0.8 and listed[1].position_mm == (0.1, 0.2, 0.3)
+    for broken in ([view], [view, {**view, "fx_px": "x"}], [view, {**view, "position_mm": [0.1]}],
+                   [view, {**view, "cx_px": float("nan")}], "no"):
+        assert calib.replace(metrics={"sigmas": broken}).sigmas is None, broken

@@ -99,6 +99,14 @@ def test_noise_free_tracks_recover_the_truth_up_to_the_gauges(truth):
     assert report.verdict == "good" and report.distortion_estimated
     assert est.metrics["scale_from"] == "design pitch"
     assert np.allclose(est.ref_T_view[0], np.eye(4))
+    # its posterior is stored as calibrate stores it, so a later refine adds it to its drift priors (it did not)
+    from lfgraph.refinement.config import DriftModel
+    from lfgraph.refinement.priors import view_priors
+
+    sig = est.sigmas
+    assert sig is not None and len(sig) == est.num_views and sig[1].fx_px == report.posterior.intrinsics[1, 0]
+    bare = view_priors(est.replace(metrics={}), DriftModel())
+    assert np.all(view_priors(est, DriftModel()).intrinsics_sigmas > bare.intrinsics_sigmas)
 
 
 def test_posterior_sigmas_are_honest_on_noisy_tracks(truth):

@@ -29,19 +29,11 @@ class ViewPriors:
 
 def input_sigmas(calib: Calibration) -> tuple[np.ndarray, np.ndarray] | None:
     """(V, 6) pose and (V, 4) intrinsics sigmas stored by ``calibrate`` (rad, m, px), or None when absent/unusable."""
-    stored = (calib.metrics or {}).get("sigmas")
-    if not isinstance(stored, list | tuple) or len(stored) != calib.num_views:
+    stored = calib.sigmas
+    if stored is None:
         return None
-    pose, intr = np.zeros((calib.num_views, 6)), np.zeros((calib.num_views, 4))
-    try:
-        for v, s in enumerate(stored):
-            pose[v, :3] = np.radians(np.asarray(s["rotation_deg"], dtype=float))
-            pose[v, 3:] = 1e-3 * np.asarray(s["position_mm"], dtype=float)
-            intr[v] = [float(s[k]) for k in ("fx_px", "fy_px", "cx_px", "cy_px")]
-    except (KeyError, TypeError, ValueError):
-        return None
-    if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(intr))):
-        return None
+    pose = np.array([[*np.radians(s.rotation_deg), *(1e-3 * np.asarray(s.position_mm))] for s in stored])
+    intr = np.array([[s.fx_px, s.fy_px, s.cx_px, s.cy_px] for s in stored])
     return pose, intr
 
 

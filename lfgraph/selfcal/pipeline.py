@@ -181,7 +181,7 @@ def _metrics(design: Design, report: SelfCalReport, noise_px: float, post) -> di
             "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
                        "focal_px": design.focal_px},
             "selfcal_rms_px": report.rms_px, "selfcal_noise_px": noise_px, "verdict": report.verdict,
-            "sigmas": post.as_dict()}
+            "sigmas": post.as_dict()["views"]}  # one entry per view, as calibrate writes them (`Calibration.sigmas`)
 
 
 def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,
