@@ -181,8 +181,9 @@ class CaptureSet:
         if (w, h) != self.size_of(view):
             what = f"frame {frame} is" if self.layout == "video" else "image is"
             want = self.size_of(view)
+            first = next(files[view] for files in self.files if files[view] is not None)
             raise CaptureError(f"{path}: {what} {w}x{h} px but view {self.grid.name(view)} is {want[0]}x{want[1]} px "
-                               f"in the first frame that has it; a view keeps one size")
+                               f"in {first}; a view keeps one size (one of the two images is not this view's)")
         return img
 
     def __iter__(self) -> Iterator[np.ndarray]:
