@@ -124,3 +124,33 @@ def test_pinhole_views_get_no_second_pass(scene):
     corners = np.where(truth.corner_valid[..., None] & truth.board_visible[..., None, None], truth.corners_px, np.nan)
     for v in range(calib.num_views):
         assert rough_model(corners[v], named.checkerboard.board, calib.image_size(v)) is None
+
+
+FAR_BOARD_PX = 0.05  # issue 25: a far board rendered through the true fisheye lenses, rectified with the estimate
+
+
+def test_a_far_board_rendered_through_the_fisheye_lenses_lines_up_after_rectification(fisheye_run):
+    import cv2
+
+    from lfgraph.chessboard import detect_board
+    from lfgraph.datasets.board_render import render_checkerboard_view
+    from lfgraph.datasets.checkerboard import CheckerboardConfig
+    from lfgraph.geometry import make_T
+    from lfgraph.rectification import build_maps, remap_views
+
+    _, est, truth = fisheye_run
+    truth = truth.with_reference(truth.grid.reference)
+    far = BoardSpec(9, 6, 1.2)
+    cfg = CheckerboardConfig(board=far, noise_sigma=0.0, blur_sigma_px=0.8)
+    maps = build_maps(est, compute_rectification(est))
+    rows = []
+    for tilt_deg, dist in ((0.0, 22.0), (15.0, 25.0)):
+        ref_T_board = make_T(cv2.Rodrigues(np.array([np.radians(tilt_deg), 0.0, 0.0]))[0], [-4.8, -3.0, dist])  # noqa: N806
+        images = [render_checkerboard_view(truth.intrinsics[v], truth.image_size(v), truth.view_T_ref(v) @ ref_T_board,
+                                           far, cfg) for v in range(3)]
+        corners = [detect_board(img, far) for img in remap_views(images, maps)]
+        assert all(c is not None for c in corners)
+        rows += [corners[a][:, 1] - corners[b][:, 1] for a, b in est.grid.horizontal_pairs()]
+    rms = float(np.sqrt(np.mean(np.concatenate(rows) ** 2)))
+    print(f"far board through the fisheye lenses, rectified with the estimate: rows agree to {rms:.4f} px RMS")
+    assert rms < FAR_BOARD_PX
