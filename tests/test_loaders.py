@@ -87,7 +87,8 @@ def test_images_of_different_sizes(tmp_path):
     with pytest.raises(CaptureError, match=r"r00_c00 32x24, .*r01_c01 32x20\); refine needs views of one size"):
         mixed.require_one_size("refine")
     cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((24, 32), np.uint8))
-    with pytest.raises(CaptureError, match=r"001/r01_c01.png: image is 32x20 px but view r01_c01 is 32x24 px in .*000/r01_c01.png"):
+    with pytest.raises(CaptureError, match=r"001/r01_c01.png: image is 32x20 px but view r01_c01 is 32x24 px "
+                                           r"in .*000/r01_c01.png"):
         open_capture(tmp_path, GRID).load_frame(1)
 
 
