@@ -20,7 +20,7 @@ from lfgraph.chessboard import detect_board
 from lfgraph.grid import ViewGrid
 from lfgraph.io_utils import atomic_path
 from lfgraph.parallel import run_tasks
-from lfgraph.wide_boards import second_pass
+from lfgraph.wide_boards import frame_pass, pass_report, wide_models
 
 MIN_CORNERS_PER_BOARD = 6  # fewer corners of a board in a view-frame are ignored (PnP and Zhang need a spread)
 CACHE_NAME = ".lfgraph-detections.npz"
@@ -220,13 +220,25 @@ def _detect_frame(task: tuple[CaptureSet, int, BoardSpec]) -> np.ndarray:
     return out
 
 
-def _wide_pass(capture: CaptureSet, board: BoardSpec, corners: np.ndarray, progress: bool) -> np.ndarray:
-    """`lfgraph.wide_boards.second_pass` over the capture's images (each revisited image loaded alone); says what
-    it found."""
-    def load(view: int, frame: int) -> np.ndarray:
-        return capture.load_frame(frame)[view] if capture.layout == "mosaic" else capture.load_view(frame, view)
+def _wide_frame(task: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Worker: `lfgraph.wide_boards.frame_pass` on one frame's wide views, loaded here."""
+    capture, frame, board, wide, first = task
+    images = capture.load_frame(frame) if capture.layout == "mosaic" else None
+    return frame_pass({v: images[v] if images is not None else capture.load_view(frame, v) for v in wide.wide_views},
+                      board, wide, first, frame)
 
-    out, report = second_pass(load, board, corners, capture.sizes_px, progress)
+
+def _wide_pass(capture: CaptureSet, board: BoardSpec, corners: np.ndarray, jobs: int | None,
+               progress: bool) -> np.ndarray:
+    """The second pass of wide views (`lfgraph.wide_boards`) on the process pool, one frame per task; says what it
+    found."""
+    wide = wide_models(corners, board, capture.sizes_px)
+    if not wide.wide_views:
+        return corners
+    tasks = [(capture, f, board, wide, corners[:, f]) for f in range(len(capture))]
+    per_frame = run_tasks(_wide_frame, tasks, jobs, desc="wide views", unit="frame", progress=progress)
+    out = np.stack([c for c, _ in per_frame], axis=1)
+    report = pass_report(wide, np.sum([n for _, n in per_frame], axis=0))
     if report.wide_views:
         names = ", ".join(capture.grid.name(v) for v in report.wide_views)
         logging.getLogger("lfgraph").info(
@@ -371,7 +383,7 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
         per_frame = run_tasks(_detect_frame, tasks, jobs, desc="detecting", unit="frame", progress=progress)
         corners = np.stack(per_frame, axis=1)
         if board.kind != "charuco":  # wide (fisheye) views: boards the first pass missed, looked for again
-            corners = _wide_pass(capture, board, corners, progress)
+            corners = _wide_pass(capture, board, corners, jobs, progress)
         if cache:
             try:
                 with atomic_path(cache_path) as tmp, open(tmp, "wb") as fh:

@@ -21,12 +21,11 @@ error 0.023 -> 0.006 px; the boards still missed are seen 75-85 deg off their no
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from lfgraph.board import BoardSpec
 from lfgraph.camera import Intrinsics
@@ -270,61 +269,72 @@ def rough_model(corners: np.ndarray, board: BoardSpec, image_size_px: tuple[int,
     return intr, np.sort(np.concatenate([sample[unexplained], np.asarray(bad, dtype=int)])).astype(int)
 
 
-def second_pass(load: Callable[[int, int], np.ndarray], board: BoardSpec, first: np.ndarray,
-                sizes: Sequence[tuple[int, int]], progress: bool = False) -> tuple[np.ndarray, WidePassReport]:
-    """Boards the first pass missed or got wrong in wide views, looked for again (module docstring).
+@dataclass(frozen=True)
+class WideModels:
+    """Each view's rough fisheye model (None: not a wide view) and the first-pass boards it flags, (V, F) bool."""
+
+    models: tuple[Intrinsics | None, ...]
+    flagged: np.ndarray
+
+    @property
+    def wide_views(self) -> tuple[int, ...]:
+        """The views the second pass looks at again."""
+        return tuple(v for v, m in enumerate(self.models) if m is not None)
+
+
+def wide_models(first: np.ndarray, board: BoardSpec, sizes: Sequence[tuple[int, int]]) -> WideModels:
+    """`rough_model` of every view of the (V, F, C, 2) first-pass corners; ``sizes`` (V,) (width, height), px."""
+    fits = [rough_model(first[v], board, sizes[v]) for v in range(first.shape[0])]
+    flagged = np.zeros(first.shape[:2], dtype=bool)
+    for v, fit in enumerate(fits):
+        if fit is not None:
+            flagged[v, fit[1]] = True
+    return WideModels(tuple(None if fit is None else fit[0] for fit in fits), flagged)
+
+
+def frame_pass(images: dict[int, np.ndarray], board: BoardSpec, wide: WideModels, first: np.ndarray,
+               frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's second pass (frames are independent: `lfgraph.detections` runs one per task on its pool).
 
     Args:
-        load: ``load(view, frame)`` -> that image, (H, W) uint8 grayscale; called once per image revisited.
-        board: the checkerboard.
-        first: (V, F, C, 2) first-pass corners (`detect_board`), NaN where not found.
-        sizes: (V,) each view's (width, height), px.
-        progress: show a progress bar over the images revisited.
+        images: each wide view's (H, W) uint8 grayscale image of this frame.
+        first: (V, C, 2) this frame's first-pass corners.
 
     Returns:
-        (V, F, C, 2) corners (NaN where no board) and what was done. Without a wide view: ``first`` unchanged.
+        (V, C, 2) corners (NaN where no board) and the counts (flagged, recovered, dropped, rerefined).
     """
     out = first.copy()
-    found = np.all(np.isfinite(first), axis=(2, 3))
-    fits = [rough_model(first[v], board, sizes[v]) for v in range(first.shape[0])]
-    report = WidePassReport(tuple(v for v, fit in enumerate(fits) if fit is not None),
-                            models=[None if fit is None else fit[0] for fit in fits])
-    if not report.wide_views:
-        return out, report
-    total = len(report.wide_views) * first.shape[1]
-    with tqdm(total=total, desc="wide views", unit="image", disable=not progress) as bar:
-        for v in report.wide_views:  # the first pass's boards: refined again, or looked for again if flagged
-            intr, flagged = fits[v]
-            for f in np.flatnonzero(found[v]):
-                gray = load(v, f)
-                if f in flagged:
-                    cone = _cone(_rays(intr, first[v, f]))
-                    corners = None if cone is None else detect_turned(gray, board, intr, cone)
-                    out[v, f], found[v, f] = (np.nan, False) if corners is None else (corners, True)
-                    report.flagged += 1
-                    report.recovered += int(corners is not None)
-                    report.dropped += int(corners is None)
-                    bar.total += int(corners is None)  # a dropped board is looked for again below
-                else:
-                    out[v, f] = rerefine_turned(gray, board, intr, first[v, f])
-                    report.rerefined += int(not np.array_equal(out[v, f], first[v, f]))
-                bar.update()
-        for v in report.wide_views:  # boards the first pass missed: where the other views saw it, or saddles say
-            for f in np.flatnonzero(~found[v]):
-                corners = _look_again(load(v, f), board, v, f, out, found, report.models)
-                if corners is not None:
-                    out[v, f], found[v, f] = corners, True
-                    report.recovered += 1
-                bar.update()
-    return out, report
+    found = np.all(np.isfinite(first), axis=(1, 2))
+    counts = np.zeros(4, dtype=int)
+    for v in (v for v in wide.wide_views if found[v]):  # refined again, or looked for again if flagged
+        intr = wide.models[v]
+        if wide.flagged[v, frame]:
+            cone = _cone(_rays(intr, first[v]))
+            corners = None if cone is None else detect_turned(images[v], board, intr, cone)
+            out[v], found[v] = (np.nan, False) if corners is None else (corners, True)
+            counts[:3] += (1, corners is not None, corners is None)
+        else:
+            out[v] = rerefine_turned(images[v], board, intr, first[v])
+            counts[3] += int(not np.array_equal(out[v], first[v]))
+    for v in (v for v in wide.wide_views if not found[v]):  # missed: where the other views saw it, or saddles say
+        corners = _look_again(images[v], board, v, out, found, wide.models)
+        if corners is not None:
+            out[v], found[v] = corners, True
+            counts[1] += 1
+    return out, counts
 
 
-def _look_again(gray: np.ndarray, board: BoardSpec, v: int, f: int, corners: np.ndarray, found: np.ndarray,
+def pass_report(wide: WideModels, counts: np.ndarray) -> WidePassReport:
+    """The `WidePassReport` of summed `frame_pass` counts."""
+    return WidePassReport(wide.wide_views, *(int(c) for c in counts), models=list(wide.models))
+
+
+def _look_again(gray: np.ndarray, board: BoardSpec, v: int, corners: np.ndarray, found: np.ndarray,
                 models: Sequence[Intrinsics | None]) -> np.ndarray | None:
-    """A missed board of view ``v`` in frame ``f``, looked for towards the other wide views' boards of that frame,
-    then towards the image's strongest saddle points; None if no turned view finds it."""
-    cones = [_cone(_rays(models[u], corners[u, f])) for u in range(len(models))
-             if u != v and models[u] is not None and found[u, f]] + [_probe_cone(gray, models[v])]
+    """A missed board of view ``v``, looked for towards the other wide views' boards of the same frame ((V, C, 2)
+    ``corners``, (V,) ``found``), then towards the image's strongest saddle points; None if no turned view finds it."""
+    cones = [_cone(_rays(models[u], corners[u])) for u in range(len(models))
+             if u != v and models[u] is not None and found[u]] + [_probe_cone(gray, models[v])]
     for cone in (c for c in cones if c is not None):
         located = detect_turned(gray, board, models[v], cone)
         if located is not None:
