@@ -18,6 +18,20 @@ PR_SET_PDEATHSIG = 1  # linux/prctl.h
 PARENT_POLL_S = 1.0  # the portable fallback checks for an orphaned worker this often
 
 
+def _libc_prctl():
+    """libc's ``prctl``, looked up here in the parent: a forked worker must not call ``dlopen``/``dlsym``, whose loader
+    lock another thread of the parent may have held at the fork (the worker would wait for it forever)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+_PRCTL = _libc_prctl()
+
+
 def _watch_parent(parent_pid: int) -> None:
     while True:
         time.sleep(PARENT_POLL_S)
@@ -29,12 +43,7 @@ def die_with_parent(parent_pid: int) -> None:
     """Pool initializer: end this worker when the process that started it dies, even by ``kill -9`` (which runs no
     clean-up in the parent). Linux: the kernel sends SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon
     thread notices that the worker was re-parented."""
-    armed = False
-    if sys.platform.startswith("linux"):
-        try:
-            armed = ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL) == 0
-        except (OSError, AttributeError):
-            armed = False
+    armed = _PRCTL is not None and _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL) == 0
     if os.getppid() != parent_pid:  # the parent died before the signal was armed
         os._exit(1)
     if not armed:
