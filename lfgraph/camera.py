@@ -307,3 +307,53 @@ def lens_table(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> tuple[n
     table = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2, i.k3, i.k4, i.xi] for i in intrinsics],
                      dtype=np.float64).reshape(-1, 11)
     return table, np.array([LENSES.index(i.lens) for i in intrinsics], dtype=np.int64)
+
+
+ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a ray that a unified lens maps back to itself is truly imaged
+FOLD_SAMPLES = 2048  # angles sampled over [0, pi] for the first fold of a fisheye lens model
+
+
+def _folded(intr: Intrinsics, rays: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """(N,) whether ``project`` gave a pixel beyond the radius where the lens model folds back (plausible but
+    wrong: the lens does not image that ray there). Radtan and fisheye by the slope of their radial map, unified by
+    a round trip through `Intrinsics.undistort`."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xy = rays[:, :2] / rays[:, 2:3]
+    if intr.lens == RADTAN:
+        r2 = np.sum(xy**2, axis=1)
+        return ~(1.0 + r2 * (3.0 * intr.k1 + 5.0 * intr.k2 * r2) > 0)
+    if intr.lens == FISHEYE:  # theta_d(theta) must rise all the way from 0 to the ray's angle
+        t = np.linspace(0.0, np.pi, FOLD_SAMPLES)
+        t2 = t * t
+        slope = 1.0 + t2 * (3 * intr.k1 + t2 * (5 * intr.k2 + t2 * (7 * intr.k3 + t2 * 9 * intr.k4)))
+        fold = t[np.argmax(slope <= 0)] if np.any(slope <= 0) else np.inf
+        return ~(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]) < fold)
+    back = np.full_like(xy, np.nan)
+    ok = np.all(np.isfinite(px), axis=1)
+    back[ok] = intr.undistort(px[ok])
+    with np.errstate(invalid="ignore"):
+        return ~(np.max(np.abs(back - xy), axis=1) <= ROUND_TRIP_TOLERANCE * np.maximum(1.0, np.abs(xy).max(1)))
+
+
+def pinhole_to_view_px(px: np.ndarray, K: np.ndarray, pinhole_R_view: np.ndarray,  # noqa: N803
+                       intr: Intrinsics) -> np.ndarray:
+    """(N, 2) pixels of a pinhole camera ``K`` (no skew) at the view's centre, turned by ``pinhole_R_view`` (view to
+    pinhole coordinates) -> (N, 2) pixels of the view on the same rays, NaN behind the view or beyond its lens
+    model's fold. The rectified views, a wide view's virtual pinholes and rerun's undistorted views all use it."""
+    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+    rays_pinhole = np.column_stack([(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px))])
+    rays = rays_pinhole @ pinhole_R_view  # pinhole_R_view.T @ ray, row-wise
+    out = intr.project(rays)
+    out[_folded(intr, rays, out) | ~(rays[:, 2] > 0)] = np.nan
+    return out
+
+
+def view_to_pinhole_px(px: np.ndarray, K: np.ndarray, pinhole_R_view: np.ndarray,  # noqa: N803
+                       intr: Intrinsics) -> np.ndarray:
+    """(N, 2) pixels of the view -> (N, 2) pixels of the pinhole camera of `pinhole_to_view_px` (NaN where the lens
+    has no inverse)."""
+    xy = intr.undistort(np.asarray(px, dtype=np.float64).reshape(-1, 2))
+    rays = np.column_stack([xy, np.ones(len(xy))]) @ pinhole_R_view.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = rays[:, :2] / rays[:, 2:3]
+    return np.column_stack([K[0, 0] * n[:, 0] + K[0, 2], K[1, 1] * n[:, 1] + K[1, 2]])

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
+from lfgraph.camera import pinhole_to_view_px, view_to_pinhole_px
 from lfgraph.errors import RectificationError
 from lfgraph.geometry import is_rotation, rotation_angle_deg
 from lfgraph.grid import ViewGrid
@@ -43,7 +43,6 @@ from lfgraph.rectification_checks import check_rectifiable
 
 CROPS = ("valid", "full")
 VALID_GRID_STEP_PX = 4  # the common valid region is found on a grid of this step (then shrunk by one step)
-ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a rectified ray that its view's lens maps back to itself
 MIN_CROP_PX = 16  # a common region smaller than this is no rectified image (the views barely overlap)
 
 
@@ -158,6 +157,7 @@ class Rectification:
 
     @property
     def num_views(self) -> int:
+        """Number of rectified views."""
         return self.rect_R_view.shape[0]
 
     def to_dict(self) -> dict[str, Any]:
@@ -208,28 +208,6 @@ class Rectification:
 
 
 # --------------------------------------------------------------------------------------------- building
-def _source_of(rect: np.ndarray, K: np.ndarray, rect_R_view: np.ndarray, intr: Intrinsics) -> np.ndarray:  # noqa: N803
-    """(N, 2) rectified pixels (for rectified intrinsics K) -> (N, 2) original pixels of a view (NaN if none)."""
-    rays_rect = np.column_stack([(rect[:, 0] - K[0, 2]) / K[0, 0], (rect[:, 1] - K[1, 2]) / K[1, 1],
-                                 np.ones(len(rect))])
-    rays_view = rays_rect @ rect_R_view  # rect_R_view.T @ ray, row-wise
-    px = intr.project(rays_view)
-    # beyond the radius where the lens model folds back, project() returns plausible but wrong pixels
-    with np.errstate(invalid="ignore", divide="ignore"):
-        xy = rays_view[:, :2] / rays_view[:, 2:3]
-    if intr.lens == "radtan":
-        r2 = np.sum(xy**2, axis=1)
-        folded = ~(1.0 + r2 * (3.0 * intr.k1 + 5.0 * intr.k2 * r2) > 0)
-    else:  # any model: a pixel is a true image of the ray only if undistorting it gives the ray back
-        back = np.full_like(xy, np.nan)
-        ok = np.all(np.isfinite(px), axis=1)
-        back[ok] = intr.undistort(px[ok])
-        with np.errstate(invalid="ignore"):
-            folded = ~(np.max(np.abs(back - xy), axis=1) <= ROUND_TRIP_TOLERANCE * np.maximum(1.0, np.abs(xy).max(1)))
-    px[folded | ~(rays_view[:, 2] > 0)] = np.nan
-    return px
-
-
 def _largest_valid_rect(valid: np.ndarray) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) inclusive rectangle with every cell valid: shrink the side holding most invalid cells."""
     h, w = valid.shape
@@ -292,7 +270,7 @@ def compute_rectification(calib: Calibration, crop: str = "valid") -> Rectificat
         pts = np.column_stack([gx.ravel(), gy.ravel()])
         valid = np.ones(len(pts), dtype=bool)
         for i in range(grid.num_views):
-            src = _source_of(pts, K_full, rect_R_view[i], calib.intrinsics[i])
+            src = pinhole_to_view_px(pts, K_full, rect_R_view[i], calib.intrinsics[i])
             wi, hi = calib.image_size(i)  # a rig of mixed sizes: each view's own image bounds its pixels
             valid &= (src[:, 0] >= 0) & (src[:, 0] <= wi - 1) & (src[:, 1] >= 0) & (src[:, 1] <= hi - 1)
         x0, y0, x1, y1 = _largest_valid_rect(valid.reshape(gy.shape))
@@ -360,7 +338,8 @@ class RectificationMaps:
 
 def build_maps(calib: Calibration, rect: Rectification) -> RectificationMaps:
     """``cv2.initUndistortRectifyMap`` per radtan view with its K, distortion, rectifying rotation and ``K_r``; for a
-    fisheye or unified view the same map from the view's own model (`_source_of`; -1 where no ray reaches it)."""
+    fisheye or unified view the same map from the view's own model (`lfgraph.camera.pinhole_to_view_px`; -1 where no
+    ray reaches it)."""
     xy, frac = [], []
     w, h = rect.image_size_px
     for i in range(calib.num_views):
@@ -370,7 +349,7 @@ def build_maps(calib: Calibration, rect: Rectification) -> RectificationMaps:
                                                  rect.image_size_px, cv2.CV_16SC2)
         else:
             u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-            src = _source_of(np.column_stack([u.ravel(), v.ravel()]), rect.K_r, rect.rect_R_view[i], intr)
+            src = pinhole_to_view_px(np.column_stack([u.ravel(), v.ravel()]), rect.K_r, rect.rect_R_view[i], intr)
             src = np.where(np.isfinite(src), src, -1.0).reshape(h, w, 2).astype(np.float32)
             m1, m2 = cv2.convertMaps(src, None, cv2.CV_16SC2)
         xy.append(m1)
@@ -390,10 +369,4 @@ def remap_views(images: np.ndarray | Sequence[np.ndarray], maps: RectificationMa
 # --------------------------------------------------------------------------------------------- point mapping
 def rectify_points(calib: Calibration, rect: Rectification, view: int, pixels: np.ndarray) -> np.ndarray:
     """(N, 2) original pixels of a view -> (N, 2) rectified output pixels (NaN where the lens has no inverse)."""
-    intr = calib.intrinsics[view]
-    xy = intr.undistort(pixels)
-    rays = np.column_stack([xy, np.ones(len(xy))]) @ rect.rect_R_view[view].T
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = rays[:, :2] / rays[:, 2:3]
-    K = rect.K_r  # noqa: N806
-    return np.column_stack([K[0, 0] * n[:, 0] + K[0, 2], K[1, 1] * n[:, 1] + K[1, 2]])
+    return view_to_pinhole_px(pixels, rect.K_r, rect.rect_R_view[view], calib.intrinsics[view])

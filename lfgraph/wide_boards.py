@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from lfgraph.board import BoardSpec
-from lfgraph.camera import Intrinsics
+from lfgraph.camera import Intrinsics, pinhole_to_view_px, view_to_pinhole_px
 from lfgraph.chessboard import _canonical_order, _locate_board, _refine_corners
 
 WIDE_MIN_HALF_DIAGONAL_DEG = 60.0  # second pass only for views seeing further off-axis at the image corners, deg
@@ -62,24 +62,12 @@ def turned_pinhole(direction: np.ndarray, half_fov: float, side_px: int) -> tupl
     return R, np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
 
 
-def virtual_to_view_px(intr: Intrinsics, R: np.ndarray, K: np.ndarray, px: np.ndarray) -> np.ndarray:  # noqa: N803
-    """(N, 2) virtual-pinhole pixels -> (N, 2) pixels of the real view (NaN for rays behind it)."""
-    return intr.project(np.column_stack([px, np.ones(len(px))]) @ np.linalg.inv(K).T @ R.T)
-
-
-def view_to_virtual_px(intr: Intrinsics, R: np.ndarray, K: np.ndarray, px: np.ndarray) -> np.ndarray:  # noqa: N803
-    """(N, 2) pixels of the real view -> (N, 2) virtual-pinhole pixels."""
-    xy = intr.undistort(np.asarray(px, dtype=np.float64).reshape(-1, 2))
-    p = np.column_stack([xy, np.ones(len(xy))]) @ R @ K.T
-    return p[:, :2] / p[:, 2:]
-
-
 def virtual_view(gray: np.ndarray, intr: Intrinsics, R: np.ndarray, K: np.ndarray,  # noqa: N803
                  side_px: int) -> np.ndarray:
     """The image resampled (bilinear) into the virtual pinhole; what the view does not see is its median grey."""
     i = np.arange(side_px, dtype=np.float64)
     uu, vv = np.meshgrid(i, i)
-    src = virtual_to_view_px(intr, R, K, np.column_stack([uu.ravel(), vv.ravel()])).reshape(side_px, side_px, 2)
+    src = pinhole_to_view_px(np.column_stack([uu.ravel(), vv.ravel()]), K, R.T, intr).reshape(side_px, side_px, 2)
     src = np.nan_to_num(src, nan=-1e6).astype(np.float32)
     return cv2.remap(gray, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                      borderValue=float(np.median(gray)))
@@ -180,7 +168,7 @@ def refine_turned(gray: np.ndarray, virt: np.ndarray, board: BoardSpec, intr: In
     mapped back. A corner the model puts further than `MODEL_SWAP_MIN_PX` away takes the original image's
     refinement instead where that agrees better with the model (at the far end of very oblique boards the
     magnified virtual view is too blurred for the small windows the grid allows)."""
-    out = virtual_to_view_px(intr, R, K, _refine_corners(virt, start.astype(np.float32), board))
+    out = pinhole_to_view_px(_refine_corners(virt, start.astype(np.float32), board), K, R.T, intr)
     res = board_residuals_px(out, board, intr)
     if np.max(res) <= MODEL_SWAP_MIN_PX or not np.all(np.isfinite(out)):
         return out
@@ -218,7 +206,7 @@ def rerefine_turned(gray: np.ndarray, board: BoardSpec, intr: Intrinsics, corner
     half_fov = min(np.arctan(np.tan(cone[1]) / fill), np.radians(MAX_VIRTUAL_HALF_FOV_DEG))
     R, K = turned_pinhole(cone[0], half_fov, side)  # noqa: N806
     out = refine_turned(gray, virtual_view(gray, intr, R, K, side), board, intr, R, K,
-                        view_to_virtual_px(intr, R, K, corners))
+                        view_to_pinhole_px(corners, K, R.T, intr))
     ok = np.all(np.isfinite(out)) and np.max(board_residuals_px(out, board, intr)) <= MODEL_MAX_CORNER_PX
     return out if ok else corners
 

@@ -16,7 +16,7 @@ import numpy as np
 import rerun as rr
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import RADTAN, Intrinsics
+from lfgraph.camera import RADTAN, Intrinsics, pinhole_to_view_px, view_to_pinhole_px
 from lfgraph.viz.blueprint import (
     CHANGE_ARROW_BASELINE_SHARE,
     CHANGE_COLOUR,
@@ -93,8 +93,7 @@ class SceneLog:
         intr = intr or (self._shown_lenses[v] if v < len(self._shown_lenses) else None)
         if intr is None or intr.lens == RADTAN or len(px) == 0:
             return px
-        xy = intr.undistort(np.asarray(px, dtype=np.float64))
-        return xy * [intr.fx, intr.fy] + [intr.cx, intr.cy]
+        return view_to_pinhole_px(px, intr.K, np.eye(3), intr)
 
     def _shown_image(self, v: int, image: np.ndarray) -> np.ndarray:
         """View ``v``'s image as its 2-D view shows it: a wide view's resampled into the pinhole of its K."""
@@ -104,8 +103,8 @@ class SceneLog:
         cache = self._pinhole_maps
         if (v, intr, w, h) not in cache:
             u, r = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-            rays = np.column_stack([(u.ravel() - intr.cx) / intr.fx, (r.ravel() - intr.cy) / intr.fy, np.ones(u.size)])
-            src = np.nan_to_num(intr.project(rays), nan=-1.0).reshape(h, w, 2).astype(np.float32)
+            src = pinhole_to_view_px(np.column_stack([u.ravel(), r.ravel()]), intr.K, np.eye(3), intr)
+            src = np.nan_to_num(src, nan=-1.0).reshape(h, w, 2).astype(np.float32)
             cache[(v, intr, w, h)] = cv2.convertMaps(src, None, cv2.CV_16SC2)
         m1, m2 = cache[(v, intr, w, h)]
         return cv2.remap(image, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
