@@ -23,6 +23,7 @@ agrees with the rig.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -251,6 +252,5 @@ def order_symmetric_boards(obs: BoardObservations) -> tuple[BoardObservations, B
     valid = obs.valid.copy()
     corners[flipped] = corners[flipped][:, ::-1]
     valid[flipped] = valid[flipped][:, ::-1]
-    out = BoardObservations(obs.board, obs.grid, obs.image_size_px, corners, valid, obs.frame_names, obs.sources,
-                            obs.view_sizes_px)
+    out = dataclasses.replace(obs, corners_px=corners, valid=valid)  # every other field (sizes, sources) kept
     return out, BoardOrderReport(flipped, status, support, shared, tuple(messages))
