@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import multiprocessing
 import os
 import signal
 import sys
@@ -32,27 +33,47 @@ def _libc_prctl():
 _PRCTL = _libc_prctl()
 
 
+# Workers start from a fork server, never by forking this process: a fork copies the locks other threads hold at
+# that moment (OpenCV's thread pool, measured: a detection worker waited forever on an OpenCV mutex in
+# findChessboardCorners after the test process had run OpenCV in parallel), and the server has no such threads. It
+# imports the heavy modules once, so a worker starts in milliseconds.
+FORKSERVER_PRELOAD = ["numpy", "cv2", "gtsam", "lfgraph.detections", "lfgraph.datasets.checkerboard"]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _watch_parent(parent_pid: int) -> None:
     while True:
         time.sleep(PARENT_POLL_S)
-        if os.getppid() != parent_pid:
+        if not _alive(parent_pid):
             os._exit(1)
 
 
 def die_with_parent(parent_pid: int) -> None:
     """Pool initializer: end this worker when the process that started it dies, even by ``kill -9`` (which runs no
-    clean-up in the parent). Linux: the kernel sends SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon
-    thread notices that the worker was re-parented."""
-    armed = _PRCTL is not None and _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL) == 0
-    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+    clean-up in the parent). Linux: the kernel sends SIGKILL when the fork server that started it ends, which it does
+    when this process ends (``prctl(PR_SET_PDEATHSIG)``); a daemon thread also watches the process itself."""
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if not _alive(parent_pid):  # the parent died before the signal was armed
         os._exit(1)
-    if not armed:
-        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
 
 
 def process_pool(max_workers: int) -> ProcessPoolExecutor:
     """A process pool whose workers never outlive this process."""
-    return ProcessPoolExecutor(max_workers=max_workers, initializer=die_with_parent, initargs=(os.getpid(),))
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(FORKSERVER_PRELOAD)
+    return ProcessPoolExecutor(max_workers=max_workers, mp_context=ctx, initializer=die_with_parent,
+                               initargs=(os.getpid(),))
 
 
 def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any], jobs: int | None, desc: str, unit: str,
