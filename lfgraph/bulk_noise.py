@@ -27,6 +27,8 @@ import numpy as np
 _M = gtsam.noiseModel.mEstimator
 PROBE_DISTANCES = np.array([0.0, 0.05, 0.3, 0.9, 1.0, 1.7, 3.1, 7.5, 40.0])  # whitened distances the formulas are
 PROBE_RTOL = 1e-9  # checked at against GTSAM's own weight and loss, to this relative tolerance
+FAR_DISTANCES = np.array([1e4, 1e8])  # a kernel's loss is bounded (a redescender that ignores far residuals: Tukey,
+BOUNDED_LOSS_RATIO = 1.01  # Geman–McClure, Welsch, DCS) when it grows by at most this much between these distances
 
 
 class NotBulk(ValueError):
@@ -117,6 +119,12 @@ class Kernel:
 
     Args:
         estimator: any ``gtsam.noiseModel.mEstimator`` object.
+
+    Attributes:
+        block: GTSAM's Block reweighting (both rows of a residual by one weight), else Scalar.
+        vectorised: the formulas run in numpy (else the estimator is called per residual).
+        bounded: the loss is bounded (Tukey, Geman–McClure, Welsch, DCS): a residual far beyond the threshold pulls
+            nothing, so a fit must start near its minimum.
     """
 
     def __init__(self, estimator):
@@ -132,6 +140,8 @@ class Kernel:
         if not self.vectorised:
             self.weight = np.frompyfunc(estimator.weight, 1, 1)
             self.loss = np.frompyfunc(estimator.loss, 1, 1)
+        far = self.losses(FAR_DISTANCES)
+        self.bounded = bool(np.isfinite(far[1]) and far[1] <= BOUNDED_LOSS_RATIO * far[0])
 
     @staticmethod
     def _is_block(estimator) -> bool:

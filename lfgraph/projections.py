@@ -5,6 +5,8 @@ the camera variables."""
 
 from __future__ import annotations
 
+import copy
+
 import gtsam
 import numpy as np
 
@@ -55,6 +57,9 @@ class ProjectionProblem:
             self.noise = BulkNoise(noise)
         except NotBulk as e:
             raise NotReducible(str(e)) from None
+        # a robust model's reweighted steps fall short: stretch them (`lfgraph.schur`), unless each extra cost costs a
+        # Python call per residual (an estimator of callbacks)
+        self.extrapolate = self.noise.kernel is not None and self.noise.kernel.vectorised
         self.intr = np.asarray(intrinsics, dtype=np.float64)
         self.n_views, self.n_landmarks = len(self.intr), int(n_landmarks)
         self.layout = schur_layout(values, "\0") if values.size() else None
@@ -205,6 +210,14 @@ class ProjectionProblem:
             H += A[:, :n_c].T @ A[:, :n_c]
             g_c += A[:, :n_c].T @ A[:, n_c]
         return ReducedSystem(V.reshape(-1, 3, 3), W, g_l, H, g_c)
+
+    def gaussian(self) -> ProjectionProblem | None:
+        """The same problem under the robust model's Gaussian part (None: the model is Gaussian already)."""
+        if self.noise.kernel is None:
+            return None
+        plain = copy.copy(self)
+        plain.noise, plain.extrapolate = BulkNoise(self.noise.model.noise()), False
+        return plain
 
     def retract(self, state, dl: np.ndarray, dc: np.ndarray):
         """``state`` moved by a landmark step ``dl`` (N, 3), added to the landmarks, and a camera step ``dc`` (C,),
