@@ -276,7 +276,8 @@ def kernel_table(cache: Path, frames: int, failures: list[str]) -> None:
              ("cauchy:0.2 (px)", RefineConfig(robust="cauchy:0.2")),
              ("tukey (4.685 sigma)", RefineConfig(robust="tukey")),
              ("tukey:1 (px)", RefineConfig(robust="tukey:1")),
-             ("gm (1 sigma)", RefineConfig(robust="gm")),
+             ("gm (3.787 sigma)", RefineConfig(robust="gm")),
+             ("gm:1sigma", RefineConfig(robust="gm:1sigma")),
              ("Custom (Cauchy callbacks)", RefineConfig(robust=_cauchy_callbacks())),
              ("Diagonal Gaussian model", RefineConfig(robust=gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.08])))),
              ("hook (a pose prior)", RefineConfig(graph_hooks=(_pin_reference_neighbour,)))]

@@ -203,6 +203,28 @@ def test_a_hooks_camera_factors_join_the_bulk_system():
     assert np.max(np.abs(free.ref_T_view[2][:3, :3] - rig.ref_T_view[2][:3, :3])) > 1e-4  # it would have moved
 
 
+EFFICIENCY = 0.95  # the usual constants' asymptotic efficiency on Gaussian noise
+EFFICIENCY_TOL = 0.002  # the numerical integral's error and the constants' rounding (4 digits)
+
+
+@pytest.mark.parametrize("name", ["huber", "cauchy", "tukey", "welsch", "fair", "gm", "dcs"])
+def test_a_bare_kernel_name_has_95_percent_efficiency(name):
+    """(E psi')^2 / E psi^2 under N(0, 1), psi(d) = w(d) d from GTSAM's own weight of the kernel a bare name builds."""
+    est = RobustKernel(name).estimator(1.0)
+    x = np.linspace(-40.0, 40.0, 80001)
+    psi = np.array([est.weight(float(v)) for v in x]) * x
+    density = np.exp(-0.5 * x * x) / np.sqrt(2.0 * np.pi)
+    dx = x[1] - x[0]
+    efficiency = (np.sum(np.gradient(psi, dx) * density) * dx) ** 2 / (np.sum(psi * psi * density) * dx)
+    assert efficiency == pytest.approx(EFFICIENCY, abs=EFFICIENCY_TOL)
+
+
+def test_a_dcs_threshold_is_a_distance():
+    est = RobustKernel.parse("dcs:0.5").estimator(0.05)  # 0.5 px = 10 sigmas
+    assert est.weight(9.99) == 1.0
+    assert est.weight(10.01) < 1.0
+
+
 def test_kernel_thresholds_are_in_pixels_unless_written_in_sigmas():
     sigma_px = 0.05
     px = measurement_noise(RobustKernel.parse("huber:0.5"), sigma_px)  # 0.5 px = 10 sigmas

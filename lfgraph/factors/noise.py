@@ -30,9 +30,10 @@ _KERNELS: dict[str, Callable[[float], object]] = {
     "welsch": gtsam.noiseModel.mEstimator.Welsch.Create,
     "fair": gtsam.noiseModel.mEstimator.Fair.Create,
 }
-# the usual tuning constants, in measurement sigmas (95 % efficiency on Gaussian noise where defined; GTSAM's
-# default Cauchy is 0.1)
-DEFAULT_THRESHOLDS = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685, "gm": 1.0, "gemanmcclure": 1.0, "dcs": 1.0,
+# the usual tuning constants, in measurement sigmas: 95 % efficiency on Gaussian noise (GTSAM's default Cauchy is 0.1;
+# Geman–McClure's and DCS's 1.0 had 44 % and 64 %: their constants here are computed from GTSAM's own weights in
+# tests/test_bulk_noise.py). A DCS threshold is a distance as every other: GTSAM's parameter is its square.
+DEFAULT_THRESHOLDS = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685, "gm": 3.787, "gemanmcclure": 3.787, "dcs": 1.898,
                       "welsch": 2.985, "fair": 1.3998}
 KERNEL_UNITS = ("px", "sigma")
 KERNEL_NAMES = ("none", *_KERNELS)
@@ -128,10 +129,11 @@ class RobustKernel:
 
     ``RobustKernel.parse("huber:0.5")`` is Huber at 0.5 px; ``"huber:1.345sigma"`` at 1.345 measurement sigmas;
     ``RobustKernel("cauchy")`` (no number) takes the kernel's usual tuning constant, in sigmas (Huber 1.345, Cauchy
-    2.385, Tukey 4.685, Welsch 2.985, Fair 1.3998: 95 % efficiency on Gaussian noise); ``RobustKernel("none")`` is
-    plain least squares. A pixel threshold is turned into sigmas by the measurement sigma of the fit that uses it
-    (`estimator`): `refine` estimates that sigma from the data (~0.05 px on clean scenes), `calibrate` uses
-    ``corner_sigma_px``. Studies swap kernels by building these (or by name).
+    2.385, Tukey 4.685, Welsch 2.985, Fair 1.3998, Geman–McClure 3.787, DCS 1.898: 95 % efficiency on Gaussian
+    noise; a DCS threshold is the distance where its weight starts to fall, GTSAM's parameter its square);
+    ``RobustKernel("none")`` is plain least squares. A pixel threshold is turned into sigmas by the measurement sigma
+    of the fit that uses it (`estimator`): `refine` estimates that sigma from the data (~0.05 px on clean scenes),
+    `calibrate` uses ``corner_sigma_px``. Studies swap kernels by building these (or by name).
     """
 
     name: str = "none"
@@ -197,7 +199,10 @@ class RobustKernel:
 
     def estimator(self, sigma_px: float = 1.0) -> gtsam.noiseModel.mEstimator.Base | None:
         """GTSAM's M-estimator for whitened residuals of a ``sigma_px`` measurement noise (None for ``none``)."""
-        return None if self.name == "none" else _KERNELS[self.name](self.sigmas(sigma_px))
+        if self.name == "none":
+            return None
+        threshold = self.sigmas(sigma_px)
+        return _KERNELS[self.name](threshold * threshold if self.name == "dcs" else threshold)
 
     def __str__(self) -> str:
         if self.threshold is None:
