@@ -26,16 +26,15 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
-from lfgraph.factors.noise import (
-    HELD_SIGMA,
-    MIN_SIGMA,
-    cal3ds2_noise,
-    drift_calibration_noise,
-    drift_pose_noise,
-    gauge_pose_noise,
-    pose_noise,
-    range_noise,
+from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, range_noise
+from lfgraph.factors.prior_table import (
+    CAL3DS2_TANGENT,
+    POSE_TANGENT,
+    cal3ds2_vectors,
+    intrinsics_prior_factors,
+    pose_prior_factors,
 )
 from lfgraph.geometry import to_pose3
 
@@ -116,25 +115,24 @@ def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int]
     the MAP drift priors (``map_centre`` (V, 4, 4) ``ref_T_view`` of the input with ``map_sigmas`` (V, 6), see
     `drift_pose_noise`) or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
     priors and ``intrinsics_free`` the hidden rotation gauge (`rotation_gauge`) is held at the input."""
-    graph = gtsam.NonlinearFactorGraph()
-    rgauge = rotation_gauge(calib) if holds_rotation_gauge(calib, intrinsics_free) else None
-    for v in range(calib.num_views):
-        pose = to_pose3(calib.ref_T_view[v])
-        if v == calib.grid.reference:
-            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, gauge_pose_noise()))
-        elif poses_free and v not in held_views:
-            if map_centre is not None and map_sigmas is not None:
-                sigmas = np.array(map_sigmas[v], dtype=float)
-                if rgauge is not None and rgauge[0] == v:
-                    sigmas[rgauge[1]] = HELD_SIGMA
-                graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(map_centre[v]),
-                                                 drift_pose_noise(sigmas)))
-            elif scale_sigma_mm is not None:
-                graph.add(gtsam.PriorFactorPose3(view_pose_key(v), pose, pose_noise(1.0, scale_sigma_mm * 1e-3)))
-        else:
-            held = map_centre[v] if map_centre is not None and v in held_views else calib.ref_T_view[v]
-            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(held), pose_noise(HELD_SIGMA, HELD_SIGMA)))
-    return graph
+    n = calib.num_views
+    mean = np.array(calib.ref_T_view, dtype=np.float64)
+    sigmas = np.full((n, POSE_TANGENT), HELD_SIGMA)
+    free = np.array([poses_free and v not in held_views and v != calib.grid.reference for v in range(n)])
+    held = np.array([v in held_views and v != calib.grid.reference for v in range(n)])
+    if map_centre is not None:  # held views stay at the centre
+        mean[held] = np.asarray(map_centre)[held]
+    if map_centre is not None and map_sigmas is not None:
+        mean[free] = np.asarray(map_centre)[free]
+        sigmas[free] = np.asarray(map_sigmas, dtype=np.float64)[free]
+        rgauge = rotation_gauge(calib) if holds_rotation_gauge(calib, intrinsics_free) else None
+        if rgauge is not None and free[rgauge[0]]:
+            sigmas[rgauge[0], rgauge[1]] = HELD_SIGMA
+    elif scale_sigma_mm is not None:
+        sigmas[free] = [1.0, 1.0, 1.0, *(3 * [scale_sigma_mm * 1e-3])]
+    else:
+        sigmas[free] = np.nan  # free without a pull
+    return pose_prior_factors(calib.grid.reference, mean, sigmas)
 
 
 def range_gauge(calib: Calibration) -> gtsam.NonlinearFactorGraph:
@@ -165,23 +163,19 @@ def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre
     """fx, fy, cx, cy free for the non-reference, non-held views (minus the principal-point gauge); skew,
     distortion and everything of the reference and held views held. With ``map_centre`` and ``map_sigmas`` (V, 4)
     the free ones get MAP drift priors centred on the input (`drift_calibration_noise`) instead of no pull."""
-    graph = gtsam.NonlinearFactorGraph()
-    gauge = principal_point_gauge(calib)
-    for v in range(calib.num_views):
-        centre = calib.intrinsics[v] if map_centre is None else map_centre.intrinsics[v]
-        if map_centre is not None and map_sigmas is not None and v != calib.grid.reference \
-                and v not in held_views:
-            # with MAP priors no principal point is held exactly: the drift priors fix the hidden gauge (2), and a
-            # neighbour held at its input could not follow its own real pan (see `holds_rotation_gauge`)
-            s4 = np.array(map_sigmas[v], dtype=float)
-            graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), centre.to_gtsam(), drift_calibration_noise(s4)))
-            continue
-        sigmas = np.full(9, HELD_SIGMA)  # Cal3DS2 order: fx fy s cx cy k1 k2 p1 p2
-        sigmas[2] = MIN_SIGMA
-        if v != calib.grid.reference and v not in held_views:
-            sigmas[[0, 1, 3, 4]] = FOCAL_FREE_SIGMA_PX
-            if gauge is not None and gauge[0] == v:
-                sigmas[gauge[1]] = HELD_SIGMA
-        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), centre.to_gtsam(), cal3ds2_noise(sigmas)))
-    return graph
-
+    n = calib.num_views
+    mean = cal3ds2_vectors(calib.intrinsics if map_centre is None else map_centre.intrinsics)
+    sigmas = np.full((n, CAL3DS2_TANGENT), HELD_SIGMA)
+    sigmas[:, 2] = MIN_SIGMA  # skew
+    free = np.array([v != calib.grid.reference and v not in held_views for v in range(n)])
+    focal_principal = [*CAL3DS2_INDICES[Group.FOCAL], *CAL3DS2_INDICES[Group.PRINCIPAL]]
+    if map_centre is not None and map_sigmas is not None:
+        # with MAP priors no principal point is held exactly: the drift priors fix the hidden gauge (2), and a
+        # neighbour held at its input could not follow its own real pan (see `holds_rotation_gauge`)
+        sigmas[np.ix_(free, focal_principal)] = np.asarray(map_sigmas, dtype=np.float64)[free]
+    else:
+        sigmas[np.ix_(free, focal_principal)] = FOCAL_FREE_SIGMA_PX
+        gauge = principal_point_gauge(calib)
+        if gauge is not None and free[gauge[0]]:
+            sigmas[gauge] = HELD_SIGMA
+    return intrinsics_prior_factors(mean, sigmas)

@@ -23,9 +23,8 @@ import numpy as np
 
 from lfgraph.camera import Intrinsics
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
-from lfgraph.factors.keys import calib_key, view_pose_key
-from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, cal3ds2_noise, gauge_pose_noise, pose_noise
-from lfgraph.geometry import to_pose3
+from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA
+from lfgraph.factors.prior_table import POSE_TANGENT, cal3ds2_vectors, intrinsics_prior_factors, pose_prior_factors
 from lfgraph.grid import ViewGrid
 
 
@@ -54,10 +53,6 @@ class DesignSigmas:
                          self.k2, MIN_SIGMA, MIN_SIGMA])
 
 
-def _cal_vector(intr: Intrinsics) -> np.ndarray:
-    return np.array([intr.fx, intr.fy, 0.0, intr.cx, intr.cy, intr.k1, intr.k2, intr.p1, intr.p2])
-
-
 def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
     """The intrinsics an intermediate stage pins to keep the near-gauges out of Levenberg–Marquardt's way (view ->
     Cal3DS2 indices): the reference view's fx, fy, cx, cy (common zoom and shift) and the hidden principal-point
@@ -79,23 +74,19 @@ def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sig
     """One Cal3DS2 prior per view: free groups pulled to the design value with the design tolerance, everything
     else (skew, p1, p2, the groups this stage holds and the ``pinned`` Cal3DS2 indices of some views, e.g.
     `intrinsics_gauges`) pinned at ``current``."""
-    graph = gtsam.NonlinearFactorGraph()
-    design_vec = _cal_vector(design)
-    tol = sigmas.intrinsic_sigmas()
-    for v, intr in enumerate(current):
-        mean = _cal_vector(intr)
-        sig = np.full(9, HELD_SIGMA)
-        sig[[2, 7, 8]] = MIN_SIGMA
-        for group, idx in CAL3DS2_INDICES.items():  # the groups a stage may free (`lfgraph.factors.groups`)
-            if group in free:
-                mean[list(idx)] = design_vec[list(idx)]
-                sig[list(idx)] = tol[list(idx)]
-        for i in (pinned or {}).get(v, ()):
-            mean[i] = _cal_vector(intr)[i]
-            sig[i] = HELD_SIGMA
-        prior = gtsam.Cal3DS2(*mean.tolist())
-        graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), prior, cal3ds2_noise(sig)))
-    return graph
+    now = cal3ds2_vectors(current)
+    mean = now.copy()
+    sig = np.full(now.shape, HELD_SIGMA)
+    sig[:, [2, 7, 8]] = MIN_SIGMA
+    design_vec, tol = cal3ds2_vectors([design])[0], sigmas.intrinsic_sigmas()
+    for group, idx in CAL3DS2_INDICES.items():  # the groups a stage may free (`lfgraph.factors.groups`)
+        if group in free:
+            mean[:, list(idx)] = design_vec[list(idx)]
+            sig[:, list(idx)] = tol[list(idx)]
+    for v, indices in (pinned or {}).items():
+        mean[v, list(indices)] = now[v, list(indices)]
+        sig[v, list(indices)] = HELD_SIGMA
+    return intrinsics_prior_factors(mean, sig)
 
 
 def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: DesignSigmas,
@@ -106,24 +97,20 @@ def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sig
     Args:
         current: (V, 4, 4) current ``ref_T_view``; design: (V, 4, 4) the ideal grid.
     """
-    graph = gtsam.NonlinearFactorGraph()
-    for v in range(len(current)):
-        if v == reference:
-            graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(np.eye(4)), gauge_pose_noise()))
-            continue
-        rot_free, pos_free = Group.ROTATION in free, Group.POSITION in free
-        mean = np.array(current[v])
-        if rot_free:
-            mean[:3, :3] = design[v, :3, :3]
-        if pos_free:
-            mean[:3, 3] = design[v, :3, 3]
+    mean = np.array(current, dtype=np.float64)
+    mean[reference] = np.eye(4)
+    sig = np.full((len(current), POSE_TANGENT), HELD_SIGMA)
+    others = np.arange(len(current)) != reference
+    if Group.ROTATION in free:
+        mean[others, :3, :3] = design[others, :3, :3]
+        sig[:, :3] = sigmas.rotation_rad
+    if Group.POSITION in free:
+        mean[others, :3, 3] = design[others, :3, 3]
         # Pose3 priors measure the error in the pose's own frame; with near-identity rotations the position sigma
         # is (to well under a percent) the same along the reference axes. The grid's plane is the reference view's
         # z = 0 plane only up to the reference view's own rotation: depth (z) gets that tilt's spread too (measured
         # on paper-5x5, 400 mm across: without it every view was pulled 4-9 mm towards z = 0)
-        baseline = float(np.linalg.norm(design[v, :3, 3] - design[reference, :3, 3]))
-        tilt_z = np.hypot(sigmas.position_m, sigmas.rotation_rad * baseline)
-        noise = pose_noise(sigmas.rotation_rad if rot_free else HELD_SIGMA,
-                           [sigmas.position_m, sigmas.position_m, tilt_z] if pos_free else HELD_SIGMA)
-        graph.add(gtsam.PriorFactorPose3(view_pose_key(v), to_pose3(mean), noise))
-    return graph
+        baseline = np.linalg.norm(design[:, :3, 3] - design[reference, :3, 3], axis=1)
+        sig[:, 3:5] = sigmas.position_m
+        sig[:, 5] = np.hypot(sigmas.position_m, sigmas.rotation_rad * baseline)
+    return pose_prior_factors(reference, mean, sig)

@@ -1,0 +1,49 @@
+"""The one builder of per-view prior factors (lfgraph.factors.prior_table) under both wings' priors."""
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+
+from lfgraph.camera import Intrinsics
+from lfgraph.factors.noise import GAUGE_SIGMA, MIN_SIGMA
+from lfgraph.factors.prior_table import cal3ds2_vectors, intrinsics_prior_factors, pose_prior_factors
+
+
+def poses(n):
+    out = np.tile(np.eye(4), (n, 1, 1))
+    out[:, 0, 3] = 0.05 * np.arange(n)
+    return out
+
+
+def test_the_reference_is_the_gauge_a_nan_row_adds_nothing_and_sigmas_are_floored():
+    sigmas = np.array([[0.01] * 6, [np.nan] * 6, [1e-12, 0.01, 0.01, 0.001, 0.001, 0.002]])
+    graph = pose_prior_factors(0, poses(3), sigmas)
+    assert graph.size() == 2  # view 1 is free without a pull
+    gauge, view2 = graph.at(0), graph.at(1)
+    np.testing.assert_allclose(gauge.noiseModel().sigmas(), GAUGE_SIGMA)  # not the row's 0.01
+    np.testing.assert_allclose(view2.noiseModel().sigmas(), [MIN_SIGMA, 0.01, 0.01, 0.001, 0.001, 0.002])
+    np.testing.assert_allclose(view2.prior().translation(), [0.1, 0.0, 0.0])
+
+
+def test_intrinsics_priors_are_cal3ds2_rows():
+    views = [Intrinsics(600.0, 601.0, 320.0, 240.0, -0.1, 0.02, 1e-4, -2e-4), Intrinsics(610.0, 611.0, 330, 250)]
+    mean = cal3ds2_vectors(views)
+    sigmas = np.full((2, 9), 1e-6)
+    sigmas[1] = np.nan
+    graph = intrinsics_prior_factors(mean, sigmas)
+    assert graph.size() == 1
+    np.testing.assert_allclose(graph.at(0).prior().vector(), [600.0, 601.0, 0.0, 320.0, 240.0, -0.1, 0.02, 1e-4,
+                                                              -2e-4])
+    assert isinstance(graph.at(0), gtsam.PriorFactorCal3DS2)
+
+
+def test_other_lenses_and_shapes_are_refused_by_name():
+    fisheye = replace(Intrinsics(600.0, 600.0, 320.0, 240.0), lens="fisheye")
+    with pytest.raises(ValueError, match=r"views \[1\] are fisheye"):
+        cal3ds2_vectors([Intrinsics(600.0, 600.0, 320.0, 240.0), fisheye])
+    with pytest.raises(ValueError, match="pose priors"):
+        pose_prior_factors(0, poses(3), np.zeros((3, 5)))
+    with pytest.raises(ValueError, match="intrinsics priors"):
+        intrinsics_prior_factors(np.zeros((2, 9)), np.zeros((3, 9)))
