@@ -97,6 +97,41 @@ def test_noisy_joint_errors_match_marginals_and_beat_the_paper_route():
     assert report.e_mono_px == pytest.approx(paper_report.e_mono_px)  # both start from the same Zhang stage
 
 
+SAME_COVARIANCE = 1e-8  # relative: the reduced system's inverse vs GTSAM's Marginals of the same graph
+
+
+def test_the_joint_graphs_sigmas_are_gtsams_marginals(monkeypatch):
+    """The joint route's posterior is the one camera-marginals path (the board's corners eliminated, as a
+    refinement's landmarks are): the same covariances GTSAM's own `Marginals` gives for the graph."""
+    import gtsam
+
+    import lfgraph.pattern.joint as joint
+    from lfgraph.factors.keys import calib_key, view_pose_key
+
+    seen = {}
+    original = joint._marginal_sigmas
+
+    def keep(graph, values, *args):
+        seen["graph"] = (graph, values)
+        return original(graph, values, *args)
+
+    monkeypatch.setattr(joint, "_marginal_sigmas", keep)
+    calib, truth = small_rig()
+    est, report = calibrate(observations(calib, truth, SIGMA_PX))
+    graph, values = seen["graph"]
+    theirs = gtsam.Marginals(graph, values)
+    scale = max(report.noise_sigma_px, joint.SIGMA_FLOOR_PX) / CalibrateConfig().corner_sigma_px
+    for v in range(calib.num_views):
+        cov = np.asarray(theirs.marginalCovariance(calib_key(v))) * scale**2
+        for i, name in enumerate(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2"), start=0):
+            j = i if i < 2 else i + 1  # Cal3DS2 tangent: fx fy s cx cy k1 k2
+            assert report.sigmas[v][name] == pytest.approx(np.sqrt(cov[j, j]), rel=SAME_COVARIANCE)
+        pose = np.asarray(theirs.marginalCovariance(view_pose_key(v))) * scale**2
+        rot = est.ref_T_view[v][:3, :3]
+        position = np.sqrt(np.diag(rot @ pose[3:, 3:] @ rot.T)) * 1e3
+        np.testing.assert_allclose(report.sigmas[v]["position_mm"], position, rtol=SAME_COVARIANCE, atol=1e-12)
+
+
 def test_paper_route_reports_e_mono_and_e_pnp_like_opencv():
     import cv2
 

@@ -1,5 +1,7 @@
 """The joint route: one GTSAM factor graph over all views and frames (`lfgraph.factors.board_graph`),
-started from the paper route or design values; 1-sigma uncertainties from `gtsam.Marginals`."""
+started from the paper route or design values; 1-sigma uncertainties from the marginals of the graph at its optimum
+(`lfgraph.schur.CameraMarginals`, the one posterior path: the board's corners eliminated like a refinement's
+landmarks, GTSAM's `Marginals` where that cannot reduce the graph)."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from lfgraph.camera import Intrinsics
 from lfgraph.detections import BoardObservations
 from lfgraph.factors import board_graph
 from lfgraph.factors.hooks import GraphContext, run_hooks
-from lfgraph.factors.keys import calib_key, view_pose_key
+from lfgraph.factors.keys import BOARD_CORNER_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.values import (
     insert_board_corners,
@@ -31,6 +33,7 @@ from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSet
 from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.initial import weak_views
 from lfgraph.pattern.scoring import rig_residuals
+from lfgraph.schur import CameraMarginals
 
 SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below this (noise-free synthetic data)
 
@@ -51,13 +54,12 @@ class JointResult:
 
 def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
                      ref_T_view: np.ndarray, lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:  # noqa: N803
-    keys = gtsam.KeyVector([calib_key(v) for v in range(n_views)] + [view_pose_key(v) for v in range(n_views)])
-    with gtsam_quiet():
-        joint = gtsam.Marginals(graph, values).jointMarginalCovariance(keys)
+    with gtsam_quiet():  # the board's corners eliminated as a refinement's landmarks are (`lfgraph.schur`)
+        marginals = CameraMarginals(graph, values, BOARD_CORNER_CHAR)
     out = []
     for v in range(n_views):
-        kc = np.sqrt(np.maximum(np.diag(joint.at(calib_key(v), calib_key(v))), 0.0)) * scale
-        pc = np.asarray(joint.at(view_pose_key(v), view_pose_key(v))) * scale**2
+        kc = np.sqrt(np.maximum(np.diag(marginals.block(calib_key(v))), 0.0)) * scale
+        pc = marginals.block(view_pose_key(v)) * scale**2
         R = ref_T_view[v][:3, :3]  # noqa: N806  Pose3 covariance is in the body frame, rotation first
         pos_cov = R @ pc[3:, 3:] @ R.T
         rot_cov = R @ pc[:3, :3] @ R.T
