@@ -22,7 +22,7 @@ from lfgraph.schur_system import camera_block
 
 SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same LM, different linear solver)
 SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals
-STAGE_TOL_OFFSET = 1e-6  # rad and m: the bulk stage stops at STAGE_RELATIVE_TOL, GTSAM's path at 1e-10
+STAGE_TOL_OFFSET = 1e-6  # rad and m: the bulk stage stops at REFINE_RELATIVE_TOL, GTSAM's path at 1e-10
 SAME_UNDISTORT = 1e-14  # normalised units: one Newton loop for all views vs one per view
 
 

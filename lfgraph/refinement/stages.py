@@ -22,16 +22,7 @@ from lfgraph.optimize import IterationCallback, OptimizerSettings
 from lfgraph.projections import ProjectionProblem
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
-from lfgraph.stage_engine import StagePlan
-
-STAGE_RELATIVE_TOL = 1e-7  # LM stops when an iteration lowers the cost by less than this fraction. GTSAM's 1e-10
-# costs one more iteration per stage whose cost decrease is ~1e-11 relative (measured on paper-5x5: a parameter step
-# of ~0.002 posterior sigma); the accuracy in benchmarks/refine.py is the same to the printed digits
-# A robust kernel's stage (iteratively reweighted: linear convergence, ~20 iterations of 1e-6..1e-7 of the cost each
-# where a Gaussian stage takes 2-3) stops at GTSAM's default relative tolerance. An earlier extra stop, once the
-# cameras moved by less than 0.01 of their posterior sigma per step, wrote a worse calibration on a sweep scenario
-# (benchmarks/sweep.py seed 57: a 3x4 on repeated texture, 29.9 -> 57.8 px at infinity; kept unchanged without it).
-ROBUST_RELATIVE_TOL = 1e-5
+from lfgraph.stage_engine import REFINE_RELATIVE_TOL, ROBUST_RELATIVE_TOL, StagePlan
 
 
 def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
@@ -48,7 +39,7 @@ def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
 
 def stage_plan(stage: Stage, calib: Calibration, scale_sigma_mm: float | None = None,
                held_views: frozenset[int] = frozenset(), priors: ViewPriors | None = None, max_iterations: int = 100,
-               relative_tol: float = STAGE_RELATIVE_TOL) -> StagePlan:
+               relative_tol: float = REFINE_RELATIVE_TOL) -> StagePlan:
     """A refinement stage as the engine's `StagePlan`: its priors are the input's pose priors (MAP drift priors
     centred on ``priors.centre``, or weak position priors of ``scale_sigma_mm``), the range gauge when scale is
     otherwise free, and with free intrinsics their priors; held views stay where they are."""
@@ -118,7 +109,7 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
     """
     stage = Stage(stage)
     model = measurement_noise(noise, sigma_px)
-    relative_tol = ROBUST_RELATIVE_TOL if isinstance(model, gtsam.noiseModel.Robust) else STAGE_RELATIVE_TOL
+    relative_tol = ROBUST_RELATIVE_TOL if isinstance(model, gtsam.noiseModel.Robust) else REFINE_RELATIVE_TOL
     plan = stage_plan(stage, calib, scale_sigma_mm, held_views, priors, max_iterations, relative_tol)
     out = engine.run_plan(plan, calib, pixels, valid, points, model, callback, hooks)
     new, new_points = out.calib, out.points

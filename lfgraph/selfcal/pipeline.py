@@ -17,9 +17,7 @@ from lfgraph.selfcal.config import Design, SelfCalConfig
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
 from lfgraph.selfcal.retrack import retrack
 from lfgraph.selfcal.solve import (
-    FINAL_RELATIVE_TOL,
     LANDMARK_ITERATIONS,
-    STAGE_RELATIVE_TOL,
     drop_outliers,
     initial_landmarks,
     measurement,
@@ -29,6 +27,7 @@ from lfgraph.selfcal.solve import (
     zoom_to_prior,
 )
 from lfgraph.selfcal.tracks import MIN_TRACKS, PooledTracks, measure_coverage, pool_tracks
+from lfgraph.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
 
 NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
 FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to the MAP: give it more iterations
@@ -223,7 +222,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         stage_sigma = max(config.track_sigma_px, robust_sigma(errors))
         calib, points, _, _, iters = run_map_stage(calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
                                                    measurement(config.noise, stage_sigma), config.max_iterations,
-                                                   STAGE_RELATIVE_TOL, say.iteration, config.graph_hooks)
+                                                   INTERMEDIATE_RELATIVE_TOL, say.iteration, config.graph_hooks)
         tracks, points = _clean(calib, tracks, points, design)
         keep, errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)
         stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))

@@ -18,10 +18,8 @@ from lfgraph.factors.selfcal_graph import DesignSigmas
 from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
 from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 from lfgraph.schur import CameraMarginals
-from lfgraph.stage_engine import StagePlan, run_plan
+from lfgraph.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
 
-STAGE_RELATIVE_TOL = 1e-6  # an intermediate stage stops when an iteration gains less than this share of the error
-FINAL_RELATIVE_TOL = 1e-9  # the final stage converges fully (the marginals are taken at its optimum)
 # after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.schur`'s
 # embedded point iterations). The common zoom and the hidden principal-point gauge are long curved valleys that move
 # every landmark: plain LM crawled along them (each step ~0.96 of the last's decrease) and stopped at its 150-iteration
@@ -50,7 +48,7 @@ def initial_landmarks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray)
 
 def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
                   free: frozenset[str], sigmas: DesignSigmas, model: gtsam.noiseModel.Base, max_iterations: int,
-                  relative_tol: float = STAGE_RELATIVE_TOL, callback: IterationCallback | None = None,
+                  relative_tol: float = INTERMEDIATE_RELATIVE_TOL, callback: IterationCallback | None = None,
                   hooks: tuple[Callable, ...] = (), hold_gauges: bool = True, landmark_iterations: int | None = None,
                   ) -> tuple[Calibration, np.ndarray, gtsam.NonlinearFactorGraph, gtsam.Values, int]:
     """One stage on the one stage runner (`lfgraph.stage_engine.run_plan`): poses and intrinsics are variables; the
