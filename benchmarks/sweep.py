@@ -232,10 +232,10 @@ def run(s: Scenario, config: RefineConfig | None = None) -> dict:
     return score(s, inp, truth, out, report, time.perf_counter() - t0, config.tolerance_px)
 
 
-def _run_seed(seed: int) -> dict:
+def _run_seed(seed: int, robust: str = "none") -> dict:
     s = draw(seed)
     try:
-        row = run(s)
+        row = run(s, RefineConfig(robust=robust))
     except Exception as e:  # a crash is a finding: recorded, not hidden
         row = {**asdict(s), "views": s.rows * s.cols, "error": f"{type(e).__name__}: {e}"[:160]}
     return row
@@ -286,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="first scenario seed")
     ap.add_argument("--csv", default="out/bench-sweep/sweep.csv")
     ap.add_argument("--jobs", type=int, default=1, help="scenarios in parallel (processes)")
+    ap.add_argument("--robust", default="none", help="every scenario refined with this noise model (e.g. tukey)")
     args = ap.parse_args(argv)
     path = Path(args.csv)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -318,11 +319,11 @@ def main(argv: list[str] | None = None) -> int:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(args.jobs) as pool:
-            for row in pool.map(_run_seed, todo):
+            for row in pool.map(_run_seed, todo, [args.robust] * len(todo)):
                 record(row)
     else:
         for seed in todo:
-            record(_run_seed(seed))
+            record(_run_seed(seed, args.robust))
     rows = [r for r in rows if args.seed <= int(r["seed"]) < args.seed + args.scenarios]
     print(format_table(HEADER, summary(rows, tol)))
     print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
