@@ -55,6 +55,7 @@ ROBUST_RELATIVE_TOL = 1e-5  # refine's stages under a robust kernel (iteratively
 INTERMEDIATE_RELATIVE_TOL = 1e-6  # a self-calibration's intermediate stages (the next stage starts from there)
 FINAL_RELATIVE_TOL = 1e-9  # a self-calibration's final stage converges fully (the marginals are taken at its optimum)
 
+
 @dataclass(frozen=True)
 class StagePlan:
     """One stage of a staged MAP fit.
