@@ -65,23 +65,6 @@ def pose_noise(rot_sigma_rad: float | Sequence[float], trans_sigma_m: float | Se
     return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(np.concatenate([rot, trans])))
 
 
-def drift_pose_noise(sigmas: Sequence[float]) -> gtsam.noiseModel.Base:
-    """A view's MAP drift prior: six sigmas in GTSAM's Pose3 tangent order, body frame — rotation about x, y
-    (pan/tilt) and z (the optical axis, roll) in radians, then position x, y, z in metres."""
-    s = _sigmas(sigmas)
-    if s.shape != (6,):
-        raise ValueError(f"a pose prior needs 6 sigmas (rx ry rz tx ty tz), got {s.shape}")
-    return pose_noise(s[:3], s[3:])
-
-
-def drift_calibration_noise(fx_fy_cx_cy_px: Sequence[float], held: float = HELD_SIGMA) -> gtsam.noiseModel.Base:
-    """A view's MAP intrinsics prior: sigmas of fx, fy, cx, cy (px); skew and distortion held."""
-    s = _sigmas(fx_fy_cx_cy_px)
-    if s.shape != (4,):
-        raise ValueError(f"an intrinsics prior needs 4 sigmas (fx fy cx cy), got {s.shape}")
-    return cal3ds2_noise([s[0], s[1], MIN_SIGMA, s[2], s[3], held, held, held, held])
-
-
 def gauge_pose_noise() -> gtsam.noiseModel.Base:
     """The reference view's pose prior: the identity by definition (an Isotropic model stays on the fast solver)."""
     return gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)

@@ -112,8 +112,9 @@ def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int]
                 scale_sigma_mm: float | None, map_centre: np.ndarray | None = None,
                 map_sigmas: np.ndarray | None = None, intrinsics_free: bool = False) -> gtsam.NonlinearFactorGraph:
     """The reference pose (gauge); held views and, when poses are not free, every view; on the free views either
-    the MAP drift priors (``map_centre`` (V, 4, 4) ``ref_T_view`` of the input with ``map_sigmas`` (V, 6), see
-    `drift_pose_noise`) or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
+    the MAP drift priors (``map_centre`` (V, 4, 4) ``ref_T_view`` of the input with ``map_sigmas`` (V, 6) in GTSAM's
+    Pose3 tangent order, body frame: rotation about x, y (pan/tilt) and z (roll) in radians, then position in metres)
+    or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
     priors and ``intrinsics_free`` the hidden rotation gauge (`rotation_gauge`) is held at the input."""
     n = calib.num_views
     mean = np.array(calib.ref_T_view, dtype=np.float64)
@@ -162,7 +163,7 @@ def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre
                       map_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
     """fx, fy, cx, cy free for the non-reference, non-held views (minus the principal-point gauge); skew,
     distortion and everything of the reference and held views held. With ``map_centre`` and ``map_sigmas`` (V, 4)
-    the free ones get MAP drift priors centred on the input (`drift_calibration_noise`) instead of no pull."""
+    the free ones get MAP drift priors centred on the input (fx, fy, cx, cy sigmas in px) instead of no pull."""
     n = calib.num_views
     mean = cal3ds2_vectors(calib.intrinsics if map_centre is None else map_centre.intrinsics)
     sigmas = np.full((n, CAL3DS2_TANGENT), HELD_SIGMA)
