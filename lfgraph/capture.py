@@ -22,7 +22,7 @@ counts as "board not seen".
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,7 +123,7 @@ class CaptureSet:
         if self.view_sizes_px is not None:
             kinds = ", ".join(f"{self.grid.name(v)} {w}x{h}" for v, (w, h) in enumerate(self.view_sizes_px))
             raise CaptureError(f"{self.root}: the views have different image sizes ({kinds}); {what} needs views of "
-                               f"one size (calibrate and rectify take mixed rigs)")
+                               f"one size (calibrate, rectify and refine take mixed rigs)")
 
     def __len__(self) -> int:
         return len(self.frame_names)
@@ -310,15 +310,21 @@ def write_frame(out_dir: str | os.PathLike, frame_name: str, images: np.ndarray,
     return [p for p, _ in targets]
 
 
-def check_frame_array(images: object, frame: int, grid, image_size_px: tuple[int, int], what: str = "frame") -> None:
+def check_frame_array(images: object, frame: int, grid, image_size_px: tuple[int, int] | Sequence[tuple[int, int]],
+                      what: str = "frame") -> None:
     """Refuse a frame the tracking cannot use, naming it and what it should be: (V, H, W) 8-bit grayscale, one
-    image per view of ``grid``, each ``image_size_px`` (width, height).
+    image per view of ``grid``, each ``image_size_px`` (width, height). With per-view sizes that differ (a mixed
+    rig), a sequence of V (H, W) arrays, each its view's size.
 
     Raises:
-        TypeError: not a numpy array.
+        TypeError: not a numpy array (a list of them for a mixed rig).
         ValueError: the wrong number of dimensions (colour), dtype, view count or size, or NaN.
     """
-    w, h = image_size_px
+    sizes = [tuple(int(x) for x in s) for s in np.asarray(image_size_px, dtype=np.int64).reshape(-1, 2)]
+    if len(set(sizes)) > 1:
+        _check_mixed_frame(images, frame, grid, sizes, what)
+        return
+    w, h = sizes[0]
     want = f"(V={grid.num_views}, H={h}, W={w}) uint8 grayscale"
     if not isinstance(images, np.ndarray):
         raise TypeError(f"{what} {frame}: expected a numpy array {want}, got {type(images).__name__}")
@@ -327,13 +333,35 @@ def check_frame_array(images: object, frame: int, grid, image_size_px: tuple[int
                          f"grayscale (cv2.cvtColor(..., cv2.COLOR_BGR2GRAY)) to get {want}")
     if images.ndim != 3:
         raise ValueError(f"{what} {frame}: shape {images.shape}; expected {want} (one image per view, stacked)")
+    _check_dtype(images, frame, what, want)
+    if images.shape[0] != grid.num_views or images.shape[1:3] != (h, w):
+        raise ValueError(f"{what} {frame} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but "
+                         f"the calibration is a {grid} grid of {w}x{h} px views")
+
+
+def _check_dtype(images: np.ndarray, frame: int, what: str, want: str) -> None:
     if images.dtype != np.uint8:
         hint = " (16-bit: scale with (img >> 8).astype(np.uint8))" if images.dtype == np.uint16 else \
             " (floats: clip to 0-255 and convert with .astype(np.uint8))" if images.dtype.kind == "f" else ""
         raise ValueError(f"{what} {frame}: dtype {images.dtype}; expected {want}{hint}")
-    if images.shape[0] != grid.num_views or images.shape[1:3] != (h, w):
-        raise ValueError(f"{what} {frame} has {images.shape[0]} views of {images.shape[2]}x{images.shape[1]} px but "
-                         f"the calibration is a {grid} grid of {w}x{h} px views")
+
+
+def _check_mixed_frame(images: object, frame: int, grid, sizes: list[tuple[int, int]], what: str) -> None:
+    want = f"{grid.num_views} uint8 grayscale (H, W) arrays, one per view in its own size"
+    if isinstance(images, np.ndarray) or not isinstance(images, Sequence) or \
+            not all(isinstance(i, np.ndarray) for i in images):
+        raise TypeError(f"{what} {frame}: the calibration's views differ in size: expected a list of {want}, got "
+                        f"{type(images).__name__}")
+    if len(images) != grid.num_views:
+        raise ValueError(f"{what} {frame} has {len(images)} views but the calibration is a {grid} grid")
+    for v, (img, (w, h)) in enumerate(zip(images, sizes, strict=True)):
+        if img.ndim != 2:
+            raise ValueError(f"{what} {frame}, view {grid.name(v)}: shape {img.shape}; expected one grayscale "
+                             f"{w}x{h} image (convert colour with cv2.cvtColor(..., cv2.COLOR_BGR2GRAY))")
+        _check_dtype(img, frame, what, want)
+        if img.shape != (h, w):
+            raise ValueError(f"{what} {frame}, view {grid.name(v)} is {img.shape[1]}x{img.shape[0]} px but the "
+                             f"calibration is for {w}x{h} px")
 
 
 def check_frames_argument(frames: object, where: str) -> None:

@@ -170,17 +170,19 @@ def input_transfer_sigma_px(calib: Calibration) -> np.ndarray | None:
 
 def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.ndarray],
                   settings: MatchSettings | None = None, config: RefineConfig | None = None) -> DriftReport:
-    """Run the drift check over (V, H, W) grayscale frames."""
+    """Run the drift check over (V, H, W) grayscale frames (lists of (H, W) for views of different sizes)."""
     from lfgraph.refinement.assess import assess
     from lfgraph.refinement.config import RefineConfig
+    from lfgraph.refinement.resample import ViewCanvas, track_views
     from lfgraph.refinement.tracks import pooled_filter, track_coverage
 
     config = config or RefineConfig()
     tracker = config.tracker if settings is None else ChainTracker(settings)
     pixels, valid, frame_ids, counts, n_frames = [], [], [], {}, 0
+    canvas = ViewCanvas(calib) if ViewCanvas.needed(calib) else None  # views of different sizes
     for f, images in enumerate(frames):
-        check_frame_array(images, f, calib.grid, calib.image_size_px)
-        tracks = tracker.track(images, calib.grid)
+        check_frame_array(images, f, calib.grid, [calib.image_size(v) for v in range(calib.num_views)])
+        tracks = track_views(tracker, images, calib, canvas)
         res = reprojection_residuals(calib, tracks)
         keep = drop_mismatches(res)
         tracks_counts = {**tracks.counts, "triangulation": int(keep.sum())}

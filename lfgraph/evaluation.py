@@ -104,7 +104,7 @@ def transfer_error_at_infinity(estimate: Calibration, truth: Calibration,
         raise ValueError(f"grids differ: {estimate.grid} (reference {estimate.grid.reference}) vs {truth.grid} "
                          f"(reference {truth.grid.reference})")
     ref = truth.grid.reference
-    px = reference_pixels(truth.image_size_px, samples)
+    px = reference_pixels(truth.image_size(ref), samples)
     out = np.zeros(truth.num_views)
 
     def project_all(calib: Calibration) -> np.ndarray:

@@ -56,7 +56,7 @@ class Observer(Protocol):
         """One Levenberg–Marquardt iteration of the graph being optimised."""
 
     def frame(self, index: int, images: np.ndarray) -> None:
-        """Refinement starts on frame ``index``: (V, H, W) images."""
+        """Refinement starts on frame ``index``: (V, H, W) images (a list of (H, W) when the views differ in size)."""
 
     def stage_start(self, name: str, measurements: int) -> None:
         """A refinement stage starts over ``measurements`` 2-D observations."""

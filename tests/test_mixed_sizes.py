@@ -1,5 +1,6 @@
 """Issue 25: a rig of mixed image sizes (views of twice the resolution beside the others) rendered, calibrated from its
-images, rectified to one image size with rows aligned, and refused by name where tracking needs one size."""
+images, rectified to one image size with rows aligned, refined from scene frames, and refused by name where the
+work needs one size (check, calibrate-scene, fleet)."""
 
 import dataclasses
 import json
@@ -15,10 +16,13 @@ from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, main
 from lfgraph.datasets.board_render import render_checkerboard_view
 from lfgraph.datasets.checkerboard import CheckerboardConfig, make_checkerboard_truth, write_checkerboard_dataset
-from lfgraph.datasets.rig import make_rig
+from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
+from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import get_scene
+from lfgraph.evaluation import transfer_error_at_infinity
 from lfgraph.geometry import make_T
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
+from lfgraph.refinement import refine
 
 FAR_BOARD_PX = 0.1  # as tests/test_rectify.py: corners detected in rectified renders of a board at >= 20 m
 FOCAL_REL = 0.003  # each view's focal length from its own rendered images, relative to the truth (measured 0.05 %)
@@ -97,15 +101,90 @@ def test_mixed_capture_calibrates_from_its_images_and_rectifies(mixed_capture, t
     assert len(sizes) == 1 and len(list(out.glob("*/r*.png"))) == 4 * 12
 
 
-def test_tracking_commands_refuse_a_mixed_capture_by_name(mixed_capture, tmp_path, capsys):
+def test_commands_that_need_one_size_refuse_a_mixed_capture_by_name(mixed_capture, tmp_path, capsys):
     capture_dir, truth = mixed_capture
     calib_path = tmp_path / "truth.json"
     truth.save(calib_path)
-    assert main(["refine", str(calib_path), str(capture_dir), "-o", str(tmp_path / "r.json")]) == EXIT_BAD_INPUT
+    assert main(["calibrate-scene", str(capture_dir), "--grid", "2x2", "--pitch-mm", "10", "--focal-px", "300",
+                 "-o", str(tmp_path / "s.json")]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
-    assert "r00_c00 640x480, r00_c01 320x240" in err and "refine needs views of one size" in err
-    assert not (tmp_path / "r.json").exists()
+    assert "r00_c00 640x480, r00_c01 320x240" in err and "calibrate-scene needs views of one size" in err
+    assert not (tmp_path / "s.json").exists()
     uniform = truth.replace(view_image_sizes_px=None)
     uniform.save(calib_path)
-    assert main(["check", str(calib_path), str(capture_dir)]) == EXIT_BAD_INPUT
+    assert main(["refine", str(calib_path), str(capture_dir), "-o", str(tmp_path / "r.json")]) == EXIT_BAD_INPUT
     assert "view r00_c00 is 640x480 px but the calibration is for 320x240 px" in capsys.readouterr().err
+    assert not (tmp_path / "r.json").exists()
+
+
+def _knocked_scene_frames(original: Calibration, frames: int = 2) -> tuple[Calibration, list[list[np.ndarray]]]:
+    """A knocked copy of ``original`` (0.5 deg / 1 mm about random axes) and scene frames rendered through it, each a
+    list of its views' images in their own sizes."""
+    truth = shake_rig(original, ShakeConfig(rot_deg=0.5, trans_mm=1.0, axis="any"), np.random.default_rng(5))
+    cfg = SceneConfig(depth_m=(1.0, 3.0), background_depth_m=4.0)
+    out = [render_scene_views(make_scene(cfg, np.random.default_rng(100 + f)), truth, cfg,
+                              rngs=[np.random.default_rng([200, f, v]) for v in range(truth.num_views)])
+           for f in range(frames)]
+    assert all(isinstance(views, list) for views in out)  # views of different sizes: a list of their images
+    return truth, out
+
+
+def test_check_and_refine_from_the_command_line_on_a_mixed_capture(tmp_path, capsys):
+    """A knocked mixed rig's scene frames on disk: check tracks the views of different sizes as refine does and
+    says DRIFT; refine writes a calibration closer to the truth, sizes kept."""
+    original = _sized_rig(2.0, 2.0, 0)
+    truth, frames = _knocked_scene_frames(original)
+    capture = tmp_path / "capture"
+    for f, views in enumerate(frames):
+        (capture / f"frame_{f:03d}").mkdir(parents=True)
+        for v, img in enumerate(views):
+            cv2.imwrite(str(capture / f"frame_{f:03d}" / f"{original.grid.name(v)}.png"), img)
+    original.save(tmp_path / "original.json")
+    main(["check", str(tmp_path / "original.json"), str(capture), "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert report["verdict"] == "DRIFT"
+    assert main(["refine", str(tmp_path / "original.json"), str(capture), "-o", str(tmp_path / "r.json"),
+                 "--quiet"]) == 0
+    refined = Calibration.load(tmp_path / "r.json")
+    assert [refined.image_size(v) for v in range(4)] == [original.image_size(v) for v in range(4)]
+    before, after = transfer_error_at_infinity(original, truth), transfer_error_at_infinity(refined, truth)
+    knocked = before > KNOCKED_PX
+    assert knocked.sum() == 2 and np.all(after[knocked] < REPAIRED_PX), (before, after)
+    assert np.all(after <= before + KEPT_PX), (before, after)
+
+
+KNOCKED_PX = 0.3  # a view knocked by more than this at infinity (px, its own pixels) ...
+REPAIRED_PX = 0.05  # ... is refined to within this of the truth (measured 0.013-0.027 px)
+KEPT_PX = 0.01  # and no view ends further from the truth than it started, beyond this
+
+
+def _sized_rig(size_scale: float, focal_scale: float, reference: int) -> Calibration:
+    """small-2x2 with views r00_c00 and r01_c01 ``size_scale`` times the others' size, their focal length
+    ``focal_scale`` times (a different field of view when the two differ)."""
+    scene = get_scene("small-2x2")
+    calib = make_rig(dataclasses.replace(scene.rig, reference=reference), np.random.default_rng(2))
+    w, h = calib.image_size_px
+    intr = list(calib.intrinsics)
+    for v in (0, 3):
+        i = intr[v]
+        intr[v] = dataclasses.replace(i, fx=focal_scale * i.fx, fy=focal_scale * i.fy,
+                                      cx=size_scale * (i.cx + 0.5) - 0.5, cy=size_scale * (i.cy + 0.5) - 0.5)
+    sizes = tuple((round(size_scale * w), round(size_scale * h)) if v in (0, 3) else (w, h) for v in range(4))
+    return calib.replace(intrinsics=tuple(intr), view_image_sizes_px=sizes)
+
+
+@pytest.mark.parametrize(("size_scale", "focal_scale", "reference"), [(2.0, 2.0, 0), (1.5, 1.25, 1)])
+def test_refine_repairs_a_knocked_rig_of_mixed_sizes(size_scale, focal_scale, reference):
+    """Views of different sizes (and fields of view) are tracked at the reference view's scale and refined in their
+    own pixels: the knocked ones are repaired against the truth, whichever view is the reference."""
+    original = _sized_rig(size_scale, focal_scale, reference)
+    truth, frames = _knocked_scene_frames(original)
+    assert len({img.shape for img in frames[0]}) == 2
+    refined, report = refine(original, frames)
+    before = transfer_error_at_infinity(original, truth)
+    after = transfer_error_at_infinity(refined, truth)
+    knocked = before > KNOCKED_PX
+    assert knocked.sum() == 2
+    assert np.all(after[knocked] < REPAIRED_PX), (before, after)
+    assert np.all(after <= before + KEPT_PX), (before, after)
+    assert [refined.image_size(v) for v in range(4)] == [original.image_size(v) for v in range(4)]

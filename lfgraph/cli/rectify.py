@@ -107,7 +107,6 @@ def cmd_check(args: argparse.Namespace) -> int:
     for note in capture.notes:
         print(f"note: {note}")
     check_compatible(calib, capture.grid, capture.sizes_px, str(args.input))
-    capture.require_one_size("check")
     report = check(calib, capture.frames(args.max_frames), config=config)
     drifted = report.drifted(args.max_px)
     judged = [v for v in report.verdicts if v.verdict not in ("REFERENCE",)]

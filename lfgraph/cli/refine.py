@@ -62,7 +62,6 @@ def _refine(args: argparse.Namespace) -> int:
     check_output_file(args.output, inputs=capture.all_paths())
     check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[args.output])
     check_compatible(calib, capture.grid, capture.sizes_px, str(args.input))
-    capture.require_one_size("refine")
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
     if not args.json:
         print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "

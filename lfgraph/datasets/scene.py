@@ -286,7 +286,8 @@ def render_scene_view(scene: Scene, intrinsics: Intrinsics, image_size_px: tuple
 
 def render_scene_views(scene: Scene, calib: Calibration, config: SceneConfig, views: list[int] | None = None,
                        rngs: list[np.random.Generator | None] | None = None) -> np.ndarray:
-    """(len(views), H, W) uint8: `render_scene_view` for several views of one scene, textures prepared once.
+    """(len(views), H, W) uint8: `render_scene_view` for several views of one scene, textures prepared once (a list
+    of (H, W) images when the views differ in size).
 
     Args:
         scene: the scene.
@@ -300,8 +301,9 @@ def render_scene_views(scene: Scene, calib: Calibration, config: SceneConfig, vi
     if len(rngs) != len(views):
         raise ValueError(f"need one rng per view, got {len(rngs)} for {len(views)} views")
     textures = [q.texture.astype(np.float32) for q in scene.quads]
-    return np.stack([_render_view(scene, textures, calib.intrinsics[v], calib.image_size_px, calib.view_T_ref(v),
-                                  config, rng) for v, rng in zip(views, rngs, strict=True)])
+    out = [_render_view(scene, textures, calib.intrinsics[v], calib.image_size(v), calib.view_T_ref(v), config, rng)
+           for v, rng in zip(views, rngs, strict=True)]
+    return out if len({img.shape for img in out}) > 1 else np.stack(out)
 
 
 def _render_view(scene: Scene, textures: list[np.ndarray] | None, intrinsics: Intrinsics,

@@ -127,7 +127,8 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
 def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
     """(N, 3) rays of ``samples`` x ``samples`` reference pixels over 5-95 % of the image (the reference's own lens
     undistorts them; pixels a folding lens has no ray for are left out): where the transfer at infinity is measured."""
-    xy = calib.intrinsics[calib.grid.reference].undistort(reference_pixels(calib.image_size_px, samples))
+    ref = calib.grid.reference
+    xy = calib.intrinsics[ref].undistort(reference_pixels(calib.image_size(ref), samples))
     xy = xy[np.all(np.isfinite(xy), axis=1)]  # corners a strong barrel lens folds over have no ray
     return np.column_stack([xy, np.ones(len(xy))])
 

@@ -55,7 +55,7 @@ def in_front(calib: Calibration, points_ref: np.ndarray, valid: np.ndarray) -> n
 def track_coverage(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, cells: int = COVERAGE_CELLS) -> float:
     """Share of an 8x8 grid of reference-image cells holding at least one kept track."""
     ref = calib.grid.reference
-    w, h = calib.image_size_px
+    w, h = calib.image_size(ref)
     pts = pixels[ref][valid[ref]]
     if not len(pts):
         return 0.0

@@ -309,8 +309,8 @@ class RerunLogger(SceneLog, BaseObserver):
         px = np.concatenate(parts, axis=1)
         return [px[v][np.all(np.isfinite(px[v]), axis=1)] for v in range(n_views)]
 
-    def _log_images(self, images: np.ndarray) -> None:
-        for v in range(images.shape[0]):
+    def _log_images(self, images) -> None:  # (V, H, W), or a list of (H, W) for views of different sizes
+        for v in range(len(images)):
             self.rec.log(f"views/{self._name(v)}/image", jpeg_image(self._shown_image(v, images[v])))
 
     # ------------------------------------------------------------------------------------------- optimiser
