@@ -84,7 +84,8 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
 
     Args:
         calib: the calibration to refine (e.g. from the pattern).
-        frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size.
+        frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size (for a rig
+            whose views differ in size, a list of each view's (H, W) image, as `CaptureSet.frames` yields).
         config: options (`RefineConfig()` by default).
         observer: hears log lines, frames, stages, outliers and optimiser iterations (`lfgraph.observer`);
             default: log lines go to `logging`.
