@@ -196,7 +196,6 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
         calib = Calibration.load(item.calibration)
         capture = open_capture(item.capture, calib.grid, item.layout)
         check_compatible(calib, capture.grid, capture.sizes_px, str(item.capture))
-        capture.require_one_size("fleet")
         config = RefineConfig(max_frames=item.max_frames, tolerance_px=item.tolerance_px)
         report = check(calib, capture.frames(item.max_frames), config=config)
         row.update(rms_before_px=report.rms_px, frames=report.frames)

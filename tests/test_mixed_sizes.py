@@ -1,6 +1,6 @@
 """Issue 25: a rig of mixed image sizes (views of twice the resolution beside the others) rendered, calibrated from its
 images, rectified to one image size with rows aligned, refined from scene frames, and refused by name where the
-work needs one size (check, calibrate-scene, fleet)."""
+work needs one size (calibrate-scene)."""
 
 import dataclasses
 import json
@@ -20,6 +20,7 @@ from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.evaluation import transfer_error_at_infinity
+from lfgraph.fleet import FleetItem, process_camera
 from lfgraph.geometry import make_T
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
 from lfgraph.refinement import refine
@@ -131,7 +132,7 @@ def _knocked_scene_frames(original: Calibration, frames: int = 2) -> tuple[Calib
 
 def test_check_and_refine_from_the_command_line_on_a_mixed_capture(tmp_path, capsys):
     """A knocked mixed rig's scene frames on disk: check tracks the views of different sizes as refine does and
-    says DRIFT; refine writes a calibration closer to the truth, sizes kept."""
+    says DRIFT; refine writes a calibration closer to the truth, sizes kept; fleet (check, then refine) too."""
     original = _sized_rig(2.0, 2.0, 0)
     truth, frames = _knocked_scene_frames(original)
     capture = tmp_path / "capture"
@@ -151,6 +152,9 @@ def test_check_and_refine_from_the_command_line_on_a_mixed_capture(tmp_path, cap
     knocked = before > KNOCKED_PX
     assert knocked.sum() == 2 and np.all(after[knocked] < REPAIRED_PX), (before, after)
     assert np.all(after <= before + KEPT_PX), (before, after)
+    # fleet runs both on every camera of a manifest
+    rows = process_camera(FleetItem("mixed", tmp_path / "original.json", capture, root=tmp_path))
+    assert [r["verdict"] for r in rows] == ["DRIFTED"] and not rows[0]["error"]
 
 
 KNOCKED_PX = 0.3  # a view knocked by more than this at infinity (px, its own pixels) ...
