@@ -26,7 +26,7 @@ import csv
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -117,13 +117,36 @@ def draw(seed: int) -> Scenario:
                     str(TEXTURES[rng.integers(len(TEXTURES))]), near, far)
 
 
-def rigs(s: Scenario) -> tuple[Calibration, Calibration]:
-    """(input, truth): the calibrated rig and the same rig after the knock."""
+MIXED_SIZE_SCALES = (0.5, 0.75, 1.5, 2.0)  # --mixed: a view's image size relative to the rig's ...
+MIXED_FIELD_SPREAD = 1.25  # ... and its focal length relative to that, within this factor either way
+
+
+def mixed_sizes(calib: Calibration, seed: int) -> Calibration:
+    """``calib`` with about half its views (at least one) at another image size and focal length (`--mixed`)."""
+    rng = np.random.default_rng([seed, 5])
+    w, h = calib.image_size_px
+    pick = rng.uniform(size=calib.num_views) < 0.5
+    pick[rng.integers(calib.num_views)] = True
+    intr, sizes = list(calib.intrinsics), []
+    for v in range(calib.num_views):
+        scale = float(rng.choice(MIXED_SIZE_SCALES)) if pick[v] else 1.0
+        field = float(np.exp(rng.uniform(-1, 1) * np.log(MIXED_FIELD_SPREAD))) if pick[v] else 1.0
+        i = intr[v]
+        intr[v] = replace(i, fx=i.fx * scale * field, fy=i.fy * scale * field, cx=scale * (i.cx + 0.5) - 0.5,
+                          cy=scale * (i.cy + 0.5) - 0.5)
+        sizes.append((round(scale * w), round(scale * h)))
+    return calib.replace(intrinsics=tuple(intr), view_image_sizes_px=tuple(sizes))
+
+
+def rigs(s: Scenario, mixed: bool = False) -> tuple[Calibration, Calibration]:
+    """(input, truth): the calibrated rig and the same rig after the knock (``mixed``: views of other sizes)."""
     cfg = RigConfig(rows=s.rows, cols=s.cols, reference=(s.rows // 2) * s.cols + s.cols // 2, pitch_m=s.pitch_m,
                     image_size_px=(s.width, s.height), focal_px=s.focal_px, k1=s.k1, k2=s.k2,
                     focal_jitter_px=0.005 * s.focal_px, principal_jitter_px=0.01 * s.width,
                     rot_jitter_deg=s.rot_jitter_deg, trans_jitter_mm=s.trans_jitter_mm)
     original = make_rig(cfg, np.random.default_rng([s.seed, 1]))
+    if mixed:
+        original = mixed_sizes(original, s.seed)
     if not s.knocked:
         return original, original
     truth = shake_rig(original, ShakeConfig(rot_deg=s.knock_deg, trans_mm=s.knock_mm, axis="any"),
@@ -219,10 +242,10 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else 0.0
 
 
-def run(s: Scenario, config: RefineConfig | None = None) -> dict:
+def run(s: Scenario, config: RefineConfig | None = None, mixed: bool = False) -> dict:
     """Render, refine from the unknocked calibration, score."""
     config = config or RefineConfig()
-    inp, truth = rigs(s)
+    inp, truth = rigs(s, mixed)
     frames = render(s, truth)
     t0 = time.perf_counter()
     try:
@@ -232,10 +255,10 @@ def run(s: Scenario, config: RefineConfig | None = None) -> dict:
     return score(s, inp, truth, out, report, time.perf_counter() - t0, config.tolerance_px)
 
 
-def _run_seed(seed: int, robust: str = "none") -> dict:
+def _run_seed(seed: int, robust: str = "none", mixed: bool = False) -> dict:
     s = draw(seed)
     try:
-        row = run(s, RefineConfig(robust=robust))
+        row = run(s, RefineConfig(robust=robust), mixed)
     except Exception as e:  # a crash is a finding: recorded, not hidden
         row = {**asdict(s), "views": s.rows * s.cols, "error": f"{type(e).__name__}: {e}"[:160]}
     return row
@@ -287,6 +310,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--csv", default="out/bench-sweep/sweep.csv")
     ap.add_argument("--jobs", type=int, default=1, help="scenarios in parallel (processes)")
     ap.add_argument("--robust", default="none", help="every scenario refined with this noise model (e.g. tukey)")
+    ap.add_argument("--mixed", action="store_true", help="about half of every rig's views at another image size "
+                    "(0.5-2x) and field of view (within 1.25x)")
     args = ap.parse_args(argv)
     path = Path(args.csv)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -319,11 +344,11 @@ def main(argv: list[str] | None = None) -> int:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(args.jobs) as pool:
-            for row in pool.map(_run_seed, todo, [args.robust] * len(todo)):
+            for row in pool.map(_run_seed, todo, [args.robust] * len(todo), [args.mixed] * len(todo)):
                 record(row)
     else:
         for seed in todo:
-            record(_run_seed(seed, args.robust))
+            record(_run_seed(seed, args.robust, args.mixed))
     rows = [r for r in rows if args.seed <= int(r["seed"]) < args.seed + args.scenarios]
     print(format_table(HEADER, summary(rows, tol)))
     print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
