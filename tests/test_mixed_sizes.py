@@ -24,6 +24,8 @@ from lfgraph.fleet import FleetItem, process_camera
 from lfgraph.geometry import make_T
 from lfgraph.rectification import build_maps, compute_rectification, remap_views
 from lfgraph.refinement import refine
+from lfgraph.refinement.matching import Tracks
+from lfgraph.refinement.resample import ViewCanvas
 
 FAR_BOARD_PX = 0.1  # as tests/test_rectify.py: corners detected in rectified renders of a board at >= 20 m
 FOCAL_REL = 0.003  # each view's focal length from its own rendered images, relative to the truth (measured 0.05 %)
@@ -192,3 +194,26 @@ def test_refine_repairs_a_knocked_rig_of_mixed_sizes(size_scale, focal_scale, re
     assert np.all(after[knocked] < REPAIRED_PX), (before, after)
     assert np.all(after <= before + KEPT_PX), (before, after)
     assert [refined.image_size(v) for v in range(4)] == [original.image_size(v) for v in range(4)]
+
+
+def test_the_canvas_maps_each_view_to_the_reference_scale_and_back():
+    """A scene point seen by a large and a small view of the same field lands on the same canvas pixel (what lets KLT
+    follow it), and canvas positions map back to each view's own pixels exactly; outside a view, not seen there."""
+    calib = _sized_rig(2.0, 2.0, 1)  # reference r00_c01 at 320x240; r00_c00 and r01_c01 at 640x480
+    canvas = ViewCanvas(calib)
+    assert canvas.size_px == (320, 240)
+    ref, big = calib.intrinsics[1], calib.intrinsics[0]
+    xy = np.array([[0.1, -0.05], [-0.2, 0.15]])  # image-plane points (pixels of an undistorted lens)
+    in_big = np.column_stack([big.fx * xy[:, 0] + big.cx, big.fy * xy[:, 1] + big.cy])
+    in_ref = np.column_stack([ref.fx * xy[:, 0] + ref.cx, ref.fy * xy[:, 1] + ref.cy])
+    np.testing.assert_allclose(canvas.scale[0] * in_big + canvas.offset[0], in_ref, atol=1e-9)
+    pts = np.full((4, 3, 2), np.nan)
+    pts[:, :2] = in_ref
+    pts[:, 2] = [-5.0, 10.0]  # off every view
+    back = canvas.to_views(Tracks(pts, np.ones((4, 3), dtype=bool)))
+    np.testing.assert_allclose(back.points_px[0, :2], in_big, atol=1e-9)
+    np.testing.assert_allclose(back.points_px[1, :2], in_ref, atol=1e-9)
+    assert back.valid[:, :2].all() and not back.valid[:, 2].any()
+    images = [np.full((h, w), v * 40, dtype=np.uint8) for v, (w, h) in enumerate(canvas.view_sizes_px)]
+    warped = canvas.warp(images)
+    assert warped.shape == (4, 240, 320) and warped[1].tolist() == images[1].tolist()
