@@ -54,6 +54,7 @@ _EXPORTS = {
     "evaluate": "lfgraph.evaluation",
     "CalibrationErrors": "lfgraph.evaluation",
     "RobustKernel": "lfgraph.factors.noise",
+    "vectorised_estimator": "lfgraph.bulk_noise",
     "GraphContext": "lfgraph.factors.hooks",
     "view_pose_key": "lfgraph.factors.keys",
     "calib_key": "lfgraph.factors.keys",
@@ -73,8 +74,8 @@ __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "Cal
            "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
            "RobustKernel", "SilentObserver", "Stage", "StageEnd", "Tracker", "Tracks", "TriangulationFilter",
            "ViewGrid", "calib_key", "calibrate", "check", "detect_capture", "evaluate", "landmark_key",
-           "load_detections", "open_capture", "pose_noise", "rectify", "refine", "view_pose_key", "viz", "factors",
-           "datasets", "pattern", "refinement", "synth", "study"]
+           "load_detections", "open_capture", "pose_noise", "rectify", "refine", "vectorised_estimator",
+           "view_pose_key", "viz", "factors", "datasets", "pattern", "refinement", "synth", "study"]
 
 
 def __getattr__(name: str) -> Any:
@@ -93,6 +94,7 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazily above
     from lfgraph.board import BoardSpec
+    from lfgraph.bulk_noise import vectorised_estimator
     from lfgraph.calibration import Calibration, CalibrationFileError
     from lfgraph.camera import Intrinsics
     from lfgraph.capture import CaptureError, CaptureSet, open_capture

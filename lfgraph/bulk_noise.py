@@ -13,12 +13,14 @@ Levenberg–Marquardt on the same graph in tests/test_bulk_noise.py):
 The common estimators (Huber, Cauchy, Tukey, Geman–McClure, DCS, Welsch, Fair, Null) are evaluated by their
 formulas in numpy; their parameter is read from GTSAM's own serialisation and the formulas are checked against the
 estimator's ``weight`` and ``loss`` when the model is built (a mismatch — a future GTSAM, a subclass — falls back to
-calling those). Any other estimator (``mEstimator.Custom`` with Python callbacks, the asymmetric ones) is called per
-residual: exact, slower (about a microsecond per residual and iteration).
+calling those). A kernel of your own made by `vectorised_estimator` (a ``Custom`` whose functions take arrays) runs
+on arrays too, after the same check. Any other estimator (``mEstimator.Custom`` with scalar Python callbacks, the
+asymmetric ones) is called per residual: exact, slower (about a microsecond per residual and iteration).
 """
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 
 import gtsam
@@ -114,6 +116,32 @@ def _is_number(text: str) -> bool:
     return True
 
 
+_VECTORISED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Custom estimator -> its array functions
+
+
+def vectorised_estimator(weight: Callable[[np.ndarray], np.ndarray], loss: Callable[[np.ndarray], np.ndarray],
+                         scheme: str = "block") -> gtsam.noiseModel.mEstimator.Custom:
+    """A robust kernel of your own as a GTSAM ``mEstimator.Custom`` whose functions also take arrays: GTSAM's
+    factors call them one distance at a time, the bulk solvers (`Kernel`) call them on every residual at once — the
+    speed of the built-in kernels, where a ``Custom`` made from scalar callbacks is called once per residual.
+
+    Args:
+        weight, loss: w(d) and rho(d) of whitened distances d >= 0, numpy in and out (e.g. ``lambda d: 1 / (1 +
+            d * d)``); checked against each other's scalar calls when the bulk solver first uses them.
+        scheme: ``"block"`` (GTSAM's default: one weight for both coordinates of a residual) or ``"scalar"``.
+
+    Raises:
+        ValueError: an unknown scheme.
+    """
+    schemes = {"block": _M.Base.ReweightScheme.Block, "scalar": _M.Base.ReweightScheme.Scalar}
+    if scheme not in schemes:
+        raise ValueError(f"scheme must be 'block' or 'scalar', got {scheme!r}")
+    estimator = _M.Custom.Create(lambda d: float(weight(np.float64(d))), lambda d: float(loss(np.float64(d))),
+                                 reweight=schemes[scheme])
+    _VECTORISED[estimator] = (weight, loss)
+    return estimator
+
+
 class Kernel:
     """One GTSAM M-estimator as vectorised ``weight(d)`` and ``loss(d)`` of whitened distances, and its scheme.
 
@@ -136,6 +164,16 @@ class Kernel:
         if make is not None and (len(fields) >= 2 or make is _null):
             weight, loss = make(fields[1]) if make is not _null else make()
             if self._agrees(weight, loss):
+                self.weight, self.loss, self.vectorised = weight, loss, True
+        arrays = _VECTORISED.get(estimator) if make is None else None
+        if arrays is not None:  # a kernel of the user's own, given as array functions (`vectorised_estimator`)
+            weight, loss = (lambda d, f=arrays[0]: f(np.asarray(d, dtype=np.float64))), \
+                (lambda d, f=arrays[1]: f(np.asarray(d, dtype=np.float64)))
+            try:
+                same = self._agrees(weight, loss)
+            except Exception:  # noqa: BLE001  (functions that do not take arrays after all: called per residual)
+                same = False
+            if same:
                 self.weight, self.loss, self.vectorised = weight, loss, True
         if not self.vectorised:
             self.weight = np.frompyfunc(estimator.weight, 1, 1)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from test_schur import gtsam_route, scene
 
-from lfgraph.bulk_noise import BulkNoise, Kernel, NotBulk
+from lfgraph.bulk_noise import BulkNoise, Kernel, NotBulk, vectorised_estimator
 from lfgraph.datasets.rig import ShakeConfig, shake_rig
 from lfgraph.evaluation import evaluate_calibration
 from lfgraph.factors.keys import view_pose_key
@@ -92,6 +92,30 @@ def test_a_bounded_loss_starts_from_the_least_squares_minimum():
     np.testing.assert_allclose(fits[0].ref_T_view[:, :3, :3], fits[1].ref_T_view[:, :3, :3], atol=SAME_ROUTE_RAD)
 
 
+def cauchy_arrays():
+    """Cauchy (k = 2) of your own, written for arrays: `vectorised_estimator`."""
+    return vectorised_estimator(lambda d: 4.0 / (4.0 + d * d), lambda d: 2.0 * np.log1p(d * d / 4.0))
+
+
+def test_a_kernel_of_your_own_written_for_arrays_runs_on_arrays():
+    est = cauchy_arrays()
+    kernel = Kernel(est)
+    assert kernel.vectorised and kernel.block
+    d = np.geomspace(1e-3, 100.0, 50)
+    np.testing.assert_allclose(kernel.weights(d), [est.weight(x) for x in d], rtol=SAME_FORMULA)
+    np.testing.assert_allclose(kernel.losses(d), [est.loss(x) for x in d], rtol=SAME_FORMULA)
+    assert Kernel(vectorised_estimator(lambda d: 1.0 / (1.0 + d * d), lambda d: 0.5 * np.log1p(d * d),
+                                       scheme="scalar")).block is False
+    # functions that only take numbers are found out and called per residual, exactly
+    scalar_only = vectorised_estimator(lambda d: 1.0 if d < 1.0 else 1.0 / d,
+                                       lambda d: 0.5 * d * d if d < 1.0 else d - 0.5)
+    kernel = Kernel(scalar_only)
+    assert not kernel.vectorised
+    np.testing.assert_allclose(kernel.weights(np.array([0.5, 4.0])), [1.0, 0.25])
+    with pytest.raises(ValueError, match="scheme"):
+        vectorised_estimator(np.ones_like, np.ones_like, scheme="rows")
+
+
 def test_a_custom_estimator_is_called_per_residual():
     est = cauchy_custom()
     kernel = Kernel(est)
@@ -153,6 +177,7 @@ NOISES = {
     # information: where it goes is the solver's choice)
     "tukey scalar": M.Tukey.Create(100.0, SCALAR),
     "custom": cauchy_custom(),
+    "custom for arrays": cauchy_arrays(),
     "diagonal gaussian": gtsam.noiseModel.Diagonal.Sigmas(np.array([0.04, 0.06])),
 }
 
