@@ -127,7 +127,7 @@ def vectorised_estimator(weight: Callable[[np.ndarray], np.ndarray], loss: Calla
 
     Args:
         weight, loss: w(d) and rho(d) of whitened distances d >= 0, numpy in and out (e.g. ``lambda d: 1 / (1 +
-            d * d)``); checked against each other's scalar calls when the bulk solver first uses them.
+            d * d)``); checked against their own calls on single distances when the bulk solver first uses them.
         scheme: ``"block"`` (GTSAM's default: one weight for both coordinates of a residual) or ``"scalar"``.
 
     Raises:
@@ -140,6 +140,14 @@ def vectorised_estimator(weight: Callable[[np.ndarray], np.ndarray], loss: Calla
                                  reweight=schemes[scheme])
     _VECTORISED[estimator] = (weight, loss)
     return estimator
+
+
+def _on_arrays(f: Callable) -> Callable[[np.ndarray], np.ndarray]:
+    """``f`` of an array of distances, its result float64 of the same shape (a constant broadcast)."""
+    def g(d):
+        d = np.asarray(d, dtype=np.float64)
+        return np.broadcast_to(np.asarray(f(d), dtype=np.float64), d.shape)
+    return g
 
 
 class Kernel:
@@ -167,8 +175,7 @@ class Kernel:
                 self.weight, self.loss, self.vectorised = weight, loss, True
         arrays = _VECTORISED.get(estimator) if make is None else None
         if arrays is not None:  # a kernel of the user's own, given as array functions (`vectorised_estimator`)
-            weight, loss = (lambda d, f=arrays[0]: f(np.asarray(d, dtype=np.float64))), \
-                (lambda d, f=arrays[1]: f(np.asarray(d, dtype=np.float64)))
+            weight, loss = (_on_arrays(f) for f in arrays)
             try:
                 same = self._agrees(weight, loss)
             except Exception:  # noqa: BLE001  (functions that do not take arrays after all: called per residual)

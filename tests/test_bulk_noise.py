@@ -112,6 +112,8 @@ def test_a_kernel_of_your_own_written_for_arrays_runs_on_arrays():
     kernel = Kernel(scalar_only)
     assert not kernel.vectorised
     np.testing.assert_allclose(kernel.weights(np.array([0.5, 4.0])), [1.0, 0.25])
+    constant = Kernel(vectorised_estimator(lambda d: 1.0, lambda d: 0.5 * d * d))  # a constant weight, broadcast
+    assert constant.vectorised and constant.weights(np.array([1.0, 2.0])).tolist() == [1.0, 1.0]
     with pytest.raises(ValueError, match="scheme"):
         vectorised_estimator(np.ones_like, np.ones_like, scheme="rows")
 
