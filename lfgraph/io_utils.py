@@ -137,7 +137,8 @@ def run_outputs() -> Iterator[list[Path]]:
         _ledger = outer
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (one owned by another user counts as alive)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -153,7 +154,7 @@ def remove_stale_partials(final: Path) -> None:
         return
     for stale in final.parent.glob(f".{final.name}.*.tmp"):
         pid = stale.name[len(final.name) + 2:].split(".")[0]
-        if stale.is_dir() and pid.isdigit() and not _alive(int(pid)):
+        if stale.is_dir() and pid.isdigit() and not process_alive(int(pid)):
             shutil.rmtree(stale, ignore_errors=True)
 
 

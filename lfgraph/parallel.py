@@ -15,6 +15,8 @@ from typing import Any
 
 from tqdm import tqdm
 
+from lfgraph.io_utils import process_alive
+
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 PARENT_POLL_S = 1.0  # the portable fallback checks for an orphaned worker this often
 
@@ -40,20 +42,10 @@ _PRCTL = _libc_prctl()
 FORKSERVER_PRELOAD = ["numpy", "cv2", "gtsam", "lfgraph.detections", "lfgraph.datasets.checkerboard"]
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _watch_parent(parent_pid: int) -> None:
     while True:
         time.sleep(PARENT_POLL_S)
-        if not _alive(parent_pid):
+        if not process_alive(parent_pid):
             os._exit(1)
 
 
@@ -63,7 +55,7 @@ def die_with_parent(parent_pid: int) -> None:
     when this process ends (``prctl(PR_SET_PDEATHSIG)``); a daemon thread also watches the process itself."""
     if _PRCTL is not None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
-    if not _alive(parent_pid):  # the parent died before the signal was armed
+    if not process_alive(parent_pid):  # the parent died before the signal was armed
         os._exit(1)
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
 
