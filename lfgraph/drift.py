@@ -173,16 +173,16 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     """Run the drift check over (V, H, W) grayscale frames (lists of (H, W) for views of different sizes)."""
     from lfgraph.refinement.assess import assess
     from lfgraph.refinement.config import RefineConfig
-    from lfgraph.refinement.resample import ViewCanvas, track_views
+    from lfgraph.refinement.resample import canvas_for, track_views
     from lfgraph.refinement.tracks import pooled_filter, track_coverage
 
     config = config or RefineConfig()
     tracker = config.tracker if settings is None else ChainTracker(settings)
     pixels, valid, frame_ids, counts, n_frames = [], [], [], {}, 0
-    canvas = ViewCanvas(calib) if ViewCanvas.needed(calib) else None  # views of different sizes
+    canvas = canvas_for(calib)  # None unless the views differ in size
     for f, images in enumerate(frames):
         check_frame_array(images, f, calib.grid, [calib.image_size(v) for v in range(calib.num_views)])
-        tracks = track_views(tracker, images, calib, canvas)
+        tracks = track_views(tracker, images, calib.grid, canvas)
         res = reprojection_residuals(calib, tracks)
         keep = drop_mismatches(res)
         tracks_counts = {**tracks.counts, "triangulation": int(keep.sum())}

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.grid import ViewGrid
 from lfgraph.refinement.matching import Tracker, Tracks
 
 
@@ -38,11 +39,6 @@ class ViewCanvas:
         self.scale = np.array([[ref.fx / i.fx, ref.fy / i.fy] for i in calib.intrinsics])
         centres = np.array([[i.cx, i.cy] for i in calib.intrinsics])
         self.offset = np.array([ref.cx, ref.cy]) - self.scale * centres  # canvas = scale * view + offset
-
-    @staticmethod
-    def needed(calib: Calibration) -> bool:
-        """Whether ``calib``'s views differ in image size (a one-size rig is tracked as it is)."""
-        return len({tuple(calib.image_size(v)) for v in range(calib.num_views)}) > 1
 
     def warp(self, images: Sequence[np.ndarray]) -> np.ndarray:
         """(V, H, W) uint8: each view's image resampled onto the canvas (bilinear; outside a view: black)."""
@@ -69,10 +65,14 @@ class ViewCanvas:
         return Tracks(pts, valid, dict(tracks.counts))
 
 
-def track_views(tracker: Tracker, images, calib: Calibration, canvas: ViewCanvas | None = None) -> Tracks:
-    """One frame's tracks in each view's own pixels: ``images`` (V, H, W), or a list of (H, W) for views of
-    different sizes, which are tracked on ``canvas`` (`ViewCanvas` of ``calib``, made when not given)."""
-    if not ViewCanvas.needed(calib):
-        return tracker.track(images, calib.grid)
-    canvas = canvas or ViewCanvas(calib)
-    return canvas.to_views(tracker.track(canvas.warp(images), calib.grid))
+def canvas_for(calib: Calibration) -> ViewCanvas | None:
+    """The `ViewCanvas` of a rig whose views differ in image size; None for a one-size rig (tracked as it is)."""
+    return ViewCanvas(calib) if len({tuple(calib.image_size(v)) for v in range(calib.num_views)}) > 1 else None
+
+
+def track_views(tracker: Tracker, images, grid: ViewGrid, canvas: ViewCanvas | None) -> Tracks:
+    """One frame's tracks in each view's own pixels: ``images`` (V, H, W) tracked as they are (``canvas`` None), or
+    a mixed rig's list of (H, W) views tracked on its ``canvas`` (`canvas_for`)."""
+    if canvas is None:
+        return tracker.track(images, grid)
+    return canvas.to_views(tracker.track(canvas.warp(images), grid))

@@ -24,7 +24,7 @@ from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, fit_sigma
 from lfgraph.refinement.matching import Tracker, Tracks
 from lfgraph.refinement.report import RefinementReport
-from lfgraph.refinement.resample import ViewCanvas, track_views
+from lfgraph.refinement.resample import ViewCanvas, canvas_for, track_views
 from lfgraph.refinement.tracks import (
     COVERAGE_CELLS,
     collect_tracks,
@@ -47,12 +47,11 @@ def with_reference(calib: Calibration, reference: int) -> Calibration:
     return calib.with_reference(reference)
 
 
-def _timed_track(images: np.ndarray, calib: Calibration, tracker: Tracker, canvas: ViewCanvas | None = None
-                 ) -> tuple[Tracks, float]:
+def _timed_track(images: np.ndarray, grid, tracker: Tracker, canvas: ViewCanvas | None) -> tuple[Tracks, float]:
     """The tracker's tracks and its wall seconds (it runs in `refine`'s worker thread); views of different sizes
     are tracked on the reference view's scale (`track_views`)."""
     t0 = time.perf_counter()
-    tracks = track_views(tracker, images, calib, canvas)
+    tracks = track_views(tracker, images, grid, canvas)
     return tracks, time.perf_counter() - t0
 
 
@@ -135,13 +134,13 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
     c_adjust = 0.0  # CPU seconds of the adjustment (this thread's: the solver runs on one thread)
     c_start = time.process_time()
     sigma_estimate: float | None = None
-    canvas = ViewCanvas(calib) if ViewCanvas.needed(calib) else None
+    canvas = canvas_for(calib)  # None unless the views differ in size
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
             break
         check_frame_array(images, f, calib.grid, [calib.image_size(v) for v in range(calib.num_views)])
-        tracking = klt.submit(_timed_track, images, calib, config.tracker, canvas)
+        tracking = klt.submit(_timed_track, images, calib.grid, config.tracker, canvas)
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
             # this frame's tracks are judged with that fit; the last frame's pass is the assessed one below
