@@ -26,14 +26,14 @@ import csv
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from lfgraph.alignment import transfer_error_at_infinity
 from lfgraph.calibration import Calibration
-from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, resize_views, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.geometry import rotvec_from_rotation
 from lfgraph.refinement import RefineConfig, refine
@@ -124,18 +124,13 @@ MIXED_FIELD_SPREAD = 1.25  # ... and its focal length relative to that, within t
 def mixed_sizes(calib: Calibration, seed: int) -> Calibration:
     """``calib`` with about half its views (at least one) at another image size and focal length (`--mixed`)."""
     rng = np.random.default_rng([seed, 5])
-    w, h = calib.image_size_px
     pick = rng.uniform(size=calib.num_views) < 0.5
     pick[rng.integers(calib.num_views)] = True
-    intr, sizes = list(calib.intrinsics), []
-    for v in range(calib.num_views):
-        scale = float(rng.choice(MIXED_SIZE_SCALES)) if pick[v] else 1.0
-        field = float(np.exp(rng.uniform(-1, 1) * np.log(MIXED_FIELD_SPREAD))) if pick[v] else 1.0
-        i = intr[v]
-        intr[v] = replace(i, fx=i.fx * scale * field, fy=i.fy * scale * field, cx=scale * (i.cx + 0.5) - 0.5,
-                          cy=scale * (i.cy + 0.5) - 0.5)
-        sizes.append((round(scale * w), round(scale * h)))
-    return calib.replace(intrinsics=tuple(intr), view_image_sizes_px=tuple(sizes))
+    scale, focal = np.ones(calib.num_views), np.ones(calib.num_views)
+    for v in np.nonzero(pick)[0]:
+        scale[v] = rng.choice(MIXED_SIZE_SCALES)
+        focal[v] = scale[v] * np.exp(rng.uniform(-1, 1) * np.log(MIXED_FIELD_SPREAD))
+    return resize_views(calib, scale, focal)
 
 
 def rigs(s: Scenario, mixed: bool = False) -> tuple[Calibration, Calibration]:

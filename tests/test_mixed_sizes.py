@@ -16,7 +16,7 @@ from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, main
 from lfgraph.datasets.board_render import render_checkerboard_view
 from lfgraph.datasets.checkerboard import CheckerboardConfig, make_checkerboard_truth, write_checkerboard_dataset
-from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
+from lfgraph.datasets.rig import ShakeConfig, make_rig, resize_views, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.evaluation import transfer_error_at_infinity
@@ -36,15 +36,7 @@ SCALE = 2  # the sharper views: twice the rig's resolution, the same field of vi
 
 def _mixed_rig() -> Calibration:
     """small-2x2 with views r00_c00 and r01_c01 at 640x480: the same field as the 320x240 views."""
-    calib = make_rig(get_scene("small-2x2").rig, np.random.default_rng(2))
-    w, h = calib.image_size_px
-    intr = list(calib.intrinsics)
-    for v in (0, 3):
-        i = intr[v]
-        intr[v] = dataclasses.replace(i, fx=SCALE * i.fx, fy=SCALE * i.fy, cx=SCALE * (i.cx + 0.5) - 0.5,
-                                      cy=SCALE * (i.cy + 0.5) - 0.5)
-    sizes = tuple((SCALE * w, SCALE * h) if v in (0, 3) else (w, h) for v in range(calib.num_views))
-    return calib.replace(intrinsics=tuple(intr), view_image_sizes_px=sizes)
+    return _sized_rig(SCALE, SCALE, 0)
 
 
 def test_far_board_rows_align_across_views_of_different_sizes():
@@ -167,16 +159,9 @@ KEPT_PX = 0.01  # and no view ends further from the truth than it started, beyon
 def _sized_rig(size_scale: float, focal_scale: float, reference: int) -> Calibration:
     """small-2x2 with views r00_c00 and r01_c01 ``size_scale`` times the others' size, their focal length
     ``focal_scale`` times (a different field of view when the two differ)."""
-    scene = get_scene("small-2x2")
-    calib = make_rig(dataclasses.replace(scene.rig, reference=reference), np.random.default_rng(2))
-    w, h = calib.image_size_px
-    intr = list(calib.intrinsics)
-    for v in (0, 3):
-        i = intr[v]
-        intr[v] = dataclasses.replace(i, fx=focal_scale * i.fx, fy=focal_scale * i.fy,
-                                      cx=size_scale * (i.cx + 0.5) - 0.5, cy=size_scale * (i.cy + 0.5) - 0.5)
-    sizes = tuple((round(size_scale * w), round(size_scale * h)) if v in (0, 3) else (w, h) for v in range(4))
-    return calib.replace(intrinsics=tuple(intr), view_image_sizes_px=sizes)
+    calib = make_rig(dataclasses.replace(get_scene("small-2x2").rig, reference=reference), np.random.default_rng(2))
+    big = np.isin(np.arange(4), (0, 3))
+    return resize_views(calib, np.where(big, size_scale, 1.0), np.where(big, focal_scale, 1.0))
 
 
 @pytest.mark.parametrize(("size_scale", "focal_scale", "reference"), [(2.0, 2.0, 0), (1.5, 1.25, 1)])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -143,3 +144,20 @@ def shake_rig(calibration: Calibration, config: ShakeConfig, rng: np.random.Gene
         # Turn about the view's own optical centre and axis, then move it (in the reference frame).
         poses[v] = make_T(np.eye(3), shift_m) @ poses[v] @ make_T(rotation_from_rotvec(angle * axis), np.zeros(3))
     return calibration.replace(intrinsics=tuple(intrinsics), ref_T_view=poses, rectification=None, metrics=None)
+
+
+def resize_views(calibration: Calibration, size_scale: Sequence[float],
+                 focal_scale: Sequence[float] | None = None) -> Calibration:
+    """A rig of mixed image sizes: view v imaged at ``size_scale[v]`` times the rig's image size (its principal point
+    moved with the pixel grid, ``s (c + 0.5) - 0.5``) and its focal length ``focal_scale[v]`` times (default: the size
+    scale, the same field of view; another factor widens or narrows it). A scale of 1 leaves a view as it is."""
+    sizes_scale = np.asarray(size_scale, dtype=np.float64)
+    focal = sizes_scale if focal_scale is None else np.asarray(focal_scale, dtype=np.float64)
+    if sizes_scale.shape != (calibration.num_views,) or focal.shape != (calibration.num_views,):
+        raise ValueError(f"need one size and focal scale per view ({calibration.num_views}), got "
+                         f"{sizes_scale.shape} and {focal.shape}")
+    w, h = calibration.image_size_px
+    intr = tuple(dataclasses.replace(i, fx=f * i.fx, fy=f * i.fy, cx=s * (i.cx + 0.5) - 0.5, cy=s * (i.cy + 0.5) - 0.5)
+                 for i, s, f in zip(calibration.intrinsics, sizes_scale, focal, strict=True))
+    sizes = tuple((round(s * w), round(s * h)) for s in sizes_scale)
+    return calibration.replace(intrinsics=intr, view_image_sizes_px=sizes)
