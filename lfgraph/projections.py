@@ -211,6 +211,22 @@ class ProjectionProblem:
             g_c += A[:, :n_c].T @ A[:, n_c]
         return ReducedSystem(V.reshape(-1, 3, 3), W, g_l, H, g_c)
 
+    def typical_weights(self, state) -> np.ndarray:
+        """(V,) the robust kernel's weight at each view's median whitened residual distance at ``state`` (ones for
+        a Gaussian model or a view without observations; zeros where a landmark is behind a camera)."""
+        out = np.ones(self.n_views)
+        if self.noise.kernel is None:
+            return out
+        e = self._residuals(state, False)
+        if e is None:
+            return np.zeros(self.n_views)
+        d = np.hypot(e[:, 0], e[:, 1])
+        bounds = np.searchsorted(self.view, np.arange(self.n_views + 1))
+        seen = bounds[1:] > bounds[:-1]
+        medians = np.array([np.median(d[bounds[v]:bounds[v + 1]]) for v in np.flatnonzero(seen)])
+        out[seen] = self.noise.kernel.weights(medians)
+        return out
+
     def gaussian(self) -> ProjectionProblem | None:
         """The same problem under the robust model's Gaussian part (None: the model is Gaussian already)."""
         if self.noise.kernel is None:

@@ -14,7 +14,9 @@ A robust model whose loss is bounded (Tukey, Geman–McClure, Welsch, DCS: a res
 nothing) starts each stage from the minimum under its Gaussian part (`least_squares_start`), as a redescending
 M-estimator needs a start near its minimum: started from a knocked calibration, Tukey at 4.685 sigmas gave every
 track of a knocked view zero weight and kept the input (3.3 px at infinity; 0.064 px from the least-squares start,
-`benchmarks/refine.py --kernels-only`). Unbounded ones (Huber, Cauchy, Fair) start where the stage starts.
+`benchmarks/refine.py --kernels-only`). Unbounded ones (Huber, Cauchy, Fair) start where the stage starts, and so
+does a bounded one on the bulk path when every view's median residual keeps at least `START_WEIGHT_MIN` of its
+weight there (the start is within the kernel's reach: a refinement's clean-up stage, after its poses stage).
 """
 
 from __future__ import annotations
@@ -48,12 +50,16 @@ from lfgraph.schur_system import NotReducible
 REFINE_RELATIVE_TOL = 1e-7  # refine's stages. GTSAM's 1e-10 costs one more iteration per stage whose cost decrease is
 # ~1e-11 relative (measured on paper-5x5: a parameter step of ~0.002 posterior sigma); the accuracy in
 # benchmarks/refine.py is the same to the printed digits
-ROBUST_RELATIVE_TOL = 1e-5  # refine's stages under a robust kernel (iteratively reweighted: linear convergence, ~20
-# iterations of 1e-6..1e-7 of the cost each where a Gaussian stage takes 2-3): GTSAM's default. An extra stop once the
-# cameras moved by less than 0.01 of their posterior sigma per step wrote a worse calibration on a sweep scenario
-# (benchmarks/sweep.py seed 57: a 3x4 on repeated texture, 29.9 -> 57.8 px at infinity; unchanged without it)
+ROBUST_RELATIVE_TOL = 1e-4  # refine's stages under a robust kernel (iteratively reweighted: linear convergence, each
+# iteration lowering the cost by ~0.3-0.6 of the one before, where a Gaussian stage takes 2-3 iterations). On the kernel
+# table (benchmarks/refine.py --kernels-only) Tukey, Geman-McClure (3.787 and 1 sigma), Cauchy and Huber land within
+# 0.002 px at infinity of their fits converged to 1e-9, in 0.1-0.4x its iterations (0.55-0.8x those of 1e-5).
+# An extra stop once the cameras moved by less than 0.01 of their posterior sigma per step wrote a worse calibration on
+# a sweep scenario (benchmarks/sweep.py seed 57: a 3x4 on repeated texture, 29.9 -> 57.8 px at infinity)
 INTERMEDIATE_RELATIVE_TOL = 1e-6  # a self-calibration's intermediate stages (the next stage starts from there)
 FINAL_RELATIVE_TOL = 1e-9  # a self-calibration's final stage converges fully (the marginals are taken at its optimum)
+START_WEIGHT_MIN = 0.5  # a bounded kernel's bulk stage starts where it is when the kernel gives every view's median
+# residual at least this weight there (else from the least-squares minimum: a knocked view's tracks would weigh 0)
 
 
 @dataclass(frozen=True)
@@ -160,10 +166,12 @@ def least_squares_start(model: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base |
 
 
 def _solve_bulk(plan: StagePlan, problem: ProjectionProblem, state, callback) -> tuple[tuple, int]:
-    """The bulk problem solved ((values, points), iterations), from the least-squares minimum for a bounded loss."""
+    """The bulk problem solved ((values, points), iterations), from the least-squares minimum for a bounded loss
+    unless the start is within the kernel's reach (`START_WEIGHT_MIN`)."""
     limits = dict(max_iterations=plan.settings.max_iterations, relative_error_tol=plan.settings.relative_error_tol)
     iterations = 0
-    if problem.noise.kernel is not None and problem.noise.kernel.bounded:
+    if problem.noise.kernel is not None and problem.noise.kernel.bounded \
+            and np.min(problem.typical_weights(state)) < START_WEIGHT_MIN:
         warm = optimize_problem(problem.gaussian(), state, callback=callback, **limits)
         state, iterations = warm.values, warm.iterations
     res = optimize_problem(problem, state, callback=callback, **limits)
