@@ -15,7 +15,9 @@ formulas in numpy; their parameter is read from GTSAM's own serialisation and th
 estimator's ``weight`` and ``loss`` when the model is built (a mismatch — a future GTSAM, a subclass — falls back to
 calling those). A kernel of your own made by `vectorised_estimator` (a ``Custom`` whose functions take arrays) runs
 on arrays too, after the same check. Any other estimator (``mEstimator.Custom`` with scalar Python callbacks, the
-asymmetric ones) is called per residual: exact, slower (about a microsecond per residual and iteration).
+asymmetric ones) runs from a table of its own values (`lfgraph.kernel_table`: cubic interpolation checked against the
+callbacks cell by cell to 1e-9, the callbacks answering where it does not match, e.g. at a kink); one that is not
+finite everywhere is called per residual (about a microsecond per residual and iteration).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from collections.abc import Callable
 
 import gtsam
 import numpy as np
+
+from lfgraph.kernel_table import KernelTable
 
 _M = gtsam.noiseModel.mEstimator
 PROBE_DISTANCES = np.array([0.0, 0.05, 0.3, 0.9, 1.0, 1.7, 3.1, 7.5, 40.0])  # whitened distances the formulas are
@@ -123,7 +127,8 @@ def vectorised_estimator(weight: Callable[[np.ndarray], np.ndarray], loss: Calla
                          scheme: str = "block") -> gtsam.noiseModel.mEstimator.Custom:
     """A robust kernel of your own as a GTSAM ``mEstimator.Custom`` whose functions also take arrays: GTSAM's
     factors call them one distance at a time, the bulk solvers (`Kernel`) call them on every residual at once — the
-    speed of the built-in kernels, where a ``Custom`` made from scalar callbacks is called once per residual.
+    speed of the built-in kernels and exact, where a ``Custom`` made from scalar callbacks runs from a table of its
+    values (`lfgraph.kernel_table`, to 1e-9).
 
     Args:
         weight, loss: w(d) and rho(d) of whitened distances d >= 0, numpy in and out (e.g. ``lambda d: 1 / (1 +
@@ -142,6 +147,25 @@ def vectorised_estimator(weight: Callable[[np.ndarray], np.ndarray], loss: Calla
     return estimator
 
 
+_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # estimator -> its tables, or None
+
+
+def _tables(estimator) -> tuple[KernelTable, KernelTable] | None:
+    """Tables of an estimator's weight and loss (`lfgraph.kernel_table`), built once per estimator; None when it
+    cannot be tabulated (not finite, raises) or cannot be remembered (then it is called per residual)."""
+    try:
+        if estimator in _TABLES:
+            return _TABLES[estimator]
+    except TypeError:  # not weakly referenceable
+        return None
+    try:
+        tables = (KernelTable(estimator.weight), KernelTable(estimator.loss))
+    except Exception:  # noqa: BLE001  (a function that fails somewhere: called per residual, as GTSAM does)
+        tables = None
+    _TABLES[estimator] = tables
+    return tables
+
+
 def _on_arrays(f: Callable) -> Callable[[np.ndarray], np.ndarray]:
     """``f`` of an array of distances, its result float64 of the same shape (a constant broadcast)."""
     def g(d):
@@ -158,7 +182,9 @@ class Kernel:
 
     Attributes:
         block: GTSAM's Block reweighting (both rows of a residual by one weight), else Scalar.
-        vectorised: the formulas run in numpy (else the estimator is called per residual).
+        vectorised: it is evaluated on arrays: the built-in kernels' formulas in numpy, a `vectorised_estimator`'s
+            functions, or (``tabulated``) a `lfgraph.kernel_table.KernelTable` of a ``Custom``'s scalar callbacks;
+            else the estimator is called per residual.
         bounded: the loss is bounded (Tukey, Geman–McClure, Welsch, DCS): a residual far beyond the threshold pulls
             nothing, so a fit must start near its minimum.
     """
@@ -182,9 +208,14 @@ class Kernel:
                 same = False
             if same:
                 self.weight, self.loss, self.vectorised = weight, loss, True
-        if not self.vectorised:
-            self.weight = np.frompyfunc(estimator.weight, 1, 1)
-            self.loss = np.frompyfunc(estimator.loss, 1, 1)
+        self.tabulated = False
+        if not self.vectorised:  # scalar callbacks: from a table of their values where it matches them, else per call
+            tables = _tables(estimator)
+            if tables is not None:
+                (self.weight, self.loss), self.vectorised, self.tabulated = tables, True, True
+            else:
+                self.weight = np.frompyfunc(estimator.weight, 1, 1)
+                self.loss = np.frompyfunc(estimator.loss, 1, 1)
         far = self.losses(FAR_DISTANCES)
         self.bounded = bool(np.isfinite(far[1]) and far[1] <= BOUNDED_LOSS_RATIO * far[0])
 

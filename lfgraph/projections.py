@@ -58,7 +58,7 @@ class ProjectionProblem:
         except NotBulk as e:
             raise NotReducible(str(e)) from None
         # a robust model's reweighted steps fall short: stretch them (`lfgraph.schur`), unless each extra cost costs a
-        # Python call per residual (an estimator of callbacks)
+        # Python call per residual (an estimator that cannot be tabulated)
         self.extrapolate = self.noise.kernel is not None and self.noise.kernel.vectorised
         self.intr = np.asarray(intrinsics, dtype=np.float64)
         self.n_views, self.n_landmarks = len(self.intr), int(n_landmarks)
