@@ -3,6 +3,7 @@
 RMS, the reference poses of OpenCV's tests and time. Needs ``../shared/data/opencv_multiview``.
 
     .venv/bin/python benchmarks/opencv_multiview.py
+    .venv/bin/python benchmarks/opencv_multiview.py --per-view-models   # each view alone under every lens model
 
 The reference poses are OpenCV's own results on these files (its README); the criteria are its tests'
 (each camera within 1 degree and 1 cm; RMS <= 0.3 px for OneLine, <= 1 px for the others).
@@ -10,6 +11,7 @@ The reference poses are OpenCV's own results on these files (its README); the cr
 
 from __future__ import annotations
 
+import argparse
 import sys
 import tempfile
 import time
@@ -19,6 +21,8 @@ import cv2
 import numpy as np
 
 import lfgraph as lf
+from lfgraph.camera import LENSES
+from lfgraph.pattern.lenses import FIT_ERRORS, fit_mono, heldout_rms_px
 from lfgraph.pattern.pose_fit import board_pose
 from lfgraph.points_io import PointBoard, read_opencv_multiview
 
@@ -176,18 +180,52 @@ def lofo(obs: lf.BoardObservations, models: list[str]) -> tuple[str, str]:
         + (f" ({failed[t]} of {FOLDS} folds failed)" if failed[t] else "") for t in ("lfgraph", "OpenCV"))
 
 
+def load(folder: str, cams: list[str], sizes: list[tuple[int, int]], frames: int) -> lf.BoardObservations:
+    """One set's detections as a 1 x N rig, its first ``frames`` frames."""
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, cam in enumerate(cams):
+            (Path(tmp) / f"cam_{k}.json").symlink_to(DATA / folder / f"{cam}.json")
+        grid = lf.ViewGrid(1, len(cams), 0)
+        return read_opencv_multiview(tmp, PointBoard(OBJ, "obj"), grid,
+                                     (sizes[0], dict(enumerate(sizes)))).subset_frames(np.arange(frames))
+
+
+def per_view_models() -> None:
+    """Each view alone under radtan, fisheye and unified: RMS of its own frames, of held-out frames (the 8-fold
+    `--lens auto` uses) and seconds — why `--lens auto` leaves unified to be named."""
+    rows = []
+    for name, folder, cams, sizes, frames, *_ in SETS:
+        obs = load(folder, cams, sizes, frames)
+        for v in range(len(cams)):
+            row = [name, cams[v]]
+            for lens in LENSES:
+                t0 = time.perf_counter()
+                try:
+                    fit = fit_mono(obs, v, lens)
+                    cell = f"{fit.rms_px:.4f} / {heldout_rms_px(obs, v, lens, start=fit.intrinsics):.4f}"
+                except FIT_ERRORS:
+                    cell = "failed"
+                row.append(f"{cell} ({time.perf_counter() - t0:.1f} s)")
+            rows.append(row)
+    headers = ["set", "camera", *(f"{lens}: fit / held-out px (s)" for lens in LENSES)]
+    widths = [max(len(str(r[i])) for r in [headers, *rows]) for i in range(len(headers))]
+    for r in [headers, *rows]:
+        print("  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=True)))
+
+
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--per-view-models", action="store_true", help="each view alone under every lens model")
+    args = parser.parse_args()
     if not DATA.is_dir():
         print(f"skipped: {DATA} is not there")
         return 0
+    if args.per_view_models:
+        per_view_models()
+        return 0
     rows = []
     for name, folder, cams, sizes, frames, models, bar, ref in SETS:
-        with tempfile.TemporaryDirectory() as tmp:
-            for k, cam in enumerate(cams):
-                (Path(tmp) / f"cam_{k}.json").symlink_to(DATA / folder / f"{cam}.json")
-            grid = lf.ViewGrid(1, len(cams), 0)
-            obs = read_opencv_multiview(tmp, PointBoard(OBJ, "obj"), grid,
-                                        (sizes[0], dict(enumerate(sizes)))).subset_frames(np.arange(frames))
+        obs = load(folder, cams, sizes, frames)
         t0 = time.perf_counter()
         calib, report = lf.calibrate(obs)
         lf_s = time.perf_counter() - t0

@@ -125,7 +125,7 @@ def stage_graph(plan: StagePlan, calib: Calibration, pixels: np.ndarray, valid: 
     if plan.intrinsics:
         insert_intrinsics(values, calib.intrinsics)
         if projections:
-            graph.push_back(scene_graph.sfm_factors(pixels, valid, model))
+            graph.push_back(scene_graph.sfm_factors(pixels, valid, model, [i.lens for i in calib.intrinsics]))
     elif projections:
         graph.push_back(scene_graph.projection_factors(calib, pixels, valid, model))
     return graph, values
@@ -226,6 +226,6 @@ def run_plan(plan: StagePlan, calib: Calibration, pixels: np.ndarray, valid: np.
     intr = calib.intrinsics
     if plan.intrinsics:
         intr = read_intrinsics(values, calib.num_views, keep=calib.intrinsics if plan.keep_distortion else None,
-                               tangential=plan.tangential)
+                               tangential=plan.tangential, lenses=[i.lens for i in calib.intrinsics])
     return PlanResult(calib.replace(intrinsics=intr, ref_T_view=poses), new_points, iterations, graph,
                       values if graph is not None else None)

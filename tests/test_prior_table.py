@@ -8,7 +8,12 @@ import pytest
 
 from lfgraph.camera import Intrinsics
 from lfgraph.factors.noise import GAUGE_SIGMA, MIN_SIGMA
-from lfgraph.factors.prior_table import cal3ds2_vectors, intrinsics_prior_factors, pose_prior_factors
+from lfgraph.factors.prior_table import (
+    cal3ds2_vectors,
+    calibration_vectors,
+    intrinsics_prior_factors,
+    pose_prior_factors,
+)
 
 
 def poses(n):
@@ -47,3 +52,23 @@ def test_other_lenses_and_shapes_are_refused_by_name():
         pose_prior_factors(0, poses(3), np.zeros((3, 5)))
     with pytest.raises(ValueError, match="intrinsics priors"):
         intrinsics_prior_factors(np.zeros((2, 9)), np.zeros((3, 9)))
+    with pytest.raises(ValueError, match=r"view 0 \(unified\) needs 10 columns"):
+        intrinsics_prior_factors(np.zeros((1, 9)), np.ones((1, 9)), ["unified"])
+
+
+def test_each_view_gets_the_prior_of_its_own_lens_model():
+    """A rig of three models: each view's prior is GTSAM's prior on its own calibration type, centred on the view's
+    calibration (`Intrinsics.to_gtsam`), with the sigmas of its row in that model's tangent order."""
+    views = [Intrinsics(600.0, 601.0, 320.0, 240.0, -0.1, 0.02, 1e-4, -2e-4),
+             replace(Intrinsics(300.0, 301.0, 330.0, 250.0, 0.01, -0.002), k3=3e-4, k4=-1e-5, lens="fisheye"),
+             replace(Intrinsics(500.0, 502.0, 310.0, 230.0, -0.2, 0.05, 1e-3, 2e-3), xi=0.9, lens="unified")]
+    mean = calibration_vectors(views)
+    sigmas = np.tile(np.arange(1.0, 11.0), (3, 1))
+    graph = intrinsics_prior_factors(mean, sigmas, [v.lens for v in views])
+    kinds = (gtsam.PriorFactorCal3DS2, gtsam.PriorFactorCal3Fisheye, gtsam.PriorFactorCal3Unified)
+    for k, (view, kind) in enumerate(zip(views, kinds, strict=True)):
+        factor = graph.at(k)
+        assert isinstance(factor, kind)
+        assert factor.prior().equals(view.to_gtsam(), 1e-12)
+        n = 10 if view.lens == "unified" else 9
+        np.testing.assert_allclose(factor.noiseModel().sigmas(), np.arange(1.0, n + 1.0))

@@ -75,12 +75,10 @@ def range_noise(sigma_m: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Isotropic.Sigma(1, float(_sigmas([sigma_m])[0]))
 
 
-def cal3ds2_noise(sigmas: Sequence[float]) -> gtsam.noiseModel.Base:
-    """Cal3DS2 prior noise from nine sigmas in its tangent order (fx, fy, s, u0, v0, k1, k2, p1, p2)."""
-    s = _sigmas(sigmas)
-    if s.shape != (9,):
-        raise ValueError(f"Cal3DS2 needs 9 sigmas (fx fy s cx cy k1 k2 p1 p2), got {s.shape}")
-    return gtsam.noiseModel.Diagonal.Sigmas(s)
+def calibration_noise(sigmas: Sequence[float]) -> gtsam.noiseModel.Base:
+    """Diagonal prior noise of a calibration of any lens model from its sigmas in GTSAM's tangent order (9 for
+    Cal3DS2 and Cal3Fisheye, 10 for Cal3Unified: `lens_noise`), each floored at `MIN_SIGMA`."""
+    return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(sigmas))
 
 
 def lens_noise(lens: str, focal_px: float, principal_px: float, distortion: float,

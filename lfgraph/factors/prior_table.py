@@ -4,9 +4,12 @@ A wing says what its priors are as arrays, one row per view — the refinement's
 calibration (`lfgraph.factors.scene_graph.pose_priors`, `intrinsics_priors`), a self-calibration's design priors
 (`lfgraph.factors.selfcal_graph.pose_map_priors`, `intrinsics_map_priors`) — and these functions turn the rows into
 GTSAM factors: the reference view's pose is the gauge (`gauge_pose_noise`); every other row is a
-``PriorFactorPose3`` / ``PriorFactorCal3DS2`` with diagonal sigmas (`pose_noise`, `cal3ds2_noise`: floored at
-``MIN_SIGMA``); a row of NaN sigmas adds no factor (a view free without a pull). A held parameter is a sigma of
-``HELD_SIGMA``, a group a stage frees is a row's columns (`lfgraph.factors.groups`).
+``PriorFactorPose3`` / a prior on the view's calibration of its own lens (``PriorFactorCal3DS2``, ``…Cal3Fisheye``,
+``…Cal3Unified``) with diagonal sigmas (floored at ``MIN_SIGMA``); a row of NaN sigmas adds no factor (a view free
+without a pull). A held parameter is a sigma of ``HELD_SIGMA``, a group a stage frees is a row's columns
+(`lfgraph.factors.groups`). Intrinsics rows are in GTSAM's tangent order, which the three models share up to their
+distortion: fx fy s cx cy, then k1 k2 p1 p2 (radtan), k1 k2 k3 k4 (fisheye) or k1 k2 p1 p2 xi (unified), NaN-padded
+to `CAL_TANGENT_MAX` columns.
 """
 
 from __future__ import annotations
@@ -14,13 +17,17 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from lfgraph.camera import RADTAN, Intrinsics
+from lfgraph.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
 from lfgraph.factors.keys import calib_key, view_pose_key
-from lfgraph.factors.noise import cal3ds2_noise, gauge_pose_noise, pose_noise
+from lfgraph.factors.noise import calibration_noise, gauge_pose_noise, pose_noise
 from lfgraph.geometry import to_pose3
 
 POSE_TANGENT = 6  # rotation x y z (rad, body frame), then position x y z (m): GTSAM's Pose3 tangent order
-CAL3DS2_TANGENT = 9  # fx fy s cx cy k1 k2 p1 p2
+CAL_TANGENT = {RADTAN: 9, FISHEYE: 9, UNIFIED: 10}  # each lens model's calibration tangent (module docstring)
+CAL_TANGENT_MAX = 10
+_PRIORS = {RADTAN: (gtsam.PriorFactorCal3DS2, gtsam.Cal3DS2),
+           FISHEYE: (gtsam.PriorFactorCal3Fisheye, gtsam.Cal3Fisheye),
+           UNIFIED: (gtsam.PriorFactorCal3Unified, gtsam.Cal3Unified)}
 
 
 def cal3ds2_vectors(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> np.ndarray:
@@ -50,16 +57,33 @@ def pose_prior_factors(reference: int, mean: np.ndarray, sigmas: np.ndarray) -> 
     return graph
 
 
-def intrinsics_prior_factors(mean: np.ndarray, sigmas: np.ndarray) -> gtsam.NonlinearFactorGraph:
-    """One Cal3DS2 prior per view: ``mean`` (V, 9) Cal3DS2 vectors with their ``sigmas`` (V, 9; px and unitless
-    coefficients; a NaN row: no prior)."""
+def calibration_vectors(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> np.ndarray:
+    """(V, `CAL_TANGENT_MAX`) each view's calibration in its lens's tangent order (skew 0; NaN beyond its size)."""
+    out = np.full((len(intrinsics), CAL_TANGENT_MAX), np.nan)
+    for v, i in enumerate(intrinsics):
+        tail = {FISHEYE: [i.k1, i.k2, i.k3, i.k4], UNIFIED: [i.k1, i.k2, i.p1, i.p2, i.xi]}.get(i.lens,
+                                                                                            [i.k1, i.k2, i.p1, i.p2])
+        row = [i.fx, i.fy, 0.0, i.cx, i.cy, *tail]
+        out[v, :len(row)] = row
+    return out
+
+
+def intrinsics_prior_factors(mean: np.ndarray, sigmas: np.ndarray,
+                             lenses: list[str] | tuple[str, ...] | None = None) -> gtsam.NonlinearFactorGraph:
+    """One calibration prior per view, of its lens model: ``mean`` (V, >= the lens's tangent size) calibration
+    vectors (`calibration_vectors`, or `cal3ds2_vectors` for radtan views) with their ``sigmas`` (same shape; px and
+    unitless coefficients; a NaN row: no prior); ``lenses`` each view's model (all radtan when None)."""
     _check(mean.shape, sigmas.shape, "intrinsics")
-    _check(mean.shape[1:], (CAL3DS2_TANGENT,), "intrinsics")
+    lenses = [RADTAN] * len(mean) if lenses is None else list(lenses)
     graph = gtsam.NonlinearFactorGraph()
-    for v in range(len(mean)):
-        if not np.any(np.isnan(sigmas[v])):
-            graph.add(gtsam.PriorFactorCal3DS2(calib_key(v), gtsam.Cal3DS2(*mean[v].tolist()),
-                                               cal3ds2_noise(sigmas[v])))
+    for v, lens in enumerate(lenses):
+        n = CAL_TANGENT[lens]
+        if mean.shape[1] < n:
+            raise ValueError(f"intrinsics priors: view {v} ({lens}) needs {n} columns, got {mean.shape[1]}")
+        if np.any(np.isnan(sigmas[v, :n])):
+            continue
+        factor, calibration = _PRIORS[lens]
+        graph.add(factor(calib_key(v), calibration(*mean[v, :n].tolist()), calibration_noise(sigmas[v, :n])))
     return graph
 
 

@@ -22,6 +22,8 @@ priors hold it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import gtsam
 import numpy as np
 
@@ -29,13 +31,7 @@ from lfgraph.calibration import Calibration
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, range_noise
-from lfgraph.factors.prior_table import (
-    CAL3DS2_TANGENT,
-    POSE_TANGENT,
-    cal3ds2_vectors,
-    intrinsics_prior_factors,
-    pose_prior_factors,
-)
+from lfgraph.factors.prior_table import POSE_TANGENT, calibration_vectors, intrinsics_prior_factors, pose_prior_factors
 from lfgraph.geometry import to_pose3
 
 RANGE_GAUGE_SIGMA_M = 1e-3  # a pure gauge: any sigma keeps the range; 1e-6 m made LM fail on a 14 mm baseline
@@ -82,12 +78,19 @@ def projection_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray
     return graph
 
 
-def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactorGraph:
-    """Landmarks seen by free poses and free intrinsics (`GeneralSFMFactor2Cal3DS2`)."""
+_SFM_FACTORS = {"radtan": gtsam.GeneralSFMFactor2Cal3DS2, "fisheye": gtsam.GeneralSFMFactor2Cal3Fisheye,
+                "unified": gtsam.GeneralSFMFactor2Cal3Unified}
+
+
+def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.Base,
+                lenses: Sequence[str] | None = None) -> gtsam.NonlinearFactorGraph:
+    """Landmarks seen by free poses and free intrinsics (``GeneralSFMFactor2`` of each view's lens model: Cal3DS2,
+    Cal3Fisheye or Cal3Unified; all radtan when ``lenses`` is None)."""
     graph = gtsam.NonlinearFactorGraph()
     vs, js, meas = _observations(valid, pixels)
+    factors = [_SFM_FACTORS["radtan" if lenses is None else lens] for lens in (lenses or [None] * valid.shape[0])]
     for v, j, uv in zip(vs, js, meas, strict=True):
-        graph.add(gtsam.GeneralSFMFactor2Cal3DS2(uv, noise, view_pose_key(v), landmark_key(j), calib_key(v)))
+        graph.add(factors[v](uv, noise, view_pose_key(v), landmark_key(j), calib_key(v)))
     return graph
 
 
@@ -162,11 +165,12 @@ def principal_point_gauge(calib: Calibration) -> tuple[int, int] | None:
 def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre: Calibration | None = None,
                       map_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
     """fx, fy, cx, cy free for the non-reference, non-held views (minus the principal-point gauge); skew,
-    distortion and everything of the reference and held views held. With ``map_centre`` and ``map_sigmas`` (V, 4)
-    the free ones get MAP drift priors centred on the input (fx, fy, cx, cy sigmas in px) instead of no pull."""
+    distortion (each view's lens model's) and everything of the reference and held views held. With
+    ``map_centre`` and ``map_sigmas`` (V, 4) the free ones get MAP drift priors centred on the input (fx, fy, cx, cy
+    sigmas in px) instead of no pull."""
     n = calib.num_views
-    mean = cal3ds2_vectors(calib.intrinsics if map_centre is None else map_centre.intrinsics)
-    sigmas = np.full((n, CAL3DS2_TANGENT), HELD_SIGMA)
+    mean = calibration_vectors(calib.intrinsics if map_centre is None else map_centre.intrinsics)
+    sigmas = np.full(mean.shape, HELD_SIGMA)
     sigmas[:, 2] = MIN_SIGMA  # skew
     free = np.array([v != calib.grid.reference and v not in held_views for v in range(n)])
     focal_principal = [*CAL3DS2_INDICES[Group.FOCAL], *CAL3DS2_INDICES[Group.PRINCIPAL]]
@@ -179,4 +183,4 @@ def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre
         gauge = principal_point_gauge(calib)
         if gauge is not None and free[gauge[0]]:
             sigmas[gauge] = HELD_SIGMA
-    return intrinsics_prior_factors(mean, sigmas)
+    return intrinsics_prior_factors(mean, sigmas, [i.lens for i in calib.intrinsics])

@@ -3,6 +3,7 @@ intrinsics, board poses, board corners and landmarks goes through here (round-tr
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Sequence
 
 import gtsam
@@ -67,12 +68,16 @@ def read_view_poses(values: gtsam.Values, n_views: int) -> np.ndarray:
 _READERS = {"fisheye": "atCal3Fisheye", "unified": "atCal3Unified"}
 
 
+SKEW_ROUNDOFF_PX = 1e-6  # a skew held at 0 by a prior of `lfgraph.factors.noise.MIN_SIGMA` moves by ~1e-12: dropped
+
+
 def read_intrinsics(values: gtsam.Values, n_views: int, keep: Sequence[Intrinsics] | None = None,
                     tangential: bool = True, lenses: Sequence[str] | None = None) -> tuple[Intrinsics, ...]:
     """Per-view intrinsics from their GTSAM calibrations.
 
     Args:
-        keep: when given, distortion (k1, k2, p1, p2) is taken from these instead (stages that hold it).
+        keep: when given, distortion (k1, k2, p1, p2; a wide model's coefficients and xi) is taken from these
+            instead (stages that hold it).
         tangential: False clears p1, p2 (held at 0 by priors; this removes their ~1e-13 round-off).
         lenses: each view's lens model (`lfgraph.camera.LENSES`); all radtan (Cal3DS2) when None.
     """
@@ -80,7 +85,9 @@ def read_intrinsics(values: gtsam.Values, n_views: int, keep: Sequence[Intrinsic
     for v in range(n_views):
         lens = "radtan" if lenses is None else lenses[v]
         if lens != "radtan":
-            intr = Intrinsics.from_gtsam(getattr(values, _READERS[lens])(calib_key(v)))
+            intr = Intrinsics.from_gtsam(getattr(values, _READERS[lens])(calib_key(v)), max_skew_px=SKEW_ROUNDOFF_PX)
+            if keep is not None:  # the stage held the distortion: the input's, without round-off
+                intr = dataclasses.replace(keep[v], fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy)
             if not tangential and lens == "unified":
                 intr = intr.with_distortion(lens, xi=intr.xi, k1=intr.k1, k2=intr.k2)
             out.append(intr)

@@ -276,8 +276,7 @@ def intrinsics_mismatch(calib: Calibration, px: np.ndarray, ok: np.ndarray, fit,
     None when it does not, or when the fit freed intrinsics or left at most `INTRINSICS_CHECK_SIGMA_PX`, or for a
     stereo pair: there the second view's pan is held (the hidden rotation gauge), so a real pan knock only a
     principal point can absorb looks the same (sweep #101, #187: pairs knocked 1.4-1.8 deg)."""
-    if fit.last_stage.frees_intrinsics or not fit.sigma_px > INTRINSICS_CHECK_SIGMA_PX or calib.num_views < 3 \
-            or any(i.lens != "radtan" for i in calib.intrinsics):  # free intrinsics: radtan only
+    if fit.last_stage.frees_intrinsics or not fit.sigma_px > INTRINSICS_CHECK_SIGMA_PX or calib.num_views < 3:
         return None
     free = fit_tracks(calib, px, ok, dataclasses.replace(config, stages="points,all"), SilentObserver())
     poses_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))

@@ -59,18 +59,6 @@ FOREIGN_RMS_PX = 1.0  # tracks that fit the input this badly, and refits of the 
 # a calibration of another camera (a knocked rig's refits predict better, even when the folds disagree)
 
 
-def check_lenses(calib: Calibration, config: RefineConfig, what: str) -> None:
-    """Every lens model refines its poses (each view projected through its own lens); stages that free intrinsics
-    (``intrinsics``, ``all``: the paper's schedule) model radtan lenses only: refuse other views by name there."""
-    if not any(stage.frees_intrinsics for stage in config.stages):
-        return
-    other = [f"{calib.grid.name(v)} ({i.lens})" for v, i in enumerate(calib.intrinsics) if i.lens != "radtan"]
-    if other:
-        raise ValueError(f"{what}: views {', '.join(other)} have a wide-angle lens model; the stages "
-                         f"{', '.join(s for s in config.stages if s.frees_intrinsics)} free intrinsics, which "
-                         f"lfgraph models for radtan lenses only: use the default stages (poses)")
-
-
 def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfig | None = None,
            observer: Observer | None = None) -> tuple[Calibration, RefinementReport]:
     """Refine a calibration from ordinary (textured) captures, frame after frame.
@@ -95,8 +83,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
 
     Raises:
         ValueError: a frame whose shape, dtype or size does not match the calibration (named), no frame, no
-            track survives the filters (too little texture), or a view with a non-radtan lens model in a schedule
-            that frees intrinsics (``--stages paper``).
+            track survives the filters (too little texture).
         TypeError: ``calib``, ``config`` or ``frames`` of the wrong kind (named).
     """
     if not isinstance(calib, Calibration):
@@ -106,7 +93,6 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         raise TypeError(f"refine: config must be a lfgraph.RefineConfig, got {type(config).__name__}")
     check_frames_argument(frames, "refine")
     config = config or RefineConfig()
-    check_lenses(calib, config, "refine")
     obs = resolve(observer)
     # A frame's KLT does not depend on the calibration: it runs in a worker thread (OpenCV releases the GIL) while
     # the frames so far are refitted, and only judging its tracks waits for that fit. Results are unchanged.
