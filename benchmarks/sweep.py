@@ -133,12 +133,34 @@ def mixed_sizes(calib: Calibration, seed: int) -> Calibration:
     return resize_views(calib, scale, focal)
 
 
-def rigs(s: Scenario, mixed: bool = False) -> tuple[Calibration, Calibration]:
-    """(input, truth): the calibrated rig and the same rig after the knock (``mixed``: views of other sizes)."""
+WIDE_FOCAL_SCALE = 0.6  # --lens fisheye / unified: the scenario's focal length times this (fields ~55-125 deg across)
+
+
+def wide_lens(s: Scenario, lens: str) -> dict:
+    """`RigConfig` fields of a wide lens for the scenario (``--lens``; the radtan draw when ``lens`` is radtan): a
+    fisheye's k1 in [-0.04, 0.02] and k2 in [-0.005, 0.005] (monotonic past 70 deg off axis), or a unified lens
+    with xi in [0.6, 1.1] and k1 in [-0.15, 0], k2 in [0, 0.03], its focal length (1 + xi) times longer for the
+    same field."""
+    if lens == "radtan":
+        return dict(focal_px=s.focal_px, k1=s.k1, k2=s.k2)
+    rng = np.random.default_rng([s.seed, 6])
+    focal = WIDE_FOCAL_SCALE * s.focal_px
+    if lens == "fisheye":
+        return dict(lens=lens, focal_px=focal, k1=float(rng.uniform(-0.04, 0.02)), k2=float(rng.uniform(-0.005, 0.005)),
+                    distortion_jitter=0.002)
+    xi = float(rng.uniform(0.6, 1.1))
+    return dict(lens=lens, xi=xi, focal_px=(1.0 + xi) * focal, k1=float(rng.uniform(-0.15, 0.0)),
+                k2=float(rng.uniform(0.0, 0.03)), distortion_jitter=0.005)
+
+
+def rigs(s: Scenario, mixed: bool = False, lens: str = "radtan") -> tuple[Calibration, Calibration]:
+    """(input, truth): the calibrated rig and the same rig after the knock (``mixed``: views of other sizes;
+    ``lens``: every view's model, `wide_lens`)."""
+    optics = wide_lens(s, lens)
     cfg = RigConfig(rows=s.rows, cols=s.cols, reference=(s.rows // 2) * s.cols + s.cols // 2, pitch_m=s.pitch_m,
-                    image_size_px=(s.width, s.height), focal_px=s.focal_px, k1=s.k1, k2=s.k2,
-                    focal_jitter_px=0.005 * s.focal_px, principal_jitter_px=0.01 * s.width,
-                    rot_jitter_deg=s.rot_jitter_deg, trans_jitter_mm=s.trans_jitter_mm)
+                    image_size_px=(s.width, s.height), focal_jitter_px=0.005 * optics["focal_px"],
+                    principal_jitter_px=0.01 * s.width, rot_jitter_deg=s.rot_jitter_deg,
+                    trans_jitter_mm=s.trans_jitter_mm, **optics)
     original = make_rig(cfg, np.random.default_rng([s.seed, 1]))
     if mixed:
         original = mixed_sizes(original, s.seed)
@@ -237,10 +259,10 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else 0.0
 
 
-def run(s: Scenario, config: RefineConfig | None = None, mixed: bool = False) -> dict:
+def run(s: Scenario, config: RefineConfig | None = None, mixed: bool = False, lens: str = "radtan") -> dict:
     """Render, refine from the unknocked calibration, score."""
     config = config or RefineConfig()
-    inp, truth = rigs(s, mixed)
+    inp, truth = rigs(s, mixed, lens)
     frames = render(s, truth)
     t0 = time.perf_counter()
     try:
@@ -250,10 +272,10 @@ def run(s: Scenario, config: RefineConfig | None = None, mixed: bool = False) ->
     return score(s, inp, truth, out, report, time.perf_counter() - t0, config.tolerance_px)
 
 
-def _run_seed(seed: int, robust: str = "none", mixed: bool = False) -> dict:
+def _run_seed(seed: int, robust: str = "none", mixed: bool = False, lens: str = "radtan") -> dict:
     s = draw(seed)
     try:
-        row = run(s, RefineConfig(robust=robust), mixed)
+        row = run(s, RefineConfig(robust=robust), mixed, lens)
     except Exception as e:  # a crash is a finding: recorded, not hidden
         row = {**asdict(s), "views": s.rows * s.cols, "error": f"{type(e).__name__}: {e}"[:160]}
     return row
@@ -307,6 +329,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robust", default="none", help="every scenario refined with this noise model (e.g. tukey)")
     ap.add_argument("--mixed", action="store_true", help="about half of every rig's views at another image size "
                     "(0.5-2x) and field of view (within 1.25x)")
+    ap.add_argument("--lens", default="radtan", choices=("radtan", "fisheye", "unified"),
+                    help="every view's lens model (fisheye, unified: wider fields, `wide_lens`)")
     args = ap.parse_args(argv)
     path = Path(args.csv)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -339,11 +363,12 @@ def main(argv: list[str] | None = None) -> int:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(args.jobs) as pool:
-            for row in pool.map(_run_seed, todo, [args.robust] * len(todo), [args.mixed] * len(todo)):
+            for row in pool.map(_run_seed, todo, [args.robust] * len(todo), [args.mixed] * len(todo),
+                                [args.lens] * len(todo)):
                 record(row)
     else:
         for seed in todo:
-            record(_run_seed(seed, args.robust, args.mixed))
+            record(_run_seed(seed, args.robust, args.mixed, args.lens))
     rows = [r for r in rows if args.seed <= int(r["seed"]) < args.seed + args.scenarios]
     print(format_table(HEADER, summary(rows, tol)))
     print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
