@@ -3,13 +3,13 @@ distance), evaluated on arrays from a table of its values.
 
 GTSAM calls such a kernel once per residual; the bulk solvers (`lfgraph.bulk_noise`) reweight tens of thousands of
 residuals per iteration, where a Python call each cost 3x the Gaussian's time on the kernel table
-(`benchmarks/refine.py --kernels-only`). A `KernelTable` samples the function once, at nodes evenly spaced in
-``t = asinh(d)`` (as fine as `TABLE_STEP` near 0, geometric far out, up to `TABLE_REACH` whitened sigmas either
-side), and interpolates with the cubic through the four nearest nodes. Each cell between two nodes is checked at its
-midpoint — where a smooth function's cubic error peaks — against the function itself and used only when it agrees
-to `TABLE_RTOL`; distances in cells that do not (a kink: a threshold like Huber's or Tukey's, a jump), beyond the
-reach, or not finite are passed to the function one by one. The kernel is assumed to be a function of the distance
-alone, as GTSAM assumes.
+(`benchmarks/refine.py --kernels-only`). A `KernelTable` samples the function once, at nodes `CORE_STEP` apart
+within `CORE_REACH` whitened sigmas either side of 0 and, beyond, `OUTER_STEP` apart in ``asinh(d)`` (0.5 % of the
+distance) out to `OUTER_REACH`, and interpolates with the cubic through the four nearest nodes. Each cell between
+two nodes is checked at its midpoint — where a smooth function's cubic error peaks — against the function itself
+and used only when it agrees to `TABLE_RTOL`; distances in cells that do not (a kink: a threshold like Huber's or
+Tukey's, a jump), beyond the reach, or not finite are passed to the function one by one. The kernel is assumed to
+be a function of the distance alone, as GTSAM assumes.
 """
 
 from __future__ import annotations

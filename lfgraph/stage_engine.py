@@ -51,7 +51,7 @@ REFINE_RELATIVE_TOL = 1e-7  # refine's stages. GTSAM's 1e-10 costs one more iter
 # ~1e-11 relative (measured on paper-5x5: a parameter step of ~0.002 posterior sigma); the accuracy in
 # benchmarks/refine.py is the same to the printed digits
 ROBUST_RELATIVE_TOL = 1e-4  # refine's stages under a robust kernel (iteratively reweighted: linear convergence, each
-# iteration lowering the cost by ~0.3-0.6 of the one before, where a Gaussian stage takes 2-3 iterations). On the kernel
+# iteration lowering the cost by ~0.3-0.8 of the one before, where a Gaussian stage takes 2-3 iterations). On the kernel
 # table (benchmarks/refine.py --kernels-only) Tukey, Geman-McClure (3.787 and 1 sigma), Cauchy and Huber land within
 # 0.002 px at infinity of their fits converged to 1e-9, in 0.1-0.4x its iterations (0.55-0.8x those of 1e-5).
 # An extra stop once the cameras moved by less than 0.01 of their posterior sigma per step wrote a worse calibration on
