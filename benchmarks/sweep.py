@@ -14,6 +14,7 @@ Per texture class and overall:
 (e) accuracy (median and worst transfer at infinity after) and seconds per frame.
 
     python benchmarks/sweep.py --scenarios 200 [--seed 0] [--csv out/sweep.csv] [--jobs 2]
+        [--robust tukey] [--mixed] [--lens fisheye|unified]
 
 Rows are appended to the CSV as scenarios finish (a re-run skips the seeds already there). `tests/test_sweep.py`
 runs a fixed-seed subset of the same scenarios.
@@ -342,6 +343,9 @@ def main(argv: list[str] | None = None) -> int:
     todo = [s for s in range(args.seed, args.seed + args.scenarios) if s not in done]
     tol = RefineConfig().tolerance_px
     print(f"{len(todo)} scenarios to run ({len(done)} in {path})", flush=True)
+    if args.lens != "radtan":
+        print(f"every view {args.lens}: the labels' focal lengths are the radtan draw's, the lenses' are "
+              f"{WIDE_FOCAL_SCALE:g}x" + (" (1 + xi)" if args.lens == "unified" else ""), flush=True)
 
     def record(row: dict) -> None:
         rows.append(row)

@@ -162,6 +162,25 @@ def test_sweep_subset_never_worse_no_false_alarm_no_miss(seed):
     assert row["missed_views"] == 0
 
 
+# small scenarios of the sweep through wide lenses (`benchmarks/sweep.py --lens`): knocked lines, grids and an
+# unknocked rig, poor and rich texture, 1-7 frames
+WIDE_SUBSET = ((21, "fisheye"), (44, "fisheye"), (56, "fisheye"), (7, "unified"), (10, "unified"), (54, "unified"))
+
+
+@pytest.mark.parametrize("seed, lens", WIDE_SUBSET)
+def test_wide_lens_sweep_subset_never_worse_no_false_alarm_no_miss(seed, lens):
+    """The same scenarios rendered through fisheye and unified lenses (fields ~55-125 deg across): never worse, no
+    false alarm, no miss, as above."""
+    s = sweep.draw(seed)
+    row = sweep.run(s, lens=lens)
+    assert not row.get("error"), row["error"]
+    assert row["worse_calibration"] == 0 and row["worse_views_3sigma"] == 0, row
+    assert row["transfer_out_max_px"] <= row["transfer_in_max_px"] + NOT_WORSE_PX
+    if not s.knocked:
+        assert row["drifted_views"] == 0
+    assert row["missed_views"] == 0
+
+
 def test_a_calibration_of_another_camera_is_not_refined_and_said(tmp_path):
     """Issue 27: another camera's calibration (f 851 px on an f 300 px capture) was reported 'DRIFTED ... refined'
     with fx still 550 px off. Nothing is written changed, and the warning says what is wrong."""
