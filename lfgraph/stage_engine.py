@@ -15,9 +15,8 @@ nothing) starts each stage from the minimum under its Gaussian part (`least_squa
 M-estimator needs a start near its minimum: started from a knocked calibration, Tukey at 4.685 sigmas gave every
 track of a knocked view zero weight and kept the input (3.3 px at infinity; 0.064 px from the least-squares start,
 `benchmarks/refine.py --kernels-only`). Unbounded ones (Huber, Cauchy, Fair) start where the stage starts, and so
-does a bounded one on the bulk path when every view's median residual keeps at least `START_WEIGHT_MIN` of the weight
-the kernel gives noise alone (the start is within the kernel's reach: a refinement's clean-up stage, after its poses
-stage).
+does a bounded one on the bulk path when every view's median residual keeps at least `START_WEIGHT_MIN` of its
+weight there (the start is within the kernel's reach: a refinement's clean-up stage, after its poses stage).
 """
 
 from __future__ import annotations
@@ -60,9 +59,7 @@ ROBUST_RELATIVE_TOL = 1e-4  # refine's stages under a robust kernel (iteratively
 INTERMEDIATE_RELATIVE_TOL = 1e-6  # a self-calibration's intermediate stages (the next stage starts from there)
 FINAL_RELATIVE_TOL = 1e-9  # a self-calibration's final stage converges fully (the marginals are taken at its optimum)
 START_WEIGHT_MIN = 0.5  # a bounded kernel's bulk stage starts where it is when the kernel gives every view's median
-# residual at least this share of the weight it gives Gaussian noise's median distance (`NOISE_MEDIAN_DISTANCE`), else
-# from the least-squares minimum (a knocked view's tracks would weigh nothing beside the others')
-NOISE_MEDIAN_DISTANCE = float(np.sqrt(2.0 * np.log(2.0)))  # median length of a 2-D unit Gaussian residual (sigmas)
+# residual at least this weight there (else from the least-squares minimum: a knocked view's tracks would weigh 0)
 
 
 @dataclass(frozen=True)
@@ -174,8 +171,7 @@ def _solve_bulk(plan: StagePlan, problem: ProjectionProblem, state, callback) ->
     limits = dict(max_iterations=plan.settings.max_iterations, relative_error_tol=plan.settings.relative_error_tol)
     iterations = 0
     if problem.noise.kernel is not None and problem.noise.kernel.bounded \
-            and np.min(problem.typical_weights(state)) < START_WEIGHT_MIN * problem.noise.kernel.weights(
-                np.array([NOISE_MEDIAN_DISTANCE]))[0]:
+            and np.min(problem.typical_weights(state)) < START_WEIGHT_MIN:
         warm = optimize_problem(problem.gaussian(), state, callback=callback, **limits)
         state, iterations = warm.values, warm.iterations
     res = optimize_problem(problem, state, callback=callback, **limits)

@@ -20,7 +20,7 @@ from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.schur import GraphProblem, optimize_problem
-from lfgraph.stage_engine import NOISE_MEDIAN_DISTANCE, START_WEIGHT_MIN, least_squares_start
+from lfgraph.stage_engine import START_WEIGHT_MIN, least_squares_start
 
 M = gtsam.noiseModel.mEstimator
 BLOCK, SCALAR = M.Base.ReweightScheme.Block, M.Base.ReweightScheme.Scalar
@@ -96,8 +96,7 @@ def test_a_bounded_loss_starts_from_the_least_squares_minimum():
 def test_a_start_within_a_bounded_kernels_reach_is_told_from_a_knocked_one():
     """`ProjectionProblem.typical_weights`, which lets a bounded kernel's stage start where it is: the kernel's weight
     at each view's median whitened reprojection error (computed here from `reprojection_errors`); above
-    `START_WEIGHT_MIN` of the weight at Gaussian noise's median distance for every view at the truth, below it for a
-    knocked view."""
+    `START_WEIGHT_MIN` for every view at the truth, below it for a knocked view."""
     rig, pix, valid = scene(seed=5)
     truth = shake_rig(rig, ShakeConfig(rot_deg=KNOCK_DEG, trans_mm=2.0), np.random.default_rng(6))
     model = measurement_noise(RobustKernel.parse("tukey"), SIGMA_PX)
@@ -108,8 +107,7 @@ def test_a_start_within_a_bounded_kernels_reach_is_told_from_a_knocked_one():
         errors = reprojection_errors(calib, points, pix, valid) / SIGMA_PX
         expected = kernel.weights(np.array([np.median(e[np.isfinite(e)]) for e in errors]))
         np.testing.assert_allclose(problem.typical_weights(state), expected, rtol=1e-9)
-        reach = START_WEIGHT_MIN * kernel.weights(np.array([NOISE_MEDIAN_DISTANCE]))[0]
-        assert (np.min(expected) >= reach) == (calib is truth)
+        assert (np.min(expected) >= START_WEIGHT_MIN) == (calib is truth)
 
 
 def cauchy_arrays():
