@@ -61,12 +61,15 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     check_output_file(args.output, inputs=inputs)
     if args.report_json is not None:
         check_output_file(args.report_json, inputs=[*inputs, args.output])
-    design = Design(rows, cols, args.pitch_mm, _focal_px(args, capture.image_size_px[0]), capture.image_size_px,
-                    reference)
+    try:
+        design = Design(rows, cols, args.pitch_mm, _focal_px(args, capture.image_size_px[0]), capture.image_size_px,
+                        reference, lens=args.lens)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
     print(f"{args.input}: {capture.layout} layout, {len(capture)} frames of {rows}x{cols} views "
           f"{design.image_size_px[0]}x{design.image_size_px[1]} px; design: pitch {design.pitch_mm:g} mm, focal "
-          f"{design.focal_px:.1f} px")
+          f"{design.focal_px:.1f} px, {design.lens} lenses")
     bar = tqdm(capture.frames(limit=n), total=n, desc="tracking", unit="frame", disable=args.quiet)
     with logging_redirect_tqdm():
         calib, report = calibrate_scene(bar, design, config)
@@ -104,6 +107,8 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--focal-px", type=positive_float, help="nominal focal length in pixels")
     p.add_argument("--focal-mm", type=positive_float, help="nominal lens focal length (with --sensor-width-mm)")
     p.add_argument("--sensor-width-mm", type=positive_float, help="sensor width (with --focal-mm)")
+    p.add_argument("--lens", choices=("radtan", "fisheye"), default="radtan",
+                   help="every view's lens model (default radtan; fisheye: Kannala-Brandt, its k1, k2 fitted from 0)")
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
     p.add_argument("--reference", type=int, help="reference view (row-major index; default 0)")
     p.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")

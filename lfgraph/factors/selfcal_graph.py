@@ -24,7 +24,12 @@ import numpy as np
 from lfgraph.camera import Intrinsics
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA
-from lfgraph.factors.prior_table import POSE_TANGENT, cal3ds2_vectors, intrinsics_prior_factors, pose_prior_factors
+from lfgraph.factors.prior_table import (
+    POSE_TANGENT,
+    calibration_vectors,
+    intrinsics_prior_factors,
+    pose_prior_factors,
+)
 from lfgraph.grid import ViewGrid
 
 
@@ -71,14 +76,15 @@ def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
 def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: DesignSigmas,
                           free: frozenset[str],
                           pinned: dict[int, tuple[int, ...]] | None = None) -> gtsam.NonlinearFactorGraph:
-    """One Cal3DS2 prior per view: free groups pulled to the design value with the design tolerance, everything
-    else (skew, p1, p2, the groups this stage holds and the ``pinned`` Cal3DS2 indices of some views, e.g.
+    """One calibration prior per view (Cal3DS2, or Cal3Fisheye for a fisheye design: the groups' indices are the
+    same): free groups pulled to the design value with the design tolerance, everything else (skew, p1, p2 or a
+    fisheye's k3, k4, the groups this stage holds and the ``pinned`` indices of some views, e.g.
     `intrinsics_gauges`) pinned at ``current``."""
-    now = cal3ds2_vectors(current)
+    now = calibration_vectors(current)
     mean = now.copy()
     sig = np.full(now.shape, HELD_SIGMA)
     sig[:, [2, 7, 8]] = MIN_SIGMA
-    design_vec, tol = cal3ds2_vectors([design])[0], sigmas.intrinsic_sigmas()
+    design_vec, tol = calibration_vectors([design])[0], sigmas.intrinsic_sigmas()
     for group, idx in CAL3DS2_INDICES.items():  # the groups a stage may free (`lfgraph.factors.groups`)
         if group in free:
             mean[:, list(idx)] = design_vec[list(idx)]
@@ -86,7 +92,7 @@ def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sig
     for v, indices in (pinned or {}).items():
         mean[v, list(indices)] = now[v, list(indices)]
         sig[v, list(indices)] = HELD_SIGMA
-    return intrinsics_prior_factors(mean, sig)
+    return intrinsics_prior_factors(mean, sig, [i.lens for i in current])
 
 
 def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: DesignSigmas,

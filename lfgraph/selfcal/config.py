@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
+from lfgraph.camera import FISHEYE, RADTAN, Intrinsics
 from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
@@ -35,7 +35,9 @@ DEFAULT_STAGES: tuple[tuple[str, ...], ...] = (
     ("rotation", "position", "focal", "principal", "distortion"),
 )
 
-FIELD_OF_VIEW_DEG = (1.0, 170.0)  # the horizontal field of view a nominal focal length may give (a camera)
+FIELD_OF_VIEW_DEG = (1.0, 170.0)  # the horizontal field of view a nominal focal length may give (a camera) ...
+FISHEYE_FIELD_OF_VIEW_DEG = (1.0, 240.0)  # ... and through a fisheye (equidistant: the angle is the radius / focal)
+DESIGN_LENSES = (RADTAN, FISHEYE)  # the lens models a self-calibration fits (unified: its xi needs a board)
 
 
 @dataclass(frozen=True)
@@ -47,7 +49,9 @@ class Design:
         pitch_mm: distance between adjacent views (millimetres).
         focal_px: nominal focal length in pixels (`focal_from_lens` converts a lens and a sensor).
         image_size_px: (width, height).
-        k1, k2: nominal radial distortion (0 when unknown).
+        k1, k2: nominal radial distortion (0 when unknown) of the lens model.
+        lens: every view's lens model, ``radtan`` or ``fisheye`` (Kannala–Brandt k1..k4 in OpenCV's convention; a
+            self-calibration frees its k1, k2 and holds k3, k4 at 0).
     """
 
     rows: int
@@ -58,8 +62,12 @@ class Design:
     reference: int = 0
     k1: float = 0.0
     k2: float = 0.0
+    lens: str = RADTAN
 
     def __post_init__(self) -> None:
+        if self.lens not in DESIGN_LENSES:
+            raise ValueError(f"lens must be one of {', '.join(DESIGN_LENSES)} for a self-calibration, got "
+                             f"{self.lens!r} (a unified lens's xi needs a board: `lfgraph calibrate --lens unified`)")
         ViewGrid(self.rows, self.cols, self.reference)
         if self.rows * self.cols < 2:
             raise ValueError("self-calibration needs at least two views")
@@ -70,11 +78,13 @@ class Design:
         w, h = (int(x) for x in self.image_size_px)
         if w <= 0 or h <= 0:
             raise ValueError(f"image size must be positive, got {self.image_size_px}")
-        fov_deg = float(np.degrees(2 * np.arctan(w / (2 * self.focal_px))))
-        if not FIELD_OF_VIEW_DEG[0] <= fov_deg <= FIELD_OF_VIEW_DEG[1]:  # --focal-px 1e9 failed deep in the marginals
+        half = w / (2 * self.focal_px)
+        fov_deg = float(np.degrees(2 * (half if self.lens == FISHEYE else np.arctan(half))))
+        lo, hi = FISHEYE_FIELD_OF_VIEW_DEG if self.lens == FISHEYE else FIELD_OF_VIEW_DEG
+        if not lo <= fov_deg <= hi:  # --focal-px 1e9 failed deep in the marginals
             raise ValueError(f"focal_px {self.focal_px:g} gives a {fov_deg:.3g} deg field of view across {w} px; a "
-                             f"camera's is {FIELD_OF_VIEW_DEG[0]:g}-{FIELD_OF_VIEW_DEG[1]:g} deg: give the nominal "
-                             f"focal length in pixels (or the lens and the sensor width in mm)")
+                             f"{self.lens} camera's is {lo:g}-{hi:g} deg: give the nominal focal length in pixels "
+                             f"(or the lens and the sensor width in mm)")
         object.__setattr__(self, "image_size_px", (w, h))
 
     @property
@@ -84,9 +94,9 @@ class Design:
 
     @property
     def intrinsics(self) -> Intrinsics:
-        """Nominal focal length, principal point at the image centre, nominal distortion."""
+        """Nominal focal length, principal point at the image centre, nominal distortion, the design's lens model."""
         w, h = self.image_size_px
-        return Intrinsics(self.focal_px, self.focal_px, (w - 1) / 2, (h - 1) / 2, self.k1, self.k2)
+        return Intrinsics(self.focal_px, self.focal_px, (w - 1) / 2, (h - 1) / 2, self.k1, self.k2, lens=self.lens)
 
     def ref_T_view(self) -> np.ndarray:  # noqa: N802
         """(V, 4, 4) ideal poses: parallel views, view (r, c) at ((c - c_ref), (r - r_ref), 0) x pitch."""

@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
+from lfgraph.camera import RADTAN, Intrinsics
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
@@ -82,7 +82,10 @@ def zoom_to_prior(calib: Calibration, points: np.ndarray, design: Intrinsics) ->
     landmark's depth and every view's z position by s. Levenberg–Marquardt walks this near-flat valley very slowly
     (measured: 150 iterations left paper-4x4's mean focal length 10 px from its optimum), so the final stage starts
     at the valley's MAP point s = sum(f_design f_v) / sum(f_v^2) over every fx and fy; it then refines the rest.
+    Through a fisheye there is no such valley (its angles pin the focal length): returned unchanged.
     """
+    if design.lens != RADTAN:
+        return calib, points
     f = np.array([[i.fx, i.fy] for i in calib.intrinsics])
     scale = float(np.sum(design.fx * f[:, 0] + design.fy * f[:, 1]) / np.sum(f**2))
     intr = tuple(Intrinsics(i.fx * scale, i.fy * scale, i.cx, i.cy, i.k1 * scale**2, i.k2 * scale**4, i.p1, i.p2)
