@@ -13,6 +13,7 @@ small tilts): scene frames hardly see it, so the absolute fx of self-calibration
 
     python benchmarks/targetless.py                      # both rigs, 5/10/20/30 frames (those rendered)
     python benchmarks/targetless.py --rigs paper-5x5 --frames 20
+    python benchmarks/targetless.py --rigs fisheye-4x4 --frames 10 20    # the 4x4 through fisheye lenses
 """
 
 from __future__ import annotations
@@ -110,7 +111,8 @@ def honesty(est: Calibration, truth: Calibration, report) -> dict[str, float]:
 
 def design_of(rig: str) -> Design:
     cfg = data.rig_config(rig)
-    return Design(cfg.rows, cfg.cols, cfg.pitch_m * 1e3, cfg.focal_px, cfg.image_size_px, cfg.reference)
+    return Design(cfg.rows, cfg.cols, cfg.pitch_m * 1e3, cfg.focal_px, cfg.image_size_px, cfg.reference,
+                  lens=cfg.lens)
 
 
 def tracks_for(rig: str, frames: int, config: SelfCalConfig, cache: Path, seed: int = 0) -> PooledTracks:
@@ -152,7 +154,7 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
     from lfgraph.datasets.scenes import get_scene
     from lfgraph.detections import observations_from_arrays
 
-    cfg = dataclasses.replace(get_scene(rig).checkerboard, frames=frames)
+    cfg = dataclasses.replace(get_scene(rig.replace("fisheye", "paper")).checkerboard, frames=frames)
     board_truth = make_checkerboard_truth(truth, cfg, np.random.default_rng([seed, 31, frames]))
     corners, valid = make_corner_observations(board_truth, CORNER_SIGMA_PX, np.random.default_rng([seed, 37, frames]))
     obs = observations_from_arrays(cfg.board, truth.grid, truth.image_size_px, corners, valid)
@@ -162,7 +164,7 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rigs", nargs="+", default=["paper-4x4", "paper-5x5"], choices=("paper-4x4", "paper-5x5"))
+    parser.add_argument("--rigs", nargs="+", default=["paper-4x4", "paper-5x5"], choices=data.RIGS)
     parser.add_argument("--frames", nargs="+", type=int, default=list(FRAME_COUNTS))
     parser.add_argument("--tracks-per-frame", type=int, default=TRACKS_PER_FRAME)
     parser.add_argument("--cache", type=Path, default=data.CACHE)

@@ -1,6 +1,7 @@
 """Rigs and rendered scene frames of the target-less benchmark (`benchmarks/targetless.py`), cached on disk.
 
-Rigs: paper-4x4 and paper-5x5 *style* arrays with the issue's spreads (standard deviations): focal length 3 %,
+Rigs: paper-4x4 and paper-5x5 *style* arrays (and fisheye-4x4: the 4x4 through ~108 deg fisheye lenses) with the
+issue's spreads (standard deviations): focal length 3 %,
 principal points 15 px, k1 = -0.1 (0.01 spread), rotations 1 deg, positions 0.3 mm per axis. The 4x4 rig is rendered
 at half the paper's resolution (480x480 px, f = 425 px: the same field of view) to keep rendering affordable on a
 shared machine. Frames: dead-leaves scenes whose depth band cycles through three log-spaced bands of the named
@@ -34,19 +35,30 @@ BACKGROUND_FACTOR = 1.4  # background plane at this multiple of a frame's far de
 CACHE = Path("out/bench-targetless")
 
 
+RIGS = ("paper-4x4", "paper-5x5", "fisheye-4x4")
+FISHEYE_FOCAL_SCALE = 0.6  # fisheye-4x4: paper-4x4 at this times its focal length through Kannala-Brandt lenses
+FISHEYE_K1, FISHEYE_K1_SPREAD = -0.02, 0.002  # (a ~108 deg field across; k2 0.004)
+
+
 def rig_config(name: str) -> RigConfig:
-    """The benchmark rig ``paper-4x4`` or ``paper-5x5`` with the issue's spreads."""
-    base = get_scene(name).rig
-    if name == "paper-4x4":
+    """The benchmark rig ``paper-4x4`` or ``paper-5x5`` with the issue's spreads, or ``fisheye-4x4``: the 4x4 through
+    fisheye lenses (`FISHEYE_FOCAL_SCALE`, `FISHEYE_K1`) with the same spreads of focal length, principal point,
+    rotation and position."""
+    base = get_scene(name.replace("fisheye", "paper")).rig
+    if name in ("paper-4x4", "fisheye-4x4"):
         base = dataclasses.replace(base, image_size_px=(480, 480), focal_px=base.focal_px / 2)
+    k1, k1_spread, extra = K1, K1_SPREAD, {}
+    if name == "fisheye-4x4":
+        base = dataclasses.replace(base, focal_px=FISHEYE_FOCAL_SCALE * base.focal_px)
+        k1, k1_spread, extra = FISHEYE_K1, FISHEYE_K1_SPREAD, dict(lens="fisheye", k2=0.004)
     return dataclasses.replace(base, focal_jitter_px=FOCAL_SPREAD * base.focal_px,
-                               principal_jitter_px=PRINCIPAL_SPREAD_PX, k1=K1, distortion_jitter=K1_SPREAD,
-                               rot_jitter_deg=ROT_SPREAD_DEG, trans_jitter_mm=POS_SPREAD_MM)
+                               principal_jitter_px=PRINCIPAL_SPREAD_PX, k1=k1, distortion_jitter=k1_spread,
+                               rot_jitter_deg=ROT_SPREAD_DEG, trans_jitter_mm=POS_SPREAD_MM, **extra)
 
 
 def frame_scene_config(name: str, frame: int) -> SceneConfig:
     """Scene options of frame ``frame``: its depth band (cycling near, middle, far)."""
-    near, far = get_scene(name).scene_depth_m
+    near, far = get_scene(name.replace("fisheye", "paper")).scene_depth_m
     edges = np.geomspace(near, far, DEPTH_BANDS + 1)
     band = frame % DEPTH_BANDS
     lo, hi = float(edges[band]), float(edges[band + 1])
@@ -84,7 +96,7 @@ def render(name: str, frames: int, seed: int = 0, cache: Path = CACHE) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rig", choices=("paper-4x4", "paper-5x5"), required=True)
+    parser.add_argument("--rig", choices=RIGS, required=True)
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", type=Path, default=CACHE)
