@@ -193,24 +193,29 @@ BANDS_M = ((0.4, 0.7), (0.7, 1.2), (1.2, 2.0))
 RENDERED_FISHEYE_TRANSFER_PX = 0.2  # transfer at infinity left by calibrate-scene on the rendered fisheye 2x2
 
 
-@pytest.fixture(scope="module")
-def rendered(tmp_path_factory):
-    """Six rendered frames (two per depth band) of a 2x2 array, written as a capture folder."""
+def render_small(rig: RigConfig, root) -> tuple[Calibration, list[np.ndarray]]:
+    """Six rendered frames (two per depth band) of a 2x2 array drawn from ``rig``, also written under ``root``."""
     from lfgraph.capture import write_frame
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
 
-    truth = make_rig(SMALL, np.random.default_rng(11))
-    root = tmp_path_factory.mktemp("scenes")
+    truth = make_rig(rig, np.random.default_rng(11))
     frames = []
     for f in range(6):
         near, far = BANDS_M[f % 3]
         cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4, objects=6)
         scene = make_scene(cfg, np.random.default_rng([11, f]))
-        images = np.stack([render_scene_view(scene, truth.intrinsics[v], truth.image_size_px, truth.view_T_ref(v),
-                                             cfg, np.random.default_rng([11, f, v])) for v in range(4)])
-        write_frame(root, f"{f:03d}", images, truth.grid)
-        frames.append(images)
-    return truth, frames, root
+        frames.append(np.stack([render_scene_view(scene, truth.intrinsics[v], truth.image_size_px,
+                                                  truth.view_T_ref(v), cfg, np.random.default_rng([11, f, v]))
+                                for v in range(4)]))
+        write_frame(root, f"{f:03d}", frames[-1], truth.grid)
+    return truth, frames
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """Six rendered frames (two per depth band) of a 2x2 array, written as a capture folder."""
+    root = tmp_path_factory.mktemp("scenes")
+    return (*render_small(SMALL, root), root)
 
 
 def test_calibrate_scene_from_rendered_frames_then_rectify(rendered):
@@ -243,21 +248,8 @@ FISHEYE_SMALL_DESIGN = Design(2, 2, pitch_mm=30.0, focal_px=190.0, image_size_px
 @pytest.fixture(scope="module")
 def rendered_fisheye(tmp_path_factory):
     """The frames of `rendered` through ~96 deg Kannala-Brandt lenses (k1 -0.02, k2 0.004), as a capture folder."""
-    from lfgraph.capture import write_frame
-    from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
-
-    truth = make_rig(FISHEYE_SMALL, np.random.default_rng(11))
     root = tmp_path_factory.mktemp("fisheye-scenes")
-    frames = []
-    for f in range(6):
-        near, far = BANDS_M[f % 3]
-        cfg = SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4, objects=6)
-        scene = make_scene(cfg, np.random.default_rng([11, f]))
-        frames.append(np.stack([render_scene_view(scene, truth.intrinsics[v], truth.image_size_px,
-                                                  truth.view_T_ref(v), cfg, np.random.default_rng([11, f, v]))
-                                for v in range(4)]))
-        write_frame(root, f"{f:03d}", frames[-1], truth.grid)
-    return truth, frames, root
+    return (*render_small(FISHEYE_SMALL, root), root)
 
 
 def test_calibrate_scene_on_rendered_fisheye_frames(rendered_fisheye):
