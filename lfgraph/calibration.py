@@ -76,6 +76,11 @@ class Calibration:
         """(width, height) of one view's images."""
         return self.image_size_px if self.view_image_sizes_px is None else self.view_image_sizes_px[view]
 
+    @property
+    def image_sizes(self) -> tuple[tuple[int, int], ...]:
+        """(width, height) of every view's images, in view order."""
+        return tuple(self.image_size(v) for v in range(self.grid.num_views))
+
     def __post_init__(self) -> None:
         n = self.grid.num_views
         object.__setattr__(self, "intrinsics", tuple(self.intrinsics))

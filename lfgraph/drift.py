@@ -180,8 +180,9 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
     tracker = config.tracker if settings is None else ChainTracker(settings)
     pixels, valid, frame_ids, counts, n_frames = [], [], [], {}, 0
     canvas = canvas_for(calib)  # None unless the views differ in size
+    sizes = calib.image_sizes
     for f, images in enumerate(frames):
-        check_frame_array(images, f, calib.grid, [calib.image_size(v) for v in range(calib.num_views)])
+        check_frame_array(images, f, calib.grid, sizes)
         tracks = track_views(tracker, images, calib.grid, canvas)
         res = reprojection_residuals(calib, tracks)
         keep = drop_mismatches(res)

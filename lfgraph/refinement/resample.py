@@ -35,7 +35,7 @@ class ViewCanvas:
     def __init__(self, calib: Calibration):
         ref = calib.intrinsics[calib.grid.reference]
         self.size_px = tuple(calib.image_size(calib.grid.reference))
-        self.view_sizes_px = [tuple(calib.image_size(v)) for v in range(calib.num_views)]
+        self.view_sizes_px = list(calib.image_sizes)
         self.scale = np.array([[ref.fx / i.fx, ref.fy / i.fy] for i in calib.intrinsics])
         centres = np.array([[i.cx, i.cy] for i in calib.intrinsics])
         self.offset = np.array([ref.cx, ref.cy]) - self.scale * centres  # canvas = scale * view + offset
@@ -67,7 +67,7 @@ class ViewCanvas:
 
 def canvas_for(calib: Calibration) -> ViewCanvas | None:
     """The `ViewCanvas` of a rig whose views differ in image size; None for a one-size rig (tracked as it is)."""
-    return ViewCanvas(calib) if len({tuple(calib.image_size(v)) for v in range(calib.num_views)}) > 1 else None
+    return ViewCanvas(calib) if len(set(calib.image_sizes)) > 1 else None
 
 
 def track_views(tracker: Tracker, images, grid: ViewGrid, canvas: ViewCanvas | None) -> Tracks:

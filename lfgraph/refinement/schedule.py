@@ -120,12 +120,12 @@ def _refine_frames(calib: Calibration, frames: Iterable[np.ndarray], config: Ref
     c_adjust = 0.0  # CPU seconds of the adjustment (this thread's: the solver runs on one thread)
     c_start = time.process_time()
     sigma_estimate: float | None = None
-    canvas = canvas_for(calib)  # None unless the views differ in size
+    canvas, sizes = canvas_for(calib), calib.image_sizes  # the canvas: None unless the views differ in size
     for f, images in enumerate(frames):
         if config.max_frames is not None and f >= config.max_frames:
             stop = f"max frames ({config.max_frames})"
             break
-        check_frame_array(images, f, calib.grid, [calib.image_size(v) for v in range(calib.num_views)])
+        check_frame_array(images, f, calib.grid, sizes)
         tracking = klt.submit(_timed_track, images, calib.grid, config.tracker, canvas)
         if used > 0 and pool_fitted < used:
             # frame after frame: the frames so far are refitted (MAP, centred on the input, from the input) before
