@@ -98,10 +98,14 @@ class KernelTable:
         shape = d.shape
         d = d.ravel()
         near = np.abs(d) <= CORE_REACH
-        if near.all():
-            out, ok = self.core(d)
+        if near.all():  # nearly always: one pass over the core table, the callback only where a cell is not usable
+            values, ok = self.core(d)
             if ok.all():
-                return out.reshape(shape)
+                return values.reshape(shape)
+            out = np.empty(d.shape)
+            out[ok] = values
+            out[~ok] = self.f(d[~ok])
+            return out.reshape(shape)
         out = np.empty(d.shape)
         done = np.zeros(d.shape, dtype=bool)
         for segment, where in ((self.core, near), (self.outer, ~near & (np.abs(d) <= OUTER_REACH))):

@@ -81,10 +81,10 @@ class ProjectionProblem:
         if fixed_poses is not None:
             self.fixed_rm = fixed_poses[self.view, :3, :3]
             self.fixed_t = fixed_poses[self.view, :3, 3]
+        bounds = np.searchsorted(self.view, np.arange(self.n_views + 1))  # observations are sorted by view
+        self.by_view = [slice(int(bounds[v]), int(bounds[v + 1])) for v in range(self.n_views)]
         if pose_keys is not None:
             self.col0 = np.array([camera_block(self.layout, k).start for k in pose_keys], dtype=np.int64)
-            bounds = np.searchsorted(self.view, np.arange(self.n_views + 1))
-            self.by_view = [slice(int(bounds[v]), int(bounds[v + 1])) for v in range(self.n_views)]
             # every landmark in every view and the poses in view order: W is a transpose of the per-observation
             # blocks; otherwise a scatter
             self.dense = len(self.view) == self.n_views * self.n_landmarks \
@@ -221,10 +221,8 @@ class ProjectionProblem:
         if e is None:
             return np.zeros(self.n_views)
         d = np.hypot(e[:, 0], e[:, 1])
-        bounds = np.searchsorted(self.view, np.arange(self.n_views + 1))
-        seen = bounds[1:] > bounds[:-1]
-        medians = np.array([np.median(d[bounds[v]:bounds[v + 1]]) for v in np.flatnonzero(seen)])
-        out[seen] = self.noise.kernel.weights(medians)
+        seen = [v for v, obs in enumerate(self.by_view) if obs.stop > obs.start]
+        out[seen] = self.noise.kernel.weights(np.array([np.median(d[self.by_view[v]]) for v in seen]))
         return out
 
     def gaussian(self) -> ProjectionProblem | None:
