@@ -151,10 +151,9 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
     """The joint checkerboard calibration with ``frames`` boards (corner noise `CORNER_SIGMA_PX`)."""
     import lfgraph as lf
     from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
-    from lfgraph.datasets.scenes import get_scene
     from lfgraph.detections import observations_from_arrays
 
-    cfg = dataclasses.replace(get_scene(rig.replace("fisheye", "paper")).checkerboard, frames=frames)
+    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=frames)
     board_truth = make_checkerboard_truth(truth, cfg, np.random.default_rng([seed, 31, frames]))
     corners, valid = make_corner_observations(board_truth, CORNER_SIGMA_PX, np.random.default_rng([seed, 37, frames]))
     obs = observations_from_arrays(cfg.board, truth.grid, truth.image_size_px, corners, valid)

@@ -40,11 +40,16 @@ FISHEYE_FOCAL_SCALE = 0.6  # fisheye-4x4: paper-4x4 at this times its focal leng
 FISHEYE_K1, FISHEYE_K1_SPREAD = -0.02, 0.002  # (a ~108 deg field across; k2 0.004)
 
 
+def base_scene(name: str):
+    """The named scene a benchmark rig is built on (fisheye-4x4: paper-4x4's)."""
+    return get_scene(name.replace("fisheye", "paper"))
+
+
 def rig_config(name: str) -> RigConfig:
     """The benchmark rig ``paper-4x4`` or ``paper-5x5`` with the issue's spreads, or ``fisheye-4x4``: the 4x4 through
     fisheye lenses (`FISHEYE_FOCAL_SCALE`, `FISHEYE_K1`) with the same spreads of focal length, principal point,
     rotation and position."""
-    base = get_scene(name.replace("fisheye", "paper")).rig
+    base = base_scene(name).rig
     if name in ("paper-4x4", "fisheye-4x4"):
         base = dataclasses.replace(base, image_size_px=(480, 480), focal_px=base.focal_px / 2)
     k1, k1_spread, extra = K1, K1_SPREAD, {}
@@ -58,7 +63,7 @@ def rig_config(name: str) -> RigConfig:
 
 def frame_scene_config(name: str, frame: int) -> SceneConfig:
     """Scene options of frame ``frame``: its depth band (cycling near, middle, far)."""
-    near, far = get_scene(name.replace("fisheye", "paper")).scene_depth_m
+    near, far = base_scene(name).scene_depth_m
     edges = np.geomspace(near, far, DEPTH_BANDS + 1)
     band = frame % DEPTH_BANDS
     lo, hi = float(edges[band]), float(edges[band + 1])
