@@ -55,6 +55,9 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
                                position_tolerance_mm=args.position_tolerance_mm)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if (args.lens == "unified") != (args.xi is not None):
+        raise UsageError("--xi goes with --lens unified, and --lens unified needs --xi (its lens's xi: the maker's "
+                         "value, or `lfgraph calibrate --lens unified` on a board)")
     capture = open_capture(args.input, ViewGrid(rows, cols, reference), args.layout)
     capture.require_one_size("calibrate-scene")
     inputs = [p for f in range(len(capture)) for p in capture.paths(f)]
@@ -63,13 +66,13 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
         check_output_file(args.report_json, inputs=[*inputs, args.output])
     try:
         design = Design(rows, cols, args.pitch_mm, _focal_px(args, capture.image_size_px[0]), capture.image_size_px,
-                        reference, lens=args.lens)
+                        reference, lens=args.lens, xi=args.xi or 0.0)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
     print(f"{args.input}: {capture.layout} layout, {len(capture)} frames of {rows}x{cols} views "
           f"{design.image_size_px[0]}x{design.image_size_px[1]} px; design: pitch {design.pitch_mm:g} mm, focal "
-          f"{design.focal_px:.1f} px, {design.lens} lenses")
+          f"{design.focal_px:.1f} px, {design.lens} lenses{f' (xi {design.xi:g})' if design.xi else ''}")
     bar = tqdm(capture.frames(limit=n), total=n, desc="tracking", unit="frame", disable=args.quiet)
     with logging_redirect_tqdm():
         calib, report = calibrate_scene(bar, design, config)
@@ -107,8 +110,12 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--focal-px", type=positive_float, help="nominal focal length in pixels")
     p.add_argument("--focal-mm", type=positive_float, help="nominal lens focal length (with --sensor-width-mm)")
     p.add_argument("--sensor-width-mm", type=positive_float, help="sensor width (with --focal-mm)")
-    p.add_argument("--lens", choices=("radtan", "fisheye"), default="radtan",
-                   help="every view's lens model (default radtan; fisheye: Kannala-Brandt, its k1, k2 fitted from 0)")
+    p.add_argument("--lens", choices=("radtan", "fisheye", "unified"), default="radtan",
+                   help="every view's lens model (default radtan; fisheye: Kannala-Brandt, its k1, k2 fitted from 0; "
+                        "unified: Mei's, its k1, k2 fitted from 0 at the --xi given)")
+    p.add_argument("--xi", type=float, default=None,
+                   help="a unified lens's xi (required with --lens unified: the maker's value or a board "
+                        "calibration's; scene frames barely tell it from the focal length, so it is held)")
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration.json to write")
     p.add_argument("--reference", type=int, help="reference view (row-major index; default 0)")
     p.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")

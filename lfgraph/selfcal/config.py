@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfgraph.calibration import Calibration
-from lfgraph.camera import FISHEYE, RADTAN, Intrinsics
+from lfgraph.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
 from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
@@ -36,8 +36,8 @@ DEFAULT_STAGES: tuple[tuple[str, ...], ...] = (
 )
 
 FIELD_OF_VIEW_DEG = (1.0, 170.0)  # the horizontal field of view a nominal focal length may give (a camera) ...
-FISHEYE_FIELD_OF_VIEW_DEG = (1.0, 240.0)  # ... and through a fisheye (equidistant: the angle is the radius / focal)
-DESIGN_LENSES = (RADTAN, FISHEYE)  # the lens models a self-calibration fits (unified: its xi needs a board)
+FISHEYE_FIELD_OF_VIEW_DEG = (1.0, 240.0)  # ... and through a fisheye or a unified lens
+DESIGN_LENSES = (RADTAN, FISHEYE, UNIFIED)  # the lens models a self-calibration fits
 
 
 @dataclass(frozen=True)
@@ -50,8 +50,11 @@ class Design:
         focal_px: nominal focal length in pixels (`focal_from_lens` converts a lens and a sensor).
         image_size_px: (width, height).
         k1, k2: nominal radial distortion (0 when unknown) of the lens model.
-        lens: every view's lens model, ``radtan`` or ``fisheye`` (Kannala–Brandt k1..k4 in OpenCV's convention; a
-            self-calibration frees its k1, k2 and holds k3, k4 at 0).
+        lens: every view's lens model, ``radtan``, ``fisheye`` (Kannala–Brandt k1..k4 in OpenCV's convention; a
+            self-calibration frees its k1, k2 and holds k3, k4 at 0) or ``unified`` (Mei's, Kalibr's omni-radtan: a
+            self-calibration frees its k1, k2 and holds ``xi`` and p1, p2).
+        xi: a unified lens's xi (its maker's value, or one calibrated from a board: scene tracks barely tell it from
+            the focal length and k1; held). 0 for the other lenses.
     """
 
     rows: int
@@ -63,11 +66,16 @@ class Design:
     k1: float = 0.0
     k2: float = 0.0
     lens: str = RADTAN
+    xi: float = 0.0
 
     def __post_init__(self) -> None:
         if self.lens not in DESIGN_LENSES:
             raise ValueError(f"lens must be one of {', '.join(DESIGN_LENSES)} for a self-calibration, got "
-                             f"{self.lens!r} (a unified lens's xi needs a board: `lfgraph calibrate --lens unified`)")
+                             f"{self.lens!r}")
+        if self.xi != 0.0 and self.lens != UNIFIED:
+            raise ValueError(f"xi is a unified lens's; a {self.lens} design has none (got xi={self.xi})")
+        if not (np.isfinite(self.xi) and self.xi >= 0):
+            raise ValueError(f"a unified lens needs xi >= 0, got xi={self.xi}")
         ViewGrid(self.rows, self.cols, self.reference)
         if self.rows * self.cols < 2:
             raise ValueError("self-calibration needs at least two views")
@@ -78,14 +86,28 @@ class Design:
         w, h = (int(x) for x in self.image_size_px)
         if w <= 0 or h <= 0:
             raise ValueError(f"image size must be positive, got {self.image_size_px}")
-        half = w / (2 * self.focal_px)
-        fov_deg = float(np.degrees(2 * (half if self.lens == FISHEYE else np.arctan(half))))
-        lo, hi = FISHEYE_FIELD_OF_VIEW_DEG if self.lens == FISHEYE else FIELD_OF_VIEW_DEG
+        fov_deg = self._field_of_view_deg(w / (2 * self.focal_px))
+        lo, hi = FIELD_OF_VIEW_DEG if self.lens == RADTAN else FISHEYE_FIELD_OF_VIEW_DEG
         if not lo <= fov_deg <= hi:  # --focal-px 1e9 failed deep in the marginals
-            raise ValueError(f"focal_px {self.focal_px:g} gives a {fov_deg:.3g} deg field of view across {w} px; a "
+            seen = "no field of view (the image reaches beyond the lens's)" if np.isnan(fov_deg) \
+                else f"a {fov_deg:.3g} deg field of view"
+            raise ValueError(f"focal_px {self.focal_px:g} gives {seen} across {w} px; a "
                              f"{self.lens} camera's is {lo:g}-{hi:g} deg: give the nominal focal length in pixels "
                              f"(or the lens and the sensor width in mm)")
         object.__setattr__(self, "image_size_px", (w, h))
+
+    def _field_of_view_deg(self, half: float) -> float:
+        """The angle across the image for a half width of ``half`` focal lengths (NaN: beyond a unified lens's
+        image)."""
+        if self.lens == RADTAN:
+            return float(np.degrees(2 * np.arctan(half)))
+        if self.lens == FISHEYE:  # equidistant: the angle is the radius / focal
+            return float(np.degrees(2 * half))
+        disc = 1.0 + (1.0 - self.xi ** 2) * half ** 2  # Mei's model back to the unit sphere (`lens_math.lift_unified`)
+        if disc < 0:
+            return float("nan")  # beyond the lens's image
+        factor = (self.xi + np.sqrt(disc)) / (half ** 2 + 1.0)
+        return float(np.degrees(2 * np.arctan2(factor * half, factor - self.xi)))
 
     @property
     def grid(self) -> ViewGrid:
@@ -96,7 +118,8 @@ class Design:
     def intrinsics(self) -> Intrinsics:
         """Nominal focal length, principal point at the image centre, nominal distortion, the design's lens model."""
         w, h = self.image_size_px
-        return Intrinsics(self.focal_px, self.focal_px, (w - 1) / 2, (h - 1) / 2, self.k1, self.k2, lens=self.lens)
+        return Intrinsics(self.focal_px, self.focal_px, (w - 1) / 2, (h - 1) / 2, self.k1, self.k2, xi=self.xi,
+                          lens=self.lens)
 
     def ref_T_view(self) -> np.ndarray:  # noqa: N802
         """(V, 4, 4) ideal poses: parallel views, view (r, c) at ((c - c_ref), (r - r_ref), 0) x pitch."""

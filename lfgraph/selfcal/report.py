@@ -12,7 +12,6 @@ from lfgraph.selfcal.solve import Posterior
 from lfgraph.selfcal.tracks import Coverage, PooledTracks
 
 PRIOR_LIMITED = 0.5  # a mode whose posterior sigma is over half its prior sigma was set by the design, not frames
-CAL_DIM = 9  # Cal3DS2 tangent size: fx fy s cx cy k1 k2 p1 p2
 
 GAUGES = (
     "pose: the reference view is the rig frame (identity pose)",
@@ -59,18 +58,21 @@ def modes(joint_cov: np.ndarray, prior_sigmas: np.ndarray, grid: ViewGrid, disto
     """Posterior and prior sigma of the weakly seen modes.
 
     Args:
-        joint_cov: (9V, 9V) joint marginal covariance of every view's Cal3DS2 (views in order).
-        prior_sigmas: (9,) the design tolerances in Cal3DS2 order.
+        joint_cov: (DV, DV) joint marginal covariance of every view's calibration (views in order; D its tangent
+            size, the same for every view of a design: 9 for Cal3DS2 and Cal3Fisheye, 10 for Cal3Unified).
+        prior_sigmas: (9,) the design tolerances in Cal3DS2 order (the groups' indices are every model's).
         distortion: whether k1, k2 were estimated.
     """
     n = grid.num_views
     off = np.array([grid.offset(v) for v in range(n)], dtype=float)  # (dr, dc)
 
+    dim = len(joint_cov) // n
+
     def mode(weights: dict[int, np.ndarray]) -> tuple[float, float]:
-        a = np.zeros(CAL_DIM * n)
+        a = np.zeros(dim * n)
         for idx, w in weights.items():
-            a[idx::CAL_DIM] = w
-        prior = float(np.sqrt(np.sum(a**2 * np.tile(prior_sigmas, n) ** 2)))
+            a[idx::dim] = w
+        prior = float(np.sqrt(np.sum((a.reshape(n, dim)[:, :len(prior_sigmas)] * prior_sigmas) ** 2)))
         return float(np.sqrt(max(a @ joint_cov @ a, 0.0))), prior
 
     out = []

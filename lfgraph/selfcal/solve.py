@@ -139,8 +139,8 @@ class Posterior:
 
 def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
               num_views: int) -> tuple[Posterior, np.ndarray]:
-    """Marginal sigmas of every view's Cal3DS2 and pose at the optimum, and the (9V, 9V) joint covariance of every
-    view's Cal3DS2 (views in order, Cal3DS2 tangent order).
+    """Marginal sigmas of every view's calibration and pose at the optimum, and the (DV, DV) joint covariance of
+    every view's calibration (views in order, each in its model's tangent order: D = 9, or 10 for Cal3Unified).
 
     The covariances are `lfgraph.schur.CameraMarginals` (the one posterior path): the inverse of the reduced camera
     system (the same numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every
