@@ -118,23 +118,30 @@ def _board_order(obs: BoardObservations, say: Observer) -> tuple[BoardObservatio
     return obs, list(order.messages)
 
 
-def _paper_route(obs: BoardObservations, lenses, say: Observer) -> tuple[BoardObservations, Any, list[str]]:
+def _paper_route(obs: BoardObservations, lenses, say: Observer,
+                 keep: bool = False) -> tuple[BoardObservations, Any, list[str]]:
     """The paper route (`calibrate_paper`). One bad view-frame (a mis-detected board, another camera's image) skews
     the PnP average the rig starts from and then the whole fit: view-frames whose relative pose contradicts the other
-    frames' are dropped and the route runs again. Returns (observations, its result, one warning per dropped)."""
+    frames' are dropped and the route runs again. With ``keep`` (a robust joint fit follows, which screens every
+    view-frame on the whole rig: `_joint_route`) they are left out of this route only, the joint fit's start, and kept
+    for the joint graph to judge: a per-view fit of a wide lens on a board covering part of its field can put a PnP
+    pose of exact corners 1-3 deg off. Returns (observations, its result, one warning per dropped)."""
     paper = calibrate_paper(obs, lenses)
     bad = inconsistent_view_frames(paper.view_T_board, obs.grid.reference)
     if not bad:
         return obs, paper, []
-    obs = drop_view_frames(obs, [(v, f) for v, f, _, _ in bad])
+    reduced = drop_view_frames(obs, [(v, f) for v, f, _, _ in bad])
+    check_observations(reduced)
     warnings = []
     for v, f, rot, pos in bad:
-        message = (f"{obs.describe(v, f)}: its board pose contradicts the rig the other frames agree on "
-                   f"(off by {rot:.2f} deg, {1e3 * pos:.1f} mm): dropped from the calibration")
-        warnings.append(message)
-        say.log(message)
-    check_observations(obs)
-    return obs, calibrate_paper(obs, lenses), warnings
+        what = f"{obs.describe(v, f)}: its board pose contradicts the rig the other frames agree on (off by " \
+               f"{rot:.2f} deg, {1e3 * pos:.1f} mm)"
+        if keep:
+            say.log(f"{what}: left out of the start; the joint fit's screen judges it on the whole rig")
+        else:
+            warnings.append(f"{what}: dropped from the calibration")
+            say.log(warnings[-1])
+    return (obs if keep else reduced), calibrate_paper(reduced, lenses), warnings
 
 
 def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
@@ -151,10 +158,16 @@ def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
         start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
     start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
     dropped: list[str] = []
-    if config.screen and isinstance(config.noise, RobustKernel) and config.noise.name == "none":
+    if _screens(config):
         obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
             obs, start_intr, start_poses, start_boards, config, say)
     return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
+
+
+def _screens(config: CalibrateConfig) -> bool:
+    """Whether the joint route screens view-frames with a robust fit first (`screen_view_frames`): by default; not
+    when the user chose the noise model."""
+    return config.screen and isinstance(config.noise, RobustKernel) and config.noise.name == "none"
 
 
 def _weak_view_warnings(obs: BoardObservations, joint) -> list[str]:
@@ -252,7 +265,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     paper = None
     if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()
-        obs, paper, dropped = _paper_route(obs, lenses, say)
+        obs, paper, dropped = _paper_route(obs, lenses, say, keep=method != Method.PAPER and _screens(config))
         seconds["paper"] = time.perf_counter() - t0
         warnings += dropped + list(paper.warnings)
         say.log(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
