@@ -114,16 +114,16 @@ def _step_guess(previous: np.ndarray | None, idx: np.ndarray) -> np.ndarray:
     return np.where(has[:, None], known, np.nan_to_num(np.nanmedian(previous, axis=0))[None])
 
 
-def _anchor(images: np.ndarray, ref: int, pts: np.ndarray, alive: np.ndarray, anchor_px: float, win: tuple,
-            criteria: tuple) -> None:
-    """Chained KLT drifts coherently (small biases add up over up to V-1 steps): re-track every view directly from
-    the reference patch, started at the chain's estimate, and keep the points that stay within ``anchor_px`` of it
-    (``pts`` and ``alive`` updated in place)."""
+def _anchor(images: np.ndarray, ref: int, pts: np.ndarray, todo: np.ndarray, anchor_px: float, win: tuple,
+            criteria: tuple, alive: np.ndarray) -> None:
+    """Chained KLT drifts coherently (small biases add up over up to V-1 steps): re-track every view's ``todo``
+    points (V, N) directly from the reference patch, started at the chain's estimate, and keep the points that stay
+    within ``anchor_px`` of it (``pts`` and ``alive`` updated in place)."""
     ref_pts = pts[ref].astype(np.float32).reshape(-1, 1, 2)
     for b in range(len(images)):
-        if b == ref or not alive[b].any():
+        if b == ref or not todo[b].any():
             continue
-        idx = np.nonzero(alive[b])[0]
+        idx = np.nonzero(todo[b])[0]
         start = pts[b, idx].astype(np.float32).reshape(-1, 1, 2)
         p1, status, _ = cv2.calcOpticalFlowPyrLK(images[ref], images[b], ref_pts[idx], start.copy(),
                                                  winSize=win, maxLevel=1, criteria=criteria,
@@ -261,25 +261,27 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         p1, status, _ = cv2.calcOpticalFlowPyrLK(images[a], images[b], p0, start, winSize=win,
                                                  maxLevel=s.klt_levels, criteria=criteria,
                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        ok_back = np.ones(len(idx), dtype=bool)
-        if s.forward_backward_px is not None:
-            p0b, status_b, _ = cv2.calcOpticalFlowPyrLK(images[b], images[a], p1, p0.copy(), winSize=win,
-                                                        maxLevel=s.klt_levels, criteria=criteria,
+        q1 = p1.reshape(-1, 2).astype(np.float64)
+        inside = (q1[:, 0] >= 0) & (q1[:, 0] <= w - 1) & (q1[:, 1] >= 0) & (q1[:, 1] <= h - 1)
+        ok = (status.ravel() == 1) & inside
+        back_idx = np.nonzero(ok)[0]
+        if s.forward_backward_px is not None and len(back_idx):  # back from where the forward track held (KLT
+            # follows every point on its own: the same answer as tracking all back, on fewer points)
+            p0b, status_b, _ = cv2.calcOpticalFlowPyrLK(images[b], images[a], p1[back_idx], p0[back_idx].copy(),
+                                                        winSize=win, maxLevel=s.klt_levels, criteria=criteria,
                                                         flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            back = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
-            ok_back = (status_b.ravel() == 1) & (back <= s.forward_backward_px)
-        p1 = p1.reshape(-1, 2).astype(np.float64)
-        inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
-        ok = ok_back & (status.ravel() == 1) & inside
+            back = np.linalg.norm(p0b.reshape(-1, 2) - p0[back_idx].reshape(-1, 2), axis=1)
+            ok[back_idx] = (status_b.ravel() == 1) & (back <= s.forward_backward_px)
+        p1 = q1
         pts[b, idx[ok]] = p1[ok]
         alive[b, idx[ok]] = True
         step = np.full((n, 2), np.nan)
         step[idx[ok]] = p1[ok] - pts[a, idx[ok]]
         steps[direction] = step
         dup |= _duplicates(pts[b], alive[b], DUPLICATE_PX)
-    if s.anchor_px is not None:
-        _anchor(images, ref, pts, alive, s.anchor_px, win, criteria)
     min_views = n_views if s.min_views is None else s.min_views
+    if s.anchor_px is not None:  # only tracks the chain kept in enough views: re-tracking can only lose views
+        _anchor(images, ref, pts, alive & (alive.sum(axis=0) >= min_views), s.anchor_px, win, criteria, alive)
     seen = alive.sum(axis=0)
     counts = {"detected": n}
     keep = seen >= min_views
