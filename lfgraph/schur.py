@@ -168,6 +168,22 @@ def _linear_change(s: ReducedSystem, dl: np.ndarray, dc: np.ndarray) -> float:
     return dg - 0.5 * dhd
 
 
+def _left_to_gain(history: list[float]) -> float:
+    """The cost decrease still to come if the last two decreases keep shrinking by their ratio (Aitken's estimate of
+    a linearly converging sequence's limit; inf unless they shrink). A robust (reweighted) problem also stops once
+    that is below its relative tolerance: on the kernel table (`benchmarks/refine.py --kernels-only`) 10-33 % fewer
+    iterations for Huber, Cauchy, Tukey and Geman-McClure at 3.787 sigma, every transfer at infinity within 0.001 px
+    of the stop on the last decrease alone (Geman-McClure at 1 sigma, whose decreases shrink by only ~0.75 per
+    iteration, is left to that stop)."""
+    if len(history) < 3:
+        return float("inf")
+    last, before = history[-2] - history[-1], history[-3] - history[-2]
+    if not 0 <= last < before:
+        return float("inf")
+    ratio = last / before
+    return last * ratio / (1.0 - ratio)
+
+
 EXTRAPOLATE_MIN = 1.5  # an accepted step is stretched when the cost's parabola along it puts the minimum beyond
 EXTRAPOLATE_MAX = 8.0  # this multiple of the step (and by at most this one)
 
@@ -223,6 +239,7 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
     lam = LAMBDA_INITIAL
     iterations = 0
     converged = False
+    predict = getattr(problem, "extrapolate", False)  # a robust problem: reweighting converges linearly
     while iterations < max_iterations:
         if error <= error_tol:
             converged = True
@@ -263,7 +280,7 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
         decrease = error - new_error
         state, previous, error = new_state, error, new_error
         if decrease <= absolute_error_tol or (previous > 0 and decrease / previous <= relative_error_tol) \
-                or error <= error_tol:
+                or error <= error_tol or (predict and _left_to_gain(history) <= relative_error_tol * error):
             converged = True
             break
     return OptimizationResult(state, initial_error, error, iterations, converged or iterations < max_iterations,

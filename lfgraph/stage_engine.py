@@ -53,7 +53,8 @@ REFINE_RELATIVE_TOL = 1e-7  # refine's stages. GTSAM's 1e-10 costs one more iter
 ROBUST_RELATIVE_TOL = 1e-4  # refine's stages under a robust kernel (iteratively reweighted: linear convergence, each
 # iteration lowering the cost by ~0.3-0.8 of the one before, where a Gaussian stage takes 2-3 iterations). On the kernel
 # table (benchmarks/refine.py --kernels-only) Tukey, Geman-McClure (3.787 and 1 sigma), Cauchy and Huber land within
-# 0.002 px at infinity of their fits converged to 1e-9, in 0.1-0.4x its iterations (0.55-0.8x those of 1e-5).
+# 0.002 px at infinity of their fits converged to 1e-9, in 0.1-0.4x its iterations (0.55-0.8x those of 1e-5). A robust
+# bulk stage also stops once the decrease still to come (`schur._left_to_gain`) is below this fraction.
 # An extra stop once the cameras moved by less than 0.01 of their posterior sigma per step wrote a worse calibration on
 # a sweep scenario (benchmarks/sweep.py seed 57: a 3x4 on repeated texture, 29.9 -> 57.8 px at infinity)
 INTERMEDIATE_RELATIVE_TOL = 1e-6  # a self-calibration's intermediate stages (the next stage starts from there)
