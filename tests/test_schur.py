@@ -172,3 +172,13 @@ def test_embedded_point_iterations_reach_the_same_minimum_from_a_landmark_far_of
     for v in range(rig.num_views):
         d = embedded.values.atPose3(view_pose_key(v)).localCoordinates(plain.values.atPose3(view_pose_key(v)))
         assert np.max(np.abs(d)) < SAME_SOLUTION
+
+
+def test_the_decrease_still_to_come_of_a_geometric_sequence_is_its_tail():
+    """A robust stage's second stop (`schur._left_to_gain`): decreases 8, 4, 2 of a cost whose decreases halve leave
+    2 more (1 + 0.5 + ...); decreases that do not shrink leave an unknown amount (no stop)."""
+    from lfgraph.schur import _left_to_gain
+
+    assert _left_to_gain([20.0, 12.0, 8.0, 6.0]) == pytest.approx(2.0)
+    assert _left_to_gain([20.0, 12.0, 8.0, 4.0]) == float("inf")  # 4 then 4: not shrinking
+    assert _left_to_gain([20.0, 12.0]) == float("inf")  # one decrease says nothing of the next
