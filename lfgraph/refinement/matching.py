@@ -114,6 +114,29 @@ def _step_guess(previous: np.ndarray | None, idx: np.ndarray) -> np.ndarray:
     return np.where(has[:, None], known, np.nan_to_num(np.nanmedian(previous, axis=0))[None])
 
 
+def _klt_step(image_a: np.ndarray, image_b: np.ndarray, from_px: np.ndarray, start_px: np.ndarray, s: MatchSettings,
+              win: tuple, criteria: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """One chain step: (N, 2) points of ``image_a`` tracked into ``image_b`` from ``start_px``; returns their (N, 2)
+    positions and where they held (KLT's status, inside the image and, with ``s.forward_backward_px``, back within
+    it of where they came from). The check runs back only from the points whose forward track held: KLT follows
+    every point on its own, so the answer is that of tracking all back, for fewer points."""
+    p0 = from_px.astype(np.float32).reshape(-1, 1, 2)
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(image_a, image_b, p0, start_px.astype(np.float32).reshape(-1, 1, 2),
+                                             winSize=win, maxLevel=s.klt_levels, criteria=criteria,
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    out = p1.reshape(-1, 2).astype(np.float64)
+    h, w = image_b.shape[:2]
+    ok = (status.ravel() == 1) & (out[:, 0] >= 0) & (out[:, 0] <= w - 1) & (out[:, 1] >= 0) & (out[:, 1] <= h - 1)
+    back_idx = np.nonzero(ok)[0]
+    if s.forward_backward_px is not None and len(back_idx):
+        p0b, status_b, _ = cv2.calcOpticalFlowPyrLK(image_b, image_a, p1[back_idx], p0[back_idx].copy(), winSize=win,
+                                                    maxLevel=s.klt_levels, criteria=criteria,
+                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        back = np.linalg.norm(p0b.reshape(-1, 2) - p0[back_idx].reshape(-1, 2), axis=1)
+        ok[back_idx] = (status_b.ravel() == 1) & (back <= s.forward_backward_px)
+    return out, ok
+
+
 def _anchor(images: np.ndarray, ref: int, pts: np.ndarray, todo: np.ndarray, anchor_px: float, win: tuple,
             criteria: tuple, alive: np.ndarray) -> None:
     """Chained KLT drifts coherently (small biases add up over up to V-1 steps): re-track every view's ``todo``
@@ -240,7 +263,6 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         pts[ref] = corners.reshape(-1, 2)
     alive = np.zeros((n_views, n), dtype=bool)
     alive[ref] = True
-    h, w = images[ref].shape[:2]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     win = (s.klt_window_px, s.klt_window_px)
     dup = np.zeros(n, dtype=bool)
@@ -256,23 +278,7 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         direction = (rb - ra, cb - ca)
         idx = np.nonzero(src)[0]
         guess = _step_guess(steps.get(direction), idx)
-        p0 = pts[a, idx].astype(np.float32).reshape(-1, 1, 2)
-        start = (pts[a, idx] + guess).astype(np.float32).reshape(-1, 1, 2)
-        p1, status, _ = cv2.calcOpticalFlowPyrLK(images[a], images[b], p0, start, winSize=win,
-                                                 maxLevel=s.klt_levels, criteria=criteria,
-                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        q1 = p1.reshape(-1, 2).astype(np.float64)
-        inside = (q1[:, 0] >= 0) & (q1[:, 0] <= w - 1) & (q1[:, 1] >= 0) & (q1[:, 1] <= h - 1)
-        ok = (status.ravel() == 1) & inside
-        back_idx = np.nonzero(ok)[0]
-        if s.forward_backward_px is not None and len(back_idx):  # back from where the forward track held (KLT
-            # follows every point on its own: the same answer as tracking all back, on fewer points)
-            p0b, status_b, _ = cv2.calcOpticalFlowPyrLK(images[b], images[a], p1[back_idx], p0[back_idx].copy(),
-                                                        winSize=win, maxLevel=s.klt_levels, criteria=criteria,
-                                                        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            back = np.linalg.norm(p0b.reshape(-1, 2) - p0[back_idx].reshape(-1, 2), axis=1)
-            ok[back_idx] = (status_b.ravel() == 1) & (back <= s.forward_backward_px)
-        p1 = q1
+        p1, ok = _klt_step(images[a], images[b], pts[a, idx], pts[a, idx] + guess, s, win, criteria)
         pts[b, idx[ok]] = p1[ok]
         alive[b, idx[ok]] = True
         step = np.full((n, 2), np.nan)
