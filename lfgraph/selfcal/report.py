@@ -18,8 +18,8 @@ GAUGES = (
     "scale: from the design pitch (position priors at the nominal grid) - scene frames carry no scale",
     "hidden principal-point gauge: seen through distortion, with the principal points' design priors; common zoom: "
     "through pinhole (radtan) lenses seen only through the views' small rotations, so set largely by the design "
-    "focal length (absolute focal length and metric depth), through fisheye lenses seen by the lenses' angles; both "
-    "modes' posterior sigmas are in 'modes'",
+    "focal length (absolute focal length and metric depth), through wide lenses (fisheye, unified at its held xi) seen "
+    "by the lenses' angles; both modes' posterior sigmas are in 'modes'",
 )
 
 
