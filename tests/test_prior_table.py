@@ -9,7 +9,6 @@ import pytest
 from lfgraph.camera import Intrinsics
 from lfgraph.factors.noise import GAUGE_SIGMA, MIN_SIGMA
 from lfgraph.factors.prior_table import (
-    cal3ds2_vectors,
     calibration_vectors,
     intrinsics_prior_factors,
     pose_prior_factors,
@@ -34,8 +33,8 @@ def test_the_reference_is_the_gauge_a_nan_row_adds_nothing_and_sigmas_are_floore
 
 def test_intrinsics_priors_are_cal3ds2_rows():
     views = [Intrinsics(600.0, 601.0, 320.0, 240.0, -0.1, 0.02, 1e-4, -2e-4), Intrinsics(610.0, 611.0, 330, 250)]
-    mean = cal3ds2_vectors(views)
-    sigmas = np.full((2, 9), 1e-6)
+    mean = calibration_vectors(views)  # radtan rows: the Cal3DS2 vector, NaN in the unified-only column
+    sigmas = np.full(mean.shape, 1e-6)
     sigmas[1] = np.nan
     graph = intrinsics_prior_factors(mean, sigmas)
     assert graph.size() == 1
@@ -44,10 +43,7 @@ def test_intrinsics_priors_are_cal3ds2_rows():
     assert isinstance(graph.at(0), gtsam.PriorFactorCal3DS2)
 
 
-def test_other_lenses_and_shapes_are_refused_by_name():
-    fisheye = replace(Intrinsics(600.0, 600.0, 320.0, 240.0), lens="fisheye")
-    with pytest.raises(ValueError, match=r"views \[1\] are fisheye"):
-        cal3ds2_vectors([Intrinsics(600.0, 600.0, 320.0, 240.0), fisheye])
+def test_shapes_a_lens_cannot_take_are_refused_by_name():
     with pytest.raises(ValueError, match="pose priors"):
         pose_prior_factors(0, poses(3), np.zeros((3, 5)))
     with pytest.raises(ValueError, match="intrinsics priors"):

@@ -30,19 +30,6 @@ _PRIORS = {RADTAN: (gtsam.PriorFactorCal3DS2, gtsam.Cal3DS2),
            UNIFIED: (gtsam.PriorFactorCal3Unified, gtsam.Cal3Unified)}
 
 
-def cal3ds2_vectors(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> np.ndarray:
-    """(V, 9) Cal3DS2 vectors (fx fy s cx cy k1 k2 p1 p2; skew 0) of radtan views.
-
-    Raises:
-        ValueError: a view of another lens model (its intrinsics are not a Cal3DS2).
-    """
-    other = [v for v, i in enumerate(intrinsics) if i.lens != RADTAN]
-    if other:
-        raise ValueError(f"Cal3DS2 priors need radtan views; views {other} are "
-                         f"{', '.join(sorted({intrinsics[v].lens for v in other}))}")
-    return np.array([[i.fx, i.fy, 0.0, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2] for i in intrinsics], dtype=np.float64)
-
-
 def pose_prior_factors(reference: int, mean: np.ndarray, sigmas: np.ndarray) -> gtsam.NonlinearFactorGraph:
     """One pose prior per view: the reference view's the gauge, every other view's ``mean`` (V, 4, 4)
     ``ref_T_view`` with its row of ``sigmas`` (V, 6; rad, m; a NaN row: no prior)."""
@@ -71,7 +58,7 @@ def calibration_vectors(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -
 def intrinsics_prior_factors(mean: np.ndarray, sigmas: np.ndarray,
                              lenses: list[str] | tuple[str, ...] | None = None) -> gtsam.NonlinearFactorGraph:
     """One calibration prior per view, of its lens model: ``mean`` (V, >= the lens's tangent size) calibration
-    vectors (`calibration_vectors`, or `cal3ds2_vectors` for radtan views) with their ``sigmas`` (same shape; px and
+    vectors (`calibration_vectors`) with their ``sigmas`` (same shape; px and
     unitless coefficients; a NaN row: no prior); ``lenses`` each view's model (all radtan when None)."""
     _check(mean.shape, sigmas.shape, "intrinsics")
     lenses = [RADTAN] * len(mean) if lenses is None else list(lenses)

@@ -28,6 +28,7 @@ import gtsam
 import numpy as np
 
 from lfgraph.calibration import Calibration
+from lfgraph.camera import FISHEYE, RADTAN, UNIFIED
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, range_noise
@@ -78,8 +79,8 @@ def projection_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray
     return graph
 
 
-_SFM_FACTORS = {"radtan": gtsam.GeneralSFMFactor2Cal3DS2, "fisheye": gtsam.GeneralSFMFactor2Cal3Fisheye,
-                "unified": gtsam.GeneralSFMFactor2Cal3Unified}
+_SFM_FACTORS = {RADTAN: gtsam.GeneralSFMFactor2Cal3DS2, FISHEYE: gtsam.GeneralSFMFactor2Cal3Fisheye,
+                UNIFIED: gtsam.GeneralSFMFactor2Cal3Unified}
 
 
 def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.Base,
@@ -88,7 +89,7 @@ def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.B
     Cal3Fisheye or Cal3Unified; all radtan when ``lenses`` is None)."""
     graph = gtsam.NonlinearFactorGraph()
     vs, js, meas = _observations(valid, pixels)
-    factors = [_SFM_FACTORS["radtan" if lenses is None else lens] for lens in (lenses or [None] * valid.shape[0])]
+    factors = [_SFM_FACTORS[lens] for lens in (lenses or [RADTAN] * valid.shape[0])]
     for v, j, uv in zip(vs, js, meas, strict=True):
         graph.add(factors[v](uv, noise, view_pose_key(v), landmark_key(j), calib_key(v)))
     return graph

@@ -76,9 +76,10 @@ def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
 def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: DesignSigmas,
                           free: frozenset[str],
                           pinned: dict[int, tuple[int, ...]] | None = None) -> gtsam.NonlinearFactorGraph:
-    """One calibration prior per view (Cal3DS2, or Cal3Fisheye for a fisheye design: the groups' indices are the
-    same): free groups pulled to the design value with the design tolerance, everything else (skew, p1, p2 or a
-    fisheye's k3, k4, the groups this stage holds and the ``pinned`` indices of some views, e.g.
+    """One calibration prior per view (Cal3DS2, Cal3Fisheye or Cal3Unified, the design's model: the groups'
+    indices are the same): free groups pulled to the design value with the design tolerance, everything else (skew,
+    p1, p2 or a fisheye's k3, k4, a unified lens's xi, the groups this stage holds and the ``pinned`` indices of some
+    views, e.g.
     `intrinsics_gauges`) pinned at ``current``."""
     now = calibration_vectors(current)
     mean = now.copy()

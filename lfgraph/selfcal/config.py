@@ -36,7 +36,7 @@ DEFAULT_STAGES: tuple[tuple[str, ...], ...] = (
 )
 
 FIELD_OF_VIEW_DEG = (1.0, 170.0)  # the horizontal field of view a nominal focal length may give (a camera) ...
-FISHEYE_FIELD_OF_VIEW_DEG = (1.0, 240.0)  # ... and through a fisheye or a unified lens
+WIDE_FIELD_OF_VIEW_DEG = (1.0, 240.0)  # ... and through a fisheye or a unified lens
 DESIGN_LENSES = (RADTAN, FISHEYE, UNIFIED)  # the lens models a self-calibration fits
 
 
@@ -87,7 +87,7 @@ class Design:
         if w <= 0 or h <= 0:
             raise ValueError(f"image size must be positive, got {self.image_size_px}")
         fov_deg = self._field_of_view_deg(w / (2 * self.focal_px))
-        lo, hi = FIELD_OF_VIEW_DEG if self.lens == RADTAN else FISHEYE_FIELD_OF_VIEW_DEG
+        lo, hi = FIELD_OF_VIEW_DEG if self.lens == RADTAN else WIDE_FIELD_OF_VIEW_DEG
         if not lo <= fov_deg <= hi:  # --focal-px 1e9 failed deep in the marginals
             seen = "no field of view (the image reaches beyond the lens's)" if np.isnan(fov_deg) \
                 else f"a {fov_deg:.3g} deg field of view"

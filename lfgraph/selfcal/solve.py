@@ -82,7 +82,8 @@ def zoom_to_prior(calib: Calibration, points: np.ndarray, design: Intrinsics) ->
     landmark's depth and every view's z position by s. Levenberg–Marquardt walks this near-flat valley very slowly
     (measured: 150 iterations left paper-4x4's mean focal length 10 px from its optimum), so the final stage starts
     at the valley's MAP point s = sum(f_design f_v) / sum(f_v^2) over every fx and fy; it then refines the rest.
-    Through a fisheye there is no such valley (its angles pin the focal length): returned unchanged.
+    Through a wide lens (fisheye, unified) there is no such valley (its angles pin the focal length): returned
+    unchanged.
     """
     if design.lens != RADTAN:
         return calib, points
