@@ -15,8 +15,9 @@ nothing) starts each stage from the minimum under its Gaussian part (`least_squa
 M-estimator needs a start near its minimum: started from a knocked calibration, Tukey at 4.685 sigmas gave every
 track of a knocked view zero weight and kept the input (3.3 px at infinity; 0.064 px from the least-squares start,
 `benchmarks/refine.py --kernels-only`). Unbounded ones (Huber, Cauchy, Fair) start where the stage starts, and so
-does a bounded one on the bulk path when every view's median residual keeps at least `START_WEIGHT_MIN` of its
-weight there (the start is within the kernel's reach: a refinement's clean-up stage, after its poses stage).
+does a bounded one on the bulk path when every view's median residual keeps at least `START_WEIGHT_MIN` of the
+weight the kernel gives Gaussian noise (the start is within the kernel's reach: a refinement's clean-up stage, after
+its poses stage).
 """
 
 from __future__ import annotations
@@ -65,7 +66,13 @@ ROBUST_RELATIVE_TOL = 1e-4  # refine's stages under a robust kernel (iteratively
 INTERMEDIATE_RELATIVE_TOL = 1e-6  # a self-calibration's intermediate stages (the next stage starts from there)
 FINAL_RELATIVE_TOL = 1e-9  # a self-calibration's final stage converges fully (the marginals are taken at its optimum)
 START_WEIGHT_MIN = 0.5  # a bounded kernel's bulk stage starts where it is when the kernel gives every view's median
-# residual at least this weight there (else from the least-squares minimum: a knocked view's tracks would weigh 0)
+# residual at least this fraction of the weight it gives Gaussian noise's median (else from the least-squares minimum:
+# a knocked view's tracks would weigh 0). Relative, because a narrow kernel weighs even noise little (Geman-McClure at
+# 1 sigma: 0.18 at the median), and its stages started from least squares every time: a refinement's clean-up stage,
+# which starts at the robust minimum of the stage before, went there and back (kernel table: 8 more iterations per pass)
+NOISE_MEDIAN_DISTANCE = float(np.sqrt(2.0 * np.log(2.0)))  # median length of a 2-D whitened Gaussian residual
+NOISE_WEIGHT_MIN = 0.1  # a kernel weighing Gaussian noise's median less than this (e.g. Tukey at 1 px during the
+# first pass's 1 px sigma, which weighs it 0) cannot tell a start within its reach: its stages start from least squares
 
 
 @dataclass(frozen=True)
@@ -176,8 +183,10 @@ def _solve_bulk(plan: StagePlan, problem: ProjectionProblem, state, callback) ->
     unless the start is within the kernel's reach (`START_WEIGHT_MIN`)."""
     limits = dict(max_iterations=plan.settings.max_iterations, relative_error_tol=plan.settings.relative_error_tol)
     iterations = 0
-    if problem.noise.kernel is not None and problem.noise.kernel.bounded \
-            and np.min(problem.typical_weights(state)) < START_WEIGHT_MIN:
+    kernel = problem.noise.kernel
+    noise = float(kernel.weights(np.array([NOISE_MEDIAN_DISTANCE]))[0]) if kernel is not None else 1.0
+    if kernel is not None and kernel.bounded and (noise < NOISE_WEIGHT_MIN or np.min(problem.typical_weights(state))
+                                                  < START_WEIGHT_MIN * noise):
         warm = optimize_problem(problem.gaussian(), state, callback=callback, **limits)
         state, iterations = warm.values, warm.iterations
     res = optimize_problem(problem, state, callback=callback, **limits)

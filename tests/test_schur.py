@@ -18,7 +18,7 @@ from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
 from lfgraph.refinement.triangulate import triangulate_dlt
 from lfgraph.schur import marginal_covariance, problem_covariance
-from lfgraph.schur_system import camera_block
+from lfgraph.schur_system import camera_block, chol3_inv
 
 SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same LM, different linear solver)
 SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals
@@ -182,3 +182,22 @@ def test_the_decrease_still_to_come_of_a_geometric_sequence_is_its_tail():
     assert _left_to_gain([20.0, 12.0, 8.0, 6.0]) == pytest.approx(2.0)
     assert _left_to_gain([20.0, 12.0, 8.0, 4.0]) == float("inf")  # 4 then 4: not shrinking
     assert _left_to_gain([20.0, 12.0]) == float("inf")  # one decrease says nothing of the next
+
+
+CHOLESKY_ATOL = 1e-8  # |L^-1 V L^-T - I| of the closed-form factors, for blocks of condition up to ~1e6 (a landmark
+# seen over a narrow baseline: its depth ~1000x less certain than its direction)
+
+
+def test_closed_form_landmark_cholesky_factors_the_blocks_and_refuses_indefinite_ones():
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(50, 3, 3)))
+    scales = 10.0 ** rng.uniform(-1.0, 5.0, size=(50, 3))  # eigenvalues 0.1 .. 1e5: condition up to 1e6
+    blocks = q @ (scales[:, :, None] * np.swapaxes(q, 1, 2))
+    inverse = chol3_inv(blocks)
+    assert np.allclose(np.triu(inverse, 1), 0.0)  # lower triangular
+    whitened = inverse @ blocks @ np.swapaxes(inverse, 1, 2)
+    assert np.max(np.abs(whitened - np.eye(3))) < CHOLESKY_ATOL
+    indefinite = blocks.copy()
+    indefinite[7] = np.diag([1.0, -1.0, 1.0])
+    with pytest.raises(np.linalg.LinAlgError):
+        chol3_inv(indefinite)
