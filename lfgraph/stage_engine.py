@@ -54,13 +54,14 @@ REFINE_RELATIVE_TOL = 1e-7  # refine's stages. GTSAM's 1e-10 costs one more iter
 ROBUST_RELATIVE_TOL = 1e-4  # refine's stages under a robust kernel (iteratively reweighted: linear convergence, each
 # iteration lowering the cost by ~0.3-0.8 of the one before, where a Gaussian stage takes 2-3 iterations). On the kernel
 # table (benchmarks/refine.py --kernels-only) Tukey, Geman-McClure (3.787 and 1 sigma), Cauchy and Huber land within
-# 0.002 px at infinity of their fits converged to 1e-9, in 0.1-0.4x its iterations (0.55-0.8x those of 1e-5). A robust
+# 0.002 px at infinity of their fits converged to 1e-9 (Geman-McClure at 1 sigma: 0.003 px RMS with the start rule of
+# `START_WEIGHT_MIN`), in 0.1-0.4x its iterations (0.55-0.8x those of 1e-5). A robust
 # bulk stage also stops once the decrease still to come (`schur._left_to_gain`) is below this fraction. On the bulk path
 # the fraction is of the cost or of what Gaussian noise would cost (one per observation), whichever is more: a cost
 # gap measures the distance to the minimum in the estimator's own posterior sigmas whatever the kernel, and a kernel
 # whose cost is far below the Gaussian's (Geman-McClure at 1 sigma: ~0.2 of it) was held ~5x tighter than the others
 # (measured: every kernel of the table still lands within 0.002 px RMS at infinity of its converged fit; Geman-McClure
-# at 1 sigma 299 -> 228 iterations, 205 with the shorter stretch of `schur._extrapolate`)
+# at 1 sigma 299 -> 228 iterations over the table's refine, 205 with the shorter stretch of `schur._extrapolate`)
 # An extra stop once the cameras moved by less than 0.01 of their posterior sigma per step wrote a worse calibration on
 # a sweep scenario (benchmarks/sweep.py seed 57: a 3x4 on repeated texture, 29.9 -> 57.8 px at infinity)
 INTERMEDIATE_RELATIVE_TOL = 1e-6  # a self-calibration's intermediate stages (the next stage starts from there)
@@ -69,7 +70,8 @@ START_WEIGHT_MIN = 0.5  # a bounded kernel's bulk stage starts where it is when 
 # residual at least this fraction of the weight it gives Gaussian noise's median (else from the least-squares minimum:
 # a knocked view's tracks would weigh 0). Relative, because a narrow kernel weighs even noise little (Geman-McClure at
 # 1 sigma: 0.18 at the median), and its stages started from least squares every time: a refinement's clean-up stage,
-# which starts at the robust minimum of the stage before, went there and back (kernel table: 8 more iterations per pass)
+# which starts at the robust minimum of the stage before, went there and back (the kernel table's refine: 205 -> 184
+# iterations)
 NOISE_MEDIAN_DISTANCE = float(np.sqrt(2.0 * np.log(2.0)))  # median length of a 2-D whitened Gaussian residual
 NOISE_WEIGHT_MIN = 0.1  # a kernel weighing Gaussian noise's median less than this (e.g. Tukey at 1 px during the
 # first pass's 1 px sigma, which weighs it 0) cannot tell a start within its reach: its stages start from least squares
