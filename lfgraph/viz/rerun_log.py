@@ -310,8 +310,11 @@ class RerunLogger(SceneLog, BaseObserver):
         return [px[v][np.all(np.isfinite(px[v]), axis=1)] for v in range(n_views)]
 
     def _log_images(self, images) -> None:  # (V, H, W), or a list of (H, W) for views of different sizes
-        for v in range(len(images)):
-            self.rec.log(f"views/{self._name(v)}/image", jpeg_image(self._shown_image(v, images[v])))
+        self._log_encoded([jpeg_image(self._shown_image(v, images[v])) for v in range(len(images))])
+
+    def _log_encoded(self, encoded: list) -> None:  # every view's image, JPEG-encoded (`jpeg_image`)
+        for v, image in enumerate(encoded):
+            self.rec.log(f"views/{self._name(v)}/image", image)
 
     # ------------------------------------------------------------------------------------------- optimiser
     def set_measurements(self, n: int) -> None:

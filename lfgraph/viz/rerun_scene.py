@@ -9,7 +9,9 @@ lies outside that pinhole's field (a fisheye's periphery) is not shown."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -38,6 +40,7 @@ from lfgraph.viz.blueprint import (
 )
 
 CAMERA_RIGS = ("input_rig", "calibrated_rig", "refined_rig")  # rigs whose poses place the 2-D views in 3-D
+FRAMES_AHEAD = 2  # a calibration's frames are read and encoded this many ahead of the one being logged
 
 
 def jpeg_image(image: np.ndarray) -> rr.EncodedImage | rr.Image:
@@ -204,11 +207,10 @@ class SceneLog:
                                     for T in report.board_T_ref])
             self.boards(ref_T_board, obs.board.object_points())
         outlier_frames = set(report.outlier_frames)
-        for f in range(obs.corners_px.shape[1]):
+        for f, encoded in self._encoded_frames(frames, obs.corners_px.shape[1]):
             self.rec.set_time("frame", sequence=f)
-            images = frame_images(frames, f)
-            if images is not None:
-                self._log_images(images)
+            if encoded is not None:
+                self._log_encoded(encoded)
             if report.residuals_px is None:
                 continue
             observed = obs.corners_px[:, f]
@@ -218,6 +220,26 @@ class SceneLog:
                         for v in range(calib.num_views)]
             self.observations(calib, observed, projected, valid, outliers)
         self.optimiser_summary()
+
+    def _encoded_frames(self, frames, n: int) -> Iterator[tuple[int, list | None]]:
+        """(f, frame f's images as their 2-D views show them, JPEG-encoded) for f < n (None without ``frames``).
+        Frames are read on one thread, in order (a video reader is not thread-safe), and encoded on another, up to
+        `FRAMES_AHEAD` ahead of the frame being logged: reading (PNG decoding) and encoding run side by side, as
+        OpenCV and the JPEG encoder release the GIL."""
+        if frames is None:
+            yield from ((f, None) for f in range(n))
+            return
+
+        def encode(load) -> list:
+            images = load.result()
+            return [jpeg_image(self._shown_image(v, images[v])) for v in range(len(images))]
+
+        with ThreadPoolExecutor(1) as reader, ThreadPoolExecutor(1) as encoder:
+            pending: deque = deque()
+            for f in range(n):
+                while len(pending) + f < min(n, f + FRAMES_AHEAD + 1):
+                    pending.append(encoder.submit(encode, reader.submit(frame_images, frames, len(pending) + f)))
+                yield f, pending.popleft().result()
 
     def refinement_result(self, before: Calibration, after: Calibration, report=None) -> None:
         """After `lfgraph.refine`: the input and the refined rig side by side, the change per view, the optimiser
