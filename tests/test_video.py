@@ -23,6 +23,7 @@ BOARD = BoardSpec.parse("7x5", 15)
 DETECTION_RMS_PX = 0.3  # corners found in MJPG frames against the true corners (PNG frames do about 0.1 px)
 RIG_RMS_PX = 0.5
 MAX_POSITION_ERROR_MM = 2.0
+RECORDED_GREY_LEVELS = 3.0  # mean |recorded JPEG - decoded video frame| of a frame's own image (another frame's: tens)
 
 
 @pytest.fixture(scope="module")
@@ -116,6 +117,25 @@ def test_calibrate_cli_on_videos(videos, rendered, tmp_path, capsys):
     assert calib.metrics["rig_rms_px"] < RIG_RMS_PX
     err_mm = 1e3 * np.abs(np.stack(calib.ref_T_view)[:, :3, 3] - np.stack(truth.ref_T_view)[:, :3, 3])
     assert err_mm.max() < MAX_POSITION_ERROR_MM
+
+
+def test_a_recording_reads_a_videos_frames_ahead_and_in_order(videos, tmp_path):
+    """A calibration's recording reads its frames on a worker thread ahead of the frame being logged (a video
+    reader is used by that one thread, in order): every frame's recorded images are that frame's."""
+    from lfgraph.grid import ViewGrid
+    from lfgraph.viz import RerunLogger
+
+    capture = open_capture(videos, (2, 2))
+    decoded = [decode_all(videos / f"cam_{v}.avi") for v in range(4)]
+    seen = []
+    with RerunLogger.to_file(tmp_path / "v.rrd", ViewGrid(2, 2, 0)) as logger:
+        for f, encoded in logger._encoded_frames(capture.load_frame, len(capture)):
+            for v, image in enumerate(encoded):
+                blob = np.asarray(image.blob.as_arrow_array().to_pylist()[0], dtype=np.uint8)
+                recorded = cv2.imdecode(blob, cv2.IMREAD_GRAYSCALE).astype(float)
+                assert np.mean(np.abs(recorded - decoded[v][f])) < RECORDED_GREY_LEVELS, (f, v)
+            seen.append(f)
+    assert seen == list(range(FRAMES))
 
 
 def test_videos_of_different_lengths_use_the_shortest(rendered, tmp_path):
