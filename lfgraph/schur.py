@@ -86,27 +86,18 @@ def one_blas_thread() -> Iterator[None]:
 def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
     """(landmark step (N,3), camera step (C,)) of the damped normal equations; raises LinAlgError when singular.
 
-    With landmarks and cameras: each landmark block factored ``V = L L^T`` (closed form), ``Y = L^-1 W``, and the
-    reduced camera system ``S = H - Y^T Y`` formed by a symmetric rank-k update (half a general product's work)."""
-    n_lm = sys_.V.shape[0]
-    n_c = sys_.H.shape[0]
-    if not n_c:
-        vinv = inv3(sys_.V + lam * np.eye(3)) if n_lm else np.zeros((0, 3, 3))
-        return (np.matmul(vinv, sys_.g_l[..., None])[..., 0] if n_lm else np.zeros((0, 3))), np.zeros(0)
-    S = sys_.H + lam * np.eye(n_c)  # noqa: N806
-    rhs = sys_.g_c.copy()
-    if n_lm:
-        linv = chol3_inv(sys_.V + lam * np.eye(3))
+    Each landmark block is factored ``V = L L^T`` (closed form); with cameras, ``Y = L^-1 W`` and the reduced camera
+    system ``S = H - Y^T Y`` is formed by a symmetric rank-k update (half a general product's work)."""
+    n_lm, n_c = sys_.V.shape[0], sys_.H.shape[0]
+    linv = chol3_inv(sys_.V + lam * np.eye(3))
+    u = np.matmul(linv, sys_.g_l[..., None]).reshape(-1)  # L^-1 g_l
+    dc = np.zeros(n_c)
+    if n_c:
         Y = _times_w(linv, sys_.W).reshape(-1, n_c)  # noqa: N806  (3N, C)
-        t = np.matmul(linv, sys_.g_l[..., None]).reshape(-1)  # L^-1 g_l
-        S -= Y.T @ Y  # numpy calls BLAS syrk for a product with its own transpose
-        rhs -= Y.T @ t
-    Ls = np.linalg.cholesky(S)  # noqa: N806
-    dc = np.linalg.solve(Ls.T, np.linalg.solve(Ls, rhs))
-    if not n_lm:
-        return np.zeros((0, 3)), dc
-    u = (t - Y @ dc).reshape(-1, 3, 1)  # dl = L^-T (L^-1 g_l - Y dc)
-    return np.matmul(np.swapaxes(linv, 1, 2), u)[..., 0], dc
+        Ls = np.linalg.cholesky(sys_.H + lam * np.eye(n_c) - Y.T @ Y)  # noqa: N806  (numpy calls syrk for Y^T Y)
+        dc = np.linalg.solve(Ls.T, np.linalg.solve(Ls, sys_.g_c - Y.T @ u))
+        u = u - Y @ dc
+    return np.matmul(np.swapaxes(linv, 1, 2), u.reshape(n_lm, 3, 1))[..., 0], dc  # dl = L^-T (L^-1 g_l - Y dc)
 
 
 def _times_w(vinv: np.ndarray, W: np.ndarray) -> np.ndarray:  # noqa: N803
