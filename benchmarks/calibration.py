@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.cli.tables import format_table
+from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.detect.detections import observations_from_arrays
+from lfgraph.judge.evaluation import evaluate_calibration
+from lfgraph.judge.peers import calibrate_multiview
 from lfgraph.pattern import CalibrateConfig, calibrate_joint, calibrate_paper
 from lfgraph.pattern.initial import initial_board_T_ref
-from lfgraph.peers import calibrate_multiview
-from lfgraph.report import format_table
 
 SEEDS = 20
 CONDITIONS = [(0.1, 40), (0.3, 40), (0.1, 10), (0.3, 10)]

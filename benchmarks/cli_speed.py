@@ -14,7 +14,7 @@ import sys
 import tempfile
 import time
 
-from lfgraph.report import format_table
+from lfgraph.cli.tables import format_table
 
 HELP_TARGET_S = 0.3
 DEMO_TARGET_S = 45.0

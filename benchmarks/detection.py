@@ -26,9 +26,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.board import BoardSpec
-from lfgraph.chessboard import _canonical_order, detect_board
-from lfgraph.report import format_table
+from lfgraph.cli.tables import format_table
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import _canonical_order, detect_board
 
 TARGET_TIME_RATIO = 1 / 3  # A's time per image over B's
 TARGET_LOFO_RATIO = 1.05  # A's leave-one-out error over B's (5 %: LOFO from 4-29 frames varies by a few percent)

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from lfgraph.apps.fleet import run_fleet
 from lfgraph.cli import main as lfgraph_main
-from lfgraph.fleet import run_fleet
-from lfgraph.report import format_table
+from lfgraph.cli.tables import format_table
 
 SHAKES_DEG = (0.0, 0.0, 0.25, 0.5, 1.0, 2.0)  # cycled over the cameras: a third unshaken
 DETECTABLE_DEG = 0.5  # shakes at or above this must be found (DRIFTED or UNCERTAIN, never OK)
@@ -40,7 +40,7 @@ def make_fleet(root: Path, n: int) -> dict[str, float]:
         calib = "truth.json" if shake == 0 else "original.json"
         rows.append((name, f"{name}/{calib}", name))
         truth[name] = shake
-    (root / "corrupt.json").write_text("{\"format\": \"lfgraph.calibration\", \"version\": 1, \"grid\": 7}")
+    (root / "corrupt.json").write_text("{\"format\": \"lfgraph.core.calibration\", \"version\": 1, \"grid\": 7}")
     rows.append(("cam-corrupt", "corrupt.json", "cam000"))
     truth["cam-corrupt"] = float("nan")
     with (root / "manifest.csv").open("w", newline="") as fh:

@@ -20,10 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.cli.tables import format_table
+from lfgraph.core.calibration import Calibration
 from lfgraph.interop import import_calibration
 from lfgraph.refinement import RefineConfig, refine
-from lfgraph.report import format_table
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury2014_quarter"
 IMPERFECT = ("Adirondack", "Motorcycle", "Piano", "Playtable")

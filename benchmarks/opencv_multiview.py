@@ -21,10 +21,10 @@ import cv2
 import numpy as np
 
 import lfgraph as lf
-from lfgraph.camera import LENSES
+from lfgraph.core.camera import LENSES
+from lfgraph.io.points import PointBoard, read_opencv_multiview
 from lfgraph.pattern.lenses import FIT_ERRORS, fit_mono, heldout_rms_px
 from lfgraph.pattern.pose_fit import board_pose
-from lfgraph.points_io import PointBoard, read_opencv_multiview
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_multiview"
 ANGLE_TOL_DEG, POSITION_TOL_M = 1.0, 0.01  # OpenCV's validateCameraPose

@@ -17,11 +17,11 @@ Both use the same camera model (pinhole, k1 and k2; no k3, no tangential terms) 
 - **seconds**: detection (one process, images decoded outside the timing) and the full calibration.
 
 Boards that look the same turned by 180° (Bumblebee2 4x6, trinocular 13x9) are put in one corner order for both
-corner sets with `lfgraph.board_order.order_symmetric_boards` once on all frames (a discrete choice made from the
+corner sets with `lfgraph.detect.board_order.order_symmetric_boards` once on all frames (a discrete choice made from the
 rig's geometry, which `lfgraph.calibrate` makes as well); other chessboards by the colour of the square before
-corner 0 (the rule of `lfgraph.board`).
+corner 0 (the rule of `lfgraph.detect.board`).
 
-``calibrateMultiview`` misbehaves with partly seen boards (`lfgraph.peers`): on the ChArUco rig OpenCV calibrates
+``calibrateMultiview`` misbehaves with partly seen boards (`lfgraph.judge.peers`): on the ChArUco rig OpenCV calibrates
 from the view-frames where all corners were found, and is scored on all its detected corners. (It cannot start
 from ``calibrateCamera`` on the partial boards either: OpenCV 5.0's Python binding rejects intrinsic guesses for
 ``calibrateMultiview`` with "the camera matrix is not 3x3".)
@@ -47,19 +47,19 @@ import cv2
 import numpy as np
 
 import lfgraph as lf
-from lfgraph.board import BoardSpec
-from lfgraph.board_order import order_symmetric_boards
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.charuco import detect_charuco
-from lfgraph.chessboard import detect_board
-from lfgraph.detections import MIN_CORNERS_PER_BOARD, BoardObservations
-from lfgraph.geometry import invert_T, make_T, rotation_angle_deg
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T, make_T, rotation_angle_deg
+from lfgraph.core.grid import ViewGrid
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.board_order import order_symmetric_boards
+from lfgraph.detect.charuco import detect_charuco
+from lfgraph.detect.chessboard import detect_board
+from lfgraph.detect.detections import MIN_CORNERS_PER_BOARD, BoardObservations
+from lfgraph.judge.peers import calibrate_multiview
 from lfgraph.pattern.initial import initial_board_T_ref, pnp_all
 from lfgraph.pattern.lenses import MONO_FLAGS
 from lfgraph.pattern.scoring import fit_board_poses, rig_residuals, rms_px
-from lfgraph.peers import calibrate_multiview
 
 # ../shared/data beside the repository, or LFGRAPH_SHARED_DATA (as in tests/conftest.py)
 DEFAULT_DATA = Path(os.environ.get("LFGRAPH_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -275,7 +275,8 @@ SETS = [
 # ------------------------------------------------------------------------------------------------ detection
 def _colour_order(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.ndarray:
     """Corners in `BoardSpec` order for a board that is not 180°-symmetric: the square diagonally before corner 0
-    is black, its neighbour along the first row white (the rule `lfgraph.board` applies to its own detections)."""
+    is black, its neighbour along the first row white (the rule `lfgraph.detect.board` applies to its own
+    detections)."""
     obj = board.object_points()[:, :2] / board.square_m
     H, _ = cv2.findHomography(obj, corners, 0)  # noqa: N806
     if H is None:
@@ -291,7 +292,7 @@ def opencv_detect(gray: np.ndarray, board: BoardSpec) -> np.ndarray | None:
     """OpenCV's detectors as a user would call them: SB with EXHAUSTIVE | ACCURACY, or the CharucoDetector."""
     out = np.full((board.num_corners, 2), np.nan)
     if board.kind == "charuco":
-        from lfgraph.charuco import charuco_board
+        from lfgraph.detect.charuco import charuco_board
 
         detector = cv2.aruco.CharucoDetector(charuco_board(board))
         corners, ids, _, _ = detector.detectBoard(255 - gray if board.inverted else gray)

@@ -14,14 +14,14 @@ from concurrent.futures import ThreadPoolExecutor
 import cv2
 import numpy as np
 
-from lfgraph.alignment import infinity_alignment
+from lfgraph.cli.tables import alignment_table, format_table
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
+from lfgraph.detect.detections import observations_from_arrays
+from lfgraph.judge.alignment import infinity_alignment
 from lfgraph.pattern import CalibrateConfig, calibrate
-from lfgraph.rectification import build_maps, compute_rectification, remap_views
-from lfgraph.report import alignment_table, format_table
+from lfgraph.rectification.rectify import build_maps, compute_rectification, remap_views
 
 REPEATS = 10
 TARGET_BUILD_S = 1.0

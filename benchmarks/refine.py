@@ -25,17 +25,17 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.bulk_noise import vectorised_estimator
-from lfgraph.calibration import Calibration
-from lfgraph.capture import open_capture
+from lfgraph.cli.tables import format_table
+from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.engine.bulk_noise import vectorised_estimator
+from lfgraph.io.capture import open_capture
+from lfgraph.judge.alignment import transfer_error_at_infinity
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import RefineConfig, refine
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
-from lfgraph.report import format_table
 
 SHAKES = [(0.0, 0.0), (0.25, 1.0), (0.5, 2.0), (1.0, 5.0)]
 AXIS = "any"  # knocks about random axes (pan, tilt and roll; issue 24); "optical" is the paper's roll-only shake
@@ -133,7 +133,7 @@ STEREO_ROW_TOL_PX = 0.02
 
 
 def render_thin(case: ThinCase) -> tuple[Calibration, Calibration, list[np.ndarray]]:
-    """(original, truth, frames) of a thin case, rendered in memory (as `lfgraph.study.run_shake_trial`)."""
+    """(original, truth, frames) of a thin case, rendered in memory (as `lfgraph.apps.study.run_shake_trial`)."""
     import dataclasses
 
     from lfgraph.datasets.scene import make_scene, render_scene_view
@@ -185,7 +185,7 @@ def thin_grid(failures: list[str]) -> None:
 
 
 def corner_row_error_px(calib: Calibration, obs) -> float:
-    from lfgraph.rectification import compute_rectification, rectify_points
+    from lfgraph.rectification.rectify import compute_rectification, rectify_points
 
     rect = compute_rectification(calib)
     ok = obs.valid[0] & obs.valid[1]
@@ -199,9 +199,9 @@ def real_stereo(cache: Path, failures: list[str]) -> None:
     import io
     import json
 
-    from lfgraph.board import BoardSpec
     from lfgraph.cli import main as cli
-    from lfgraph.detections import detect_capture
+    from lfgraph.detect.board import BoardSpec
+    from lfgraph.detect.detections import detect_capture
 
     if not STEREO.is_dir():
         failures.append(f"real stereo set not found at {STEREO}")

@@ -58,8 +58,7 @@ from render_reference import (
     render_scene_view_reference,
 )
 
-from lfgraph.board import BoardSpec
-from lfgraph.chessboard import detect_board
+from lfgraph.cli.tables import format_table
 from lfgraph.datasets.board_render import ViewRays, render_checkerboard_view
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
@@ -71,7 +70,8 @@ from lfgraph.datasets.render import sample_rays
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_depth, render_scene_views, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.report import format_table
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import detect_board
 
 SCENE_FRAME_TARGET_S = 2.0  # issue 16: a paper-5x5 scene frame
 BOARD_SET_TARGET_S = 60.0  # issue 16: the paper-4x4 board set

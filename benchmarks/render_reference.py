@@ -11,11 +11,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lfgraph.board import BoardSpec
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.datasets.board_render import BLACK_LEVEL, WHITE_LEVEL
 from lfgraph.datasets.checkerboard import CheckerboardConfig
 from lfgraph.datasets.scene import Scene, SceneConfig
+from lfgraph.detect.board import BoardSpec
 
 
 @dataclass(frozen=True)

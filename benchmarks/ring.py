@@ -15,14 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.cli.tables import format_table
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import make_T, rotation_from_rotvec
 from lfgraph.datasets.middlebury import load_mview
-from lfgraph.evaluation import evaluate_calibration
-from lfgraph.geometry import make_T, rotation_from_rotvec
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import RefineConfig, refine_tracks
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.unordered import match_unordered, nearest_pairs
-from lfgraph.report import format_table
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_mview_sparsering" / "templeSparseRing"
 PERTURB_DEG = 0.5

@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import rotvec_from_rotation
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, resize_views, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
-from lfgraph.geometry import rotvec_from_rotation
+from lfgraph.judge.alignment import transfer_error_at_infinity
 from lfgraph.refinement import RefineConfig, refine
 from lfgraph.refinement.report import DRIFTED, OK
 
@@ -320,7 +320,7 @@ HEADER = ["texture", "scenarios", "refused", "(a) calibrations worse", "views wo
 
 
 def main(argv: list[str] | None = None) -> int:
-    from lfgraph.report import format_table
+    from lfgraph.cli.tables import format_table
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenarios", type=int, default=200)

@@ -19,14 +19,14 @@ import time
 
 import numpy as np
 
-from lfgraph.board import BoardSpec
+from lfgraph.cli.tables import format_table
+from lfgraph.core.geometry import rotvec_from_rotation
 from lfgraph.datasets.checkerboard import CheckerboardConfig, make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import RigConfig, make_rig
-from lfgraph.detections import observations_from_arrays
-from lfgraph.geometry import rotvec_from_rotation
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.detections import observations_from_arrays
 from lfgraph.pattern import calibrate_joint, calibrate_paper
 from lfgraph.pattern.initial import CalibrationInputError, initial_board_T_ref
-from lfgraph.report import format_table
 
 GRIDS = [(1, 2), (2, 2), (1, 3), (2, 3), (3, 3), (3, 4), (4, 4), (1, 5), (5, 5), (6, 6), (1, 8)]
 IMAGE_SIZES = [(320, 240), (640, 480), (800, 600), (1280, 960), (1920, 1080)]

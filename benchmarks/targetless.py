@@ -30,11 +30,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import targetless_data as data  # noqa: E402
 
-from lfgraph.alignment import transfer_error_at_infinity  # noqa: E402
-from lfgraph.calibration import Calibration  # noqa: E402
-from lfgraph.capture import open_capture  # noqa: E402
-from lfgraph.evaluation import evaluate_calibration  # noqa: E402
-from lfgraph.report import format_table  # noqa: E402
+from lfgraph.cli.tables import format_table  # noqa: E402
+from lfgraph.core.calibration import Calibration  # noqa: E402
+from lfgraph.io.capture import open_capture  # noqa: E402
+from lfgraph.judge.alignment import transfer_error_at_infinity  # noqa: E402
+from lfgraph.judge.evaluation import evaluate_calibration  # noqa: E402
 from lfgraph.selfcal import (  # noqa: E402
     Design,
     PooledTracks,
@@ -151,7 +151,7 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
     """The joint checkerboard calibration with ``frames`` boards (corner noise `CORNER_SIGMA_PX`)."""
     import lfgraph as lf
     from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
-    from lfgraph.detections import observations_from_arrays
+    from lfgraph.detect.detections import observations_from_arrays
 
     cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=frames)
     board_truth = make_checkerboard_truth(truth, cfg, np.random.default_rng([seed, 31, frames]))

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.capture import write_frame
+from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
 from lfgraph.datasets.scenes import get_scene
+from lfgraph.io.capture import write_frame
 
 FOCAL_SPREAD = 0.03  # std of fx, fy relative to the design focal length
 PRINCIPAL_SPREAD_PX = 15.0

@@ -70,7 +70,7 @@ MEM_LIMIT_BYTES = 6 * 1024**3  # address space per case
 CLASSES = ("CLEAR_ERROR", "CORRECT", "TRACEBACK", "INTERNAL", "HANG", "DATA_LOSS", "SILENT_WRONG")
 TRACEBACK_RE = re.compile(r"Traceback \(most recent call last\)|Exception ignored in|Fatal Python error|"
                           r"Segmentation fault|core dumped|terminate called after")
-TEMP_RE = re.compile(r"^\..*\.tmp")  # lfgraph.io_utils.atomic_path's temporary files
+TEMP_RE = re.compile(r"^\..*\.tmp")  # lfgraph.core.files.atomic_path's temporary files
 CACHE_NAMES = {".lfgraph-detections.npz"}  # the detection cache calibrate writes into its input (documented)
 
 
@@ -117,7 +117,7 @@ def make_data(regen: bool = False) -> None:
     # detections from another tool: lfgraph's own npz and OpenCV's multi-view JSON, from the same boards
     code = textwrap.dedent("""
         import json, numpy as np, lfgraph as lf
-        from lfgraph.points_io import write_points_npz
+        from lfgraph.io.points import write_points_npz
         cap = lf.open_capture("cb", (2, 2))
         obs, _ = lf.detect_capture(cap, lf.BoardSpec.parse("7x5", 15), jobs=1, progress=False)
         write_points_npz("points.npz", obs)
@@ -829,7 +829,7 @@ def roundtrip_check(out: str, fmt: str, src: str = "cal.json", grid: str = "2x2"
 
 
 def depth_check(res_json: dict) -> tuple[bool, str]:
-    """Against lfgraph.depth's documented formula: half the spread of the depths at disparity d - E and d + E,
+    """Against lfgraph.judge.depth's documented formula: half the spread of the depths at disparity d - E and d + E,
     d = f b / z, infinite (null in JSON) where E >= d."""
     f, b, e = res_json["focal_px"], res_json["baseline_m"], res_json["error_px"]
     worst = 0.0

@@ -20,25 +20,25 @@ __version__ = "0.2.0"
 
 # public name -> module that defines it
 _EXPORTS = {
-    "Calibration": "lfgraph.calibration",
-    "CalibrationFileError": "lfgraph.calibration",
-    "Intrinsics": "lfgraph.camera",
-    "ViewGrid": "lfgraph.grid",
-    "BoardSpec": "lfgraph.board",
-    "BoardObservations": "lfgraph.detections",
-    "detect_capture": "lfgraph.detections",
-    "PointBoard": "lfgraph.detections",
-    "load_detections": "lfgraph.points_io",
-    "CaptureSet": "lfgraph.capture",
-    "CaptureError": "lfgraph.capture",
-    "open_capture": "lfgraph.capture",
+    "Calibration": "lfgraph.core.calibration",
+    "CalibrationFileError": "lfgraph.core.calibration",
+    "Intrinsics": "lfgraph.core.camera",
+    "ViewGrid": "lfgraph.core.grid",
+    "BoardSpec": "lfgraph.detect.board",
+    "BoardObservations": "lfgraph.detect.detections",
+    "detect_capture": "lfgraph.detect.detections",
+    "PointBoard": "lfgraph.detect.detections",
+    "load_detections": "lfgraph.io.points",
+    "CaptureSet": "lfgraph.io.capture",
+    "CaptureError": "lfgraph.io.capture",
+    "open_capture": "lfgraph.io.capture",
     "calibrate": "lfgraph.pattern.pipeline",
     "CalibrateConfig": "lfgraph.pattern.config",
     "Method": "lfgraph.pattern.config",
     "Init": "lfgraph.pattern.config",
     "CalibrationReport": "lfgraph.pattern.scoring",
     "CalibrationInputError": "lfgraph.pattern.initial",
-    "rectify": "lfgraph.rectification",
+    "rectify": "lfgraph.rectification.rectify",
     "refine": "lfgraph.refinement.schedule",
     "RefineConfig": "lfgraph.refinement.config",
     "Stage": "lfgraph.refinement.config",
@@ -49,24 +49,27 @@ _EXPORTS = {
     "MatchSettings": "lfgraph.refinement.matching",
     "Tracks": "lfgraph.refinement.matching",
     "RefinementReport": "lfgraph.refinement.report",
-    "check": "lfgraph.drift",
-    "DriftReport": "lfgraph.drift",
-    "evaluate": "lfgraph.evaluation",
-    "CalibrationErrors": "lfgraph.evaluation",
+    "check": "lfgraph.judge.check",
+    "DriftReport": "lfgraph.judge.check",
+    "evaluate": "lfgraph.judge.evaluation",
+    "CalibrationErrors": "lfgraph.judge.evaluation",
     "RobustKernel": "lfgraph.factors.noise",
-    "vectorised_estimator": "lfgraph.bulk_noise",
+    "vectorised_estimator": "lfgraph.engine.bulk_noise",
     "GraphContext": "lfgraph.factors.hooks",
     "view_pose_key": "lfgraph.factors.keys",
     "calib_key": "lfgraph.factors.keys",
     "landmark_key": "lfgraph.factors.keys",
     "pose_noise": "lfgraph.factors.noise",
-    "Observer": "lfgraph.observer",
-    "BaseObserver": "lfgraph.observer",
-    "Observers": "lfgraph.observer",
-    "StageEnd": "lfgraph.observer",
-    "SilentObserver": "lfgraph.observer",
+    "Observer": "lfgraph.core.observer",
+    "BaseObserver": "lfgraph.core.observer",
+    "Observers": "lfgraph.core.observer",
+    "StageEnd": "lfgraph.core.observer",
+    "SilentObserver": "lfgraph.core.observer",
 }
-_SUBMODULES = ("viz", "factors", "datasets", "pattern", "refinement", "synth", "study")
+# public submodule -> where it lives
+_SUBMODULES = {"viz": "lfgraph.viz", "factors": "lfgraph.factors", "datasets": "lfgraph.datasets",
+               "pattern": "lfgraph.pattern", "refinement": "lfgraph.refinement", "synth": "lfgraph.apps.synth",
+               "study": "lfgraph.apps.study"}
 
 __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
@@ -84,7 +87,7 @@ def __getattr__(name: str) -> Any:
         globals()[name] = value
         return value
     if name in _SUBMODULES:
-        return importlib.import_module(f"lfgraph.{name}")
+        return importlib.import_module(_SUBMODULES[name])
     raise AttributeError(f"module 'lfgraph' has no attribute {name!r}")
 
 
@@ -93,25 +96,25 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazily above
-    from lfgraph.board import BoardSpec
-    from lfgraph.bulk_noise import vectorised_estimator
-    from lfgraph.calibration import Calibration, CalibrationFileError
-    from lfgraph.camera import Intrinsics
-    from lfgraph.capture import CaptureError, CaptureSet, open_capture
-    from lfgraph.detections import BoardObservations, PointBoard, detect_capture
-    from lfgraph.drift import DriftReport, check
-    from lfgraph.evaluation import CalibrationErrors, evaluate
+    from lfgraph.core.calibration import Calibration, CalibrationFileError
+    from lfgraph.core.camera import Intrinsics
+    from lfgraph.core.grid import ViewGrid
+    from lfgraph.core.observer import BaseObserver, Observer, Observers, SilentObserver, StageEnd
+    from lfgraph.detect.board import BoardSpec
+    from lfgraph.detect.detections import BoardObservations, PointBoard, detect_capture
+    from lfgraph.engine.bulk_noise import vectorised_estimator
     from lfgraph.factors.hooks import GraphContext
     from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
     from lfgraph.factors.noise import RobustKernel, pose_noise
-    from lfgraph.grid import ViewGrid
-    from lfgraph.observer import BaseObserver, Observer, Observers, SilentObserver, StageEnd
+    from lfgraph.io.capture import CaptureError, CaptureSet, open_capture
+    from lfgraph.io.points import load_detections
+    from lfgraph.judge.check import DriftReport, check
+    from lfgraph.judge.evaluation import CalibrationErrors, evaluate
     from lfgraph.pattern.config import CalibrateConfig, Init, Method
     from lfgraph.pattern.initial import CalibrationInputError
     from lfgraph.pattern.pipeline import calibrate
     from lfgraph.pattern.scoring import CalibrationReport
-    from lfgraph.points_io import load_detections
-    from lfgraph.rectification import rectify
+    from lfgraph.rectification.rectify import rectify
     from lfgraph.refinement.config import DriftModel, RefineConfig, Stage, TriangulationFilter
     from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, Tracks
     from lfgraph.refinement.report import RefinementReport

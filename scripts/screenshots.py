@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def make(work: Path, out: Path, viewer: bool) -> None:
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
 
     grid = ViewGrid(2, 2, 0)
     board, scene = work / "board", work / "scene"
@@ -204,7 +204,7 @@ def make(work: Path, out: Path, viewer: bool) -> None:
         shrink(out / name)
     if not viewer:
         return
-    from lfgraph.calibration import Calibration
+    from lfgraph.core.calibration import Calibration
     from lfgraph.viz.blueprint import rig_eye
     from lfgraph.viz.rerun_log import default_blueprint
 

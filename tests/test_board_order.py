@@ -7,8 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.board_order import (
+from lfgraph.core.grid import ViewGrid
+from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
+from lfgraph.datasets.rig import make_rig
+from lfgraph.datasets.scenes import get_scene
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.board_order import (
     ALONE,
     AMBIGUOUS,
     ANCHOR,
@@ -18,12 +22,8 @@ from lfgraph.board_order import (
     flip_transform,
     order_symmetric_boards,
 )
-from lfgraph.chessboard import detect_board
-from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
-from lfgraph.datasets.rig import make_rig
-from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import BoardObservations, observations_from_arrays
-from lfgraph.grid import ViewGrid
+from lfgraph.detect.chessboard import detect_board
+from lfgraph.detect.detections import BoardObservations, observations_from_arrays
 
 TRINOCULAR = Path(__file__).parent / "data" / "trinocular"
 TRINOCULAR_FRAMES = (1, 6, 11, 16, 21)

@@ -1,4 +1,4 @@
-"""Noise models in bulk (lfgraph.bulk_noise) against GTSAM's own: the M-estimators' weight and loss, the
+"""Noise models in bulk (lfgraph.engine.bulk_noise) against GTSAM's own: the M-estimators' weight and loss, the
 whitening and robust reweighting of residuals, and the refinement's bulk stages with a robust kernel, a user's
 Gaussian model or a user's hook against GTSAM's factors and GTSAM's own Levenberg–Marquardt."""
 
@@ -7,20 +7,20 @@ import numpy as np
 import pytest
 from test_schur import gtsam_route, scene
 
-from lfgraph.bulk_noise import BulkNoise, Kernel, NotBulk, vectorised_estimator
 from lfgraph.datasets.rig import ShakeConfig, shake_rig
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.engine.bulk_noise import BulkNoise, Kernel, NotBulk, vectorised_estimator
+from lfgraph.engine.kernel_table import TABLE_RTOL
+from lfgraph.engine.optimize import OptimizerSettings, optimize
+from lfgraph.engine.schur import GraphProblem, optimize_problem
+from lfgraph.engine.stage_engine import START_WEIGHT_MIN, least_squares_start
 from lfgraph.factors.keys import view_pose_key
 from lfgraph.factors.noise import RobustKernel, measurement_noise, pose_noise
-from lfgraph.kernel_table import TABLE_RTOL
-from lfgraph.optimize import OptimizerSettings, optimize
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import Stage, stages
 from lfgraph.refinement.config import DriftModel
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
-from lfgraph.schur import GraphProblem, optimize_problem
-from lfgraph.stage_engine import START_WEIGHT_MIN, least_squares_start
 
 M = gtsam.noiseModel.mEstimator
 BLOCK, SCALAR = M.Base.ReweightScheme.Block, M.Base.ReweightScheme.Scalar
@@ -145,7 +145,7 @@ def counted(f, calls):
 
 
 def test_a_custom_estimator_of_scalar_callbacks_runs_from_a_table_of_its_values():
-    """A ``Custom`` of Python callbacks is tabulated (`lfgraph.kernel_table`): the table matches the callbacks to
+    """A ``Custom`` of Python callbacks is tabulated (`lfgraph.engine.kernel_table`): the table matches the callbacks to
     `TABLE_RTOL` everywhere, signed distances and far ones included, with no callback once built; where a cell does
     not match (a kink) the callbacks answer; a function that is not finite somewhere is called per residual."""
     rng = np.random.default_rng(3)

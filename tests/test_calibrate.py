@@ -5,12 +5,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.detect.detections import observations_from_arrays
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.pattern import CalibrateConfig, CalibrationInputError, calibrate, calibrate_paper
 
 EXACT_RELATIVE = 1e-6  # noise-free: every parameter to 1e-6 of its scale (issue 3)
@@ -255,7 +255,7 @@ def test_intrinsics_metrics_are_json_ready():
 def test_board_flatness_option_estimates_a_warped_board():
     """A board bowed by up to 0.6 mm: the rigid model is biased (small-2x2: fx off by 12 px), --board-sigma-mm 1
     brings it to 1.4 px (the 1 mm prior still pulls the corners a little towards flat)."""
-    from lfgraph.camera import transform_points
+    from lfgraph.core.camera import transform_points
 
     calib, truth = small_rig(frames=16)
     obj = truth.board.object_points()
@@ -294,7 +294,7 @@ def test_one_camera_matches_opencv_calibrate_camera():
     """A 1x1 'array' (pycalib-style single camera): the joint route equals cv2.calibrateCamera on the same corners."""
     import cv2
 
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
 
     calib, truth = small_rig()
     obs = observations(calib, truth, SIGMA_PX)

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration
-from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.core.calibration import Calibration
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import detect_board
 
 SMALL_ARGS = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--jobs", "2", "--quiet"]
 MAX_Z = 5.0  # rendered images: each error within 5 marginal sigmas (detection bias is small but not zero)

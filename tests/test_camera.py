@@ -5,8 +5,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from lfgraph.camera import Intrinsics, project_world
-from lfgraph.geometry import make_T, rotation_from_rotvec
+from lfgraph.core.camera import Intrinsics, project_world
+from lfgraph.core.geometry import make_T, rotation_from_rotvec
 
 PROJECTION_AGREEMENT_PX = 1e-9  # our project vs OpenCV / GTSAM, pixels
 ROUND_TRIP_NORMALISED = 1e-9  # undistort(project(x)) vs x, normalised units (~1e-6 px at f = 1000)

@@ -10,14 +10,14 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.capture import open_capture
-from lfgraph.charuco import MIN_CHARUCO_CORNERS, detect_charuco
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import MIN_CORNERS_PER_BOARD, _cache_key, detect_capture, observations_from_arrays
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.charuco import MIN_CHARUCO_CORNERS, detect_charuco
+from lfgraph.detect.detections import MIN_CORNERS_PER_BOARD, _cache_key, detect_capture, observations_from_arrays
+from lfgraph.io.capture import open_capture
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.pattern import CalibrateConfig, calibrate
 
 DATA = Path(__file__).parent / "data" / "charuco"

@@ -6,8 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.chessboard import detect_board
+from lfgraph.core.geometry import rotation_angle_deg
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
     CheckerboardTruth,
@@ -18,7 +17,8 @@ from lfgraph.datasets.checkerboard import (
     write_checkerboard_dataset,
 )
 from lfgraph.datasets.rig import RigConfig, make_rig
-from lfgraph.geometry import rotation_angle_deg
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import detect_board
 
 DETECTION_RMS_LIMIT_PX = 0.05  # detected vs true corners, noise-free render with mild blur
 NOISE_STD_TOLERANCE = 0.10  # relative error of the corner-only noise std over ~10^4 samples
@@ -139,7 +139,7 @@ def test_dataset_writer_layouts_and_job_independence(tmp_path):
 
 
 def test_symmetric_board_order_does_not_depend_on_what_opencv_reports(setup):
-    from lfgraph.chessboard import _canonical_order
+    from lfgraph.detect.chessboard import _canonical_order
 
     calib, cfg, truth = setup
     assert cfg.board.is_symmetric  # 7x5 inner corners = 8x6 squares: the same after a 180° turn
@@ -155,9 +155,9 @@ EDGE_COVERAGE_TOLERANCE_GREY = 0.5 + 1e-6  # the rendered image is rounded to wh
 def test_edge_pixels_take_the_exact_covered_area():
     """A fronto-parallel board, no lens distortion, no blur: a pixel cut by a vertical square edge at 80 % of its
     width must hold the area-weighted mean of the two squares (8x8 point samples would give 75 % or 87.5 %)."""
-    from lfgraph.camera import Intrinsics
+    from lfgraph.core.camera import Intrinsics
+    from lfgraph.core.geometry import make_T
     from lfgraph.datasets.board_render import BLACK_LEVEL, WHITE_LEVEL, render_checkerboard_view
-    from lfgraph.geometry import make_T
 
     f_px, square_m, z_m = 500.0, 0.02, 1.0  # 10 px per square
     intr = Intrinsics(f_px, f_px, 100.0, 80.0)

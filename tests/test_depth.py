@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from lfgraph.cli import main
-from lfgraph.depth import depth_error_m
+from lfgraph.judge.depth import depth_error_m
 
 PAPER_F_PX, PAPER_B_M, PAPER_E_PX = 850.0, 0.018, 0.246
 PRINTED_UNIT_M = 0.001  # the paper prints 0.004 and 0.065: one unit of the last printed digit

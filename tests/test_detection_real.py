@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.chessboard import detect_board
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import detect_board
 
 DATA = Path(__file__).parent / "data"
 SB_ACCURATE_FLAGS = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY

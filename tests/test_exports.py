@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 import lfgraph as lf
-from lfgraph.camera import project_world
+from lfgraph.core.camera import project_world
 from lfgraph.interop import export_calibration
-from lfgraph.rectification import attach, compute_rectification, stored_rectification
+from lfgraph.rectification.rectify import attach, compute_rectification, stored_rectification
 
 ROW_ALIGNED_PX = 1e-6  # rectified rows of one point in the two views of a pair (both through OpenCV)
 DEPTH_REL = 1e-6  # Q's reconstruction against the true point, relative

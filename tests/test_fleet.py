@@ -6,8 +6,8 @@ import shutil
 
 import pytest
 
+from lfgraph.apps.fleet import ManifestError, next_version, read_manifest, run_fleet
 from lfgraph.cli import EXIT_OK, main
-from lfgraph.fleet import ManifestError, next_version, read_manifest, run_fleet
 
 SHAKE_DEG = "1.0"  # well above what the 0.5 px check threshold lets through on the small rig
 

@@ -1,6 +1,6 @@
 import pytest
 
-from lfgraph.grid import ViewGrid, parse_grid
+from lfgraph.core.grid import ViewGrid, parse_grid
 
 
 def test_row_major_indices_and_names():

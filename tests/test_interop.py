@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import yaml
 
-from lfgraph.calibration import Calibration, CalibrationFileError
 from lfgraph.cli import main as cli_main
 from lfgraph.cli.interop import add_parsers
+from lfgraph.core.calibration import Calibration, CalibrationFileError
+from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.core.grid import ViewGrid
 from lfgraph.datasets.rig import RigConfig, make_rig
-from lfgraph.geometry import invert_T, make_T
-from lfgraph.grid import ViewGrid
 from lfgraph.interop import (
     COLMAP_PIXEL_OFFSET_PX,
     EXPORT_FORMATS,
@@ -26,7 +26,7 @@ from lfgraph.interop import (
 )
 from lfgraph.interop.colmap import rotation_from_wxyz
 from lfgraph.interop.common import MAX_IMPORT_VIEWS
-from lfgraph.rectification import attach, build_maps, compute_rectification, stored_rectification
+from lfgraph.rectification.rectify import attach, build_maps, compute_rectification, stored_rectification
 
 ROUND_TRIP_TOLERANCE = 1e-9  # px and m; every format here writes 17 significant digits
 CHAIN_TOLERANCE = 1e-12  # m, unitless rotation entries: composing 4x4 transforms costs a few ulps per step

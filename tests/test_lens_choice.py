@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from lfgraph import Calibration, calibrate
-from lfgraph.camera import Intrinsics
 from lfgraph.cli import main
+from lfgraph.core.camera import Intrinsics
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.detect.detections import observations_from_arrays
 from lfgraph.interop import export_calibration, import_calibration
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.pattern import CalibrateConfig
 from lfgraph.pattern.lenses import LensSpecError, resolve_lenses
 
@@ -185,7 +185,7 @@ LUT_PX = 1.0 / 32 + 0.01  # OpenCV's fixed-point maps keep 1/32 px; bilinear sam
 
 
 def test_fisheye_views_rectify_rows_aligned_and_their_maps_agree():
-    from lfgraph.rectification import build_maps, compute_rectification, rectify_points
+    from lfgraph.rectification.rectify import build_maps, compute_rectification, rectify_points
 
     truth, _ = _synthetic("fisheye")
     rect = compute_rectification(truth)
@@ -221,9 +221,9 @@ def test_a_knocked_wide_lens_rig_refines_end_to_end(lens, coefficients):
     every view knocked about a random axis: `refine` (the bulk solver on Cal3Fisheye / Cal3Unified projections)
     repairs the transfer at infinity and does not move the positions away from the truth."""
     from lfgraph import refine
-    from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.datasets.rig import ShakeConfig, shake_rig
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
+    from lfgraph.judge.alignment import transfer_error_at_infinity
 
     original = make_rig(RigConfig(rows=2, cols=2, pitch_m=0.04, image_size_px=(480, 360), focal_px=190.0, lens=lens,
                                   **coefficients), np.random.default_rng(0))
@@ -250,9 +250,9 @@ def test_the_papers_schedule_refines_a_wide_lens_views_focal_length_and_principa
     principal point changed (the 2x2 of the test above, view 3: fx, fy +3 px, cx +2 px, cy -2 px; every view knocked
     0.3 deg / 1 mm) is brought back towards the truth: its focal length, and the transfer at infinity."""
     from lfgraph import RefineConfig, refine
-    from lfgraph.alignment import transfer_error_at_infinity
     from lfgraph.datasets.rig import ShakeConfig, shake_rig
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
+    from lfgraph.judge.alignment import transfer_error_at_infinity
 
     original = make_rig(RigConfig(rows=2, cols=2, pitch_m=0.04, image_size_px=(480, 360), focal_px=190.0, lens=lens,
                                   **coefficients), np.random.default_rng(0))

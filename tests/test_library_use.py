@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import lfgraph as lf
-from lfgraph.camera import project_world
+from lfgraph.core.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 
 SAME_PX = 1e-9  # px: one transfer computation against another

@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.capture import CaptureError, open_capture, split_mosaic, tile_mosaic, write_frame
-from lfgraph.grid import ViewGrid
+from lfgraph.core.grid import ViewGrid
+from lfgraph.io.capture import CaptureError, open_capture, split_mosaic, tile_mosaic, write_frame
 
 GRID = ViewGrid(2, 2)
 
@@ -135,7 +135,7 @@ def test_views_layout_matches_frames_by_number_in_real_trinocular_folders():
     """BoofCV's trinocular set: left/ middle/ right/ with leftN.jpg ...; frames matched by N, views in folder order."""
     from pathlib import Path
 
-    from lfgraph.capture import open_capture
+    from lfgraph.io.capture import open_capture
 
     root = Path(__file__).parent / "data" / "trinocular"
     capture = open_capture(root, (1, 3))

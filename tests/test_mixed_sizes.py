@@ -9,20 +9,20 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration
-from lfgraph.capture import open_capture
-from lfgraph.chessboard import detect_board
+from lfgraph.apps.fleet import FleetItem, process_camera
 from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import make_T
 from lfgraph.datasets.board_render import render_checkerboard_view
 from lfgraph.datasets.checkerboard import CheckerboardConfig, make_checkerboard_truth, write_checkerboard_dataset
 from lfgraph.datasets.rig import ShakeConfig, make_rig, resize_views, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.evaluation import transfer_error_at_infinity
-from lfgraph.fleet import FleetItem, process_camera
-from lfgraph.geometry import make_T
-from lfgraph.rectification import build_maps, compute_rectification, remap_views
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import detect_board
+from lfgraph.io.capture import open_capture
+from lfgraph.judge.evaluation import transfer_error_at_infinity
+from lfgraph.rectification.rectify import build_maps, compute_rectification, remap_views
 from lfgraph.refinement import refine
 from lfgraph.refinement.matching import Tracks
 from lfgraph.refinement.resample import ViewCanvas

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.calibration import Calibration
 from lfgraph.cli import EXIT_BAD_INPUT, EXIT_USAGE, main
-from lfgraph.detections import PointBoard
+from lfgraph.core.calibration import Calibration
+from lfgraph.detect.detections import PointBoard
+from lfgraph.io.points import PointsError, load_detections, read_opencv_multiview, read_points_npz, write_points_npz
 from lfgraph.pattern import CalibrateConfig, calibrate
-from lfgraph.points_io import PointsError, load_detections, read_opencv_multiview, read_points_npz, write_points_npz
 
 DATA = Path(__file__).parent / "data" / "omnidir_stereo"
 OBJ = DATA / "object_points.npy"

@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.factors.noise import GAUGE_SIGMA, MIN_SIGMA
 from lfgraph.factors.prior_table import (
     calibration_vectors,

@@ -10,7 +10,7 @@ import pytest
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
+from lfgraph.detect.detections import observations_from_arrays
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "real.py"
 _SPEC = importlib.util.spec_from_file_location("real_bench", _PATH)

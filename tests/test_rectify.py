@@ -7,11 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.alignment import align_points, infinity_alignment
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration
-from lfgraph.chessboard import detect_board
 from lfgraph.cli import EXIT_BAD_INPUT, EXIT_DRIFT, main
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import make_T
 from lfgraph.datasets.board_render import render_checkerboard_view
 from lfgraph.datasets.checkerboard import (
     CheckerboardConfig,
@@ -20,10 +18,12 @@ from lfgraph.datasets.checkerboard import (
 )
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
-from lfgraph.geometry import make_T
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.chessboard import detect_board
+from lfgraph.detect.detections import observations_from_arrays
+from lfgraph.judge.alignment import align_points, infinity_alignment
 from lfgraph.pattern import CalibrateConfig, calibrate
-from lfgraph.rectification import (
+from lfgraph.rectification.rectify import (
     RectificationError,
     attach,
     build_maps,
@@ -265,7 +265,7 @@ def test_opencv_stereo_rows_no_worse_than_stereo_rectify(test_data, tmp_path):
 
 def test_degenerate_rigs_are_refused_by_name():
     """Issue 27: two views at one position, or k1 = 50, gave rectified images and a grid deviation with no warning."""
-    from lfgraph.rectification import RectificationError, compute_rectification
+    from lfgraph.rectification.rectify import RectificationError, compute_rectification
 
     rig = make_rig(RigConfig(rows=2, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))
     poses = np.array(rig.ref_T_view)

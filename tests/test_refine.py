@@ -5,15 +5,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.calibration import Calibration
-from lfgraph.camera import project_world
-from lfgraph.capture import open_capture
 from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, ideal_ref_T_view, make_rig, shake_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.evaluation import evaluate_calibration
 from lfgraph.factors.noise import RobustKernel
+from lfgraph.io.capture import open_capture
+from lfgraph.judge.alignment import transfer_error_at_infinity
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import RefineConfig, Stage, parse_stages, refine, refine_tracks
 from lfgraph.refinement.matching import track_chain
 from lfgraph.refinement.stages import run_stage

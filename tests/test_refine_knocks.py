@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.camera import project_world
+from lfgraph.core.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.factors.scene_graph import rotation_gauge
+from lfgraph.judge.alignment import transfer_error_at_infinity
 from lfgraph.refinement import DriftModel, RefineConfig
 from lfgraph.refinement.assess import assess, group_significance
 from lfgraph.refinement.config import Stage
@@ -186,9 +186,9 @@ def test_a_calibration_of_another_camera_is_not_refined_and_said(tmp_path):
     with fx still 550 px off. Nothing is written changed, and the warning says what is wrong."""
     import dataclasses
 
-    from lfgraph.calibration import Calibration
-    from lfgraph.capture import open_capture
     from lfgraph.cli import main
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.io.capture import open_capture
     from lfgraph.refinement import refine
 
     out = tmp_path / "scene"
@@ -207,10 +207,10 @@ def test_another_unit_of_the_same_model_is_not_refined_into_worse_poses(tmp_path
     from seed 7: focal lengths, principal points and poses a little different) was refined to rotations 0.61 ->
     1.17 deg and positions 0.35 -> 7.7 mm from that unit's truth, 'DRIFTED'. Poses cannot explain other
     intrinsics: the input is kept, no view is DRIFTED, and the warning asks."""
-    from lfgraph.calibration import Calibration
-    from lfgraph.capture import open_capture
     from lfgraph.cli import main
-    from lfgraph.evaluation import evaluate_calibration
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.io.capture import open_capture
+    from lfgraph.judge.evaluation import evaluate_calibration
     from lfgraph.refinement import refine
 
     for name, seed in (("ours", "0"), ("other", "7")):
@@ -235,7 +235,7 @@ def test_another_unit_of_the_same_model_is_not_refined_into_worse_poses(tmp_path
 ])
 def test_refine_and_check_name_a_frame_they_cannot_use(bad, message):
     """Issue 27/28: float, uint16 or RGB frames raised raw OpenCV assertions, one (H, W) frame an IndexError."""
-    from lfgraph.drift import check
+    from lfgraph.judge.check import check
     from lfgraph.refinement import refine
 
     rig = make_rig(RigConfig(rows=2, cols=2, image_size_px=(320, 240), focal_px=300.0), np.random.default_rng(0))

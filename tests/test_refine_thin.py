@@ -7,15 +7,15 @@ import shutil
 import numpy as np
 import pytest
 
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.calibration import Calibration
-from lfgraph.camera import project_world
-from lfgraph.capture import open_capture
 from lfgraph.cli import EXIT_OK, main
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import project_world
+from lfgraph.core.geometry import make_T, rotation_from_rotvec
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
-from lfgraph.evaluation import evaluate_calibration
 from lfgraph.factors.scene_graph import rotation_gauge
-from lfgraph.geometry import make_T, rotation_from_rotvec
+from lfgraph.io.capture import open_capture
+from lfgraph.judge.alignment import transfer_error_at_infinity
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import RefineConfig, refine
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import DriftModel

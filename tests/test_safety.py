@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.calibration import Calibration, CalibrationFileError
 from lfgraph.cli import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_OK, EXIT_USAGE, main
+from lfgraph.cli.tables import alignment_table
+from lfgraph.core.calibration import Calibration, CalibrationFileError
 from lfgraph.datasets.rig import RigConfig, make_rig
-from lfgraph.rectification import RectificationError, compute_rectification
-from lfgraph.report import alignment_table
+from lfgraph.rectification.rectify import RectificationError, compute_rectification
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--jobs", "2", "--quiet"]
@@ -199,7 +199,7 @@ def test_rectify_refuses_views_that_barely_overlap():
 
 
 def test_alignment_table_of_a_stereo_pair_says_what_it_lacks():
-    from lfgraph.alignment import Alignment
+    from lfgraph.judge.alignment import Alignment
 
     text = alignment_table([("rectified", Alignment(0.2, float("nan"), float("nan"), 120, 0, 0))])
     assert "nan" not in text and "needs 3+ views" in text and "120" in text
@@ -299,7 +299,7 @@ def test_a_guessed_layout_is_said_and_a_wrong_grid_is_summarised(tmp_path, capsy
 def test_a_command_stopped_late_leaves_none_of_its_outputs(boards, tmp_path, capsys, monkeypatch):
     """Ctrl-C after the calibration, the recording and the first figure were written: none stays (a half set of
     outputs)."""
-    from lfgraph.io_utils import write_bytes_atomic
+    from lfgraph.core.files import write_bytes_atomic
     from lfgraph.viz import figures
 
     def first_figure_then_ctrl_c(calib, obs, report, out_dir):

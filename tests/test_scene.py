@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from lfgraph.core.geometry import rotation_from_rotvec
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.datasets.scene import (
     Scene,
@@ -15,7 +16,6 @@ from lfgraph.datasets.scene import (
     render_scene_view,
     write_scene_dataset,
 )
-from lfgraph.geometry import rotation_from_rotvec
 
 FEATURE_POSITION_LIMIT_PX = 0.05  # rendered X-corner vs projection of its 3-D point
 DEPTH_EXACT_M = 1e-9
@@ -135,7 +135,7 @@ RAY_ROUND_TRIP_LIMIT_PX = {1: 1e-6, 2: 1e-3}  # float64 pixel centres; float32 s
 
 @pytest.mark.parametrize("supersample", [1, 2])
 def test_cached_lens_rays_project_back_onto_their_samples(supersample):
-    from lfgraph.camera import Intrinsics
+    from lfgraph.core.camera import Intrinsics
     from lfgraph.datasets.render import sample_rays
 
     intr = Intrinsics(300.0, 310.0, 161.0, 118.0, k1=-0.15, k2=0.02, p1=1e-3, p2=-2e-3)

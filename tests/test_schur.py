@@ -1,4 +1,4 @@
-"""The Schur-complement Levenberg–Marquardt (lfgraph.schur) against GTSAM's own optimiser and marginals, and the
+"""The Schur-complement Levenberg–Marquardt (lfgraph.engine.schur) against GTSAM's own optimiser and marginals, and the
 bulk projections of the points/poses stages against GTSAM's factors."""
 
 from dataclasses import replace
@@ -7,18 +7,18 @@ import gtsam
 import numpy as np
 import pytest
 
-from lfgraph.camera import project_world, undistort_views
+from lfgraph.core.camera import project_world, undistort_views
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.engine.optimize import OptimizerSettings, optimize
+from lfgraph.engine.schur import marginal_covariance, problem_covariance
+from lfgraph.engine.schur_system import camera_block, chol3_inv
 from lfgraph.factors.keys import LANDMARK_CHAR, landmark_key, view_pose_key
 from lfgraph.factors.noise import RobustKernel, measurement_noise
-from lfgraph.optimize import OptimizerSettings, optimize
 from lfgraph.refinement import Stage
 from lfgraph.refinement.config import DriftModel
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
 from lfgraph.refinement.triangulate import triangulate_dlt
-from lfgraph.schur import marginal_covariance, problem_covariance
-from lfgraph.schur_system import camera_block, chol3_inv
 
 SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same LM, different linear solver)
 SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals
@@ -177,7 +177,7 @@ def test_embedded_point_iterations_reach_the_same_minimum_from_a_landmark_far_of
 def test_the_decrease_still_to_come_of_a_geometric_sequence_is_its_tail():
     """A robust stage's second stop (`schur._left_to_gain`): decreases 8, 4, 2 of a cost whose decreases halve leave
     2 more (1 + 0.5 + ...); decreases that do not shrink leave an unknown amount (no stop)."""
-    from lfgraph.schur import _left_to_gain
+    from lfgraph.engine.schur import _left_to_gain
 
     assert _left_to_gain([20.0, 12.0, 8.0, 6.0]) == pytest.approx(2.0)
     assert _left_to_gain([20.0, 12.0, 8.0, 4.0]) == float("inf")  # 4 then 4: not shrinking

@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics, project_world
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics, project_world
 from lfgraph.datasets.rig import RigConfig, make_rig
-from lfgraph.evaluation import evaluate_calibration
+from lfgraph.judge.alignment import transfer_error_at_infinity
+from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.selfcal import (
     Design,
     PooledTracks,
@@ -195,8 +195,8 @@ RENDERED_FISHEYE_TRANSFER_PX = 0.2  # transfer at infinity left by calibrate-sce
 
 def render_small(rig: RigConfig, root) -> tuple[Calibration, list[np.ndarray]]:
     """Six rendered frames (two per depth band) of a 2x2 array drawn from ``rig``, also written under ``root``."""
-    from lfgraph.capture import write_frame
     from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_view
+    from lfgraph.io.capture import write_frame
 
     truth = make_rig(rig, np.random.default_rng(11))
     frames = []
@@ -275,8 +275,8 @@ def wide_design_fits(rendered, design: Design, transfer_px: float) -> Calibratio
 
 
 def test_cli_calibrate_scene_takes_a_fisheye_design(rendered_fisheye, tmp_path):
-    from lfgraph.calibration import Calibration
     from lfgraph.cli import main
+    from lfgraph.core.calibration import Calibration
 
     truth, _, root = rendered_fisheye
     out = tmp_path / "calibration.json"
@@ -315,8 +315,8 @@ HELD_XI = 1e-6  # xi held by a prior of HELD_SIGMA moves by less than this
 
 
 def test_cli_calibrate_scene_takes_a_unified_design_with_its_xi(rendered_unified, tmp_path, capsys):
-    from lfgraph.calibration import Calibration
     from lfgraph.cli import main
+    from lfgraph.core.calibration import Calibration
 
     truth, _, root = rendered_unified
     out = tmp_path / "calibration.json"
@@ -430,7 +430,7 @@ TILT_DEG = 1.0
 def test_common_zoom_is_an_exact_gauge_of_parallel_views_and_tilts_break_it_weakly():
     """Why scene frames cannot fix the absolute focal length: with every fx, fy x s, k1 x s^2, k2 x s^4 and every
     landmark's and view's depth x s, parallel views see the same images; the views' small tilts alone break it."""
-    from lfgraph.geometry import rotation_from_rotvec
+    from lfgraph.core.geometry import rotation_from_rotvec
 
     rng = np.random.default_rng(5)
     truth = make_rig(RIG, rng)

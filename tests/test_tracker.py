@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 import lfgraph as lf
-from lfgraph.alignment import transfer_error_at_infinity
-from lfgraph.camera import project_world
+from lfgraph.core.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.judge.alignment import transfer_error_at_infinity
 from lfgraph.refinement.report import DRIFTED
 
 ORACLE_NOISE_PX = 0.05  # the oracle's feature noise per coordinate

@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 
 import lfgraph as lf
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration, CalibrationFileError
 from lfgraph.cli import EXIT_OK, main
 from lfgraph.cli.args import json_text
+from lfgraph.core.calibration import Calibration, CalibrationFileError
+from lfgraph.core.files import OutputError, write_text_atomic
+from lfgraph.core.grid import ViewGrid
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import observations_from_arrays
-from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import OutputError, write_text_atomic
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.detections import observations_from_arrays
+from lfgraph.io.points import PointsError, load_detections
 from lfgraph.pattern.initial import CalibrationInputError
-from lfgraph.points_io import PointsError, load_detections
 
 HANG_S = 30.0  # a read that blocks (a FIFO given as an input) must fail well before this
 

@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration
-from lfgraph.capture import CaptureError, open_capture
 from lfgraph.cli import main
+from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.checkerboard import CheckerboardTruth
-from lfgraph.detections import detect_capture
-from lfgraph.video import close_videos
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.detections import detect_capture
+from lfgraph.io.capture import CaptureError, open_capture
+from lfgraph.io.video import close_videos
 
 FRAMES = 10
 BOARD = BoardSpec.parse("7x5", 15)
@@ -122,7 +122,7 @@ def test_calibrate_cli_on_videos(videos, rendered, tmp_path, capsys):
 def test_a_recording_reads_a_videos_frames_ahead_and_in_order(videos, tmp_path):
     """A calibration's recording reads its frames on a worker thread ahead of the frame being logged (a video
     reader is used by that one thread, in order): every frame's recorded images are that frame's."""
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
     from lfgraph.viz import RerunLogger
 
     capture = open_capture(videos, (2, 2))

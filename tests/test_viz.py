@@ -14,8 +14,8 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from lfgraph.calibration import Calibration
 from lfgraph.cli import main
+from lfgraph.core.calibration import Calibration
 
 SMALL = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--quiet"]
 STDOUT_CLOSED_S = 120  # seconds: the command must end by itself once its reader has gone
@@ -172,10 +172,10 @@ def test_calibrate_blueprint(calibrated):
 
 
 def test_outlier_frame_in_red_on_its_frame(board_capture, tmp_path):
-    from lfgraph.board import BoardSpec
-    from lfgraph.capture import open_capture
-    from lfgraph.detections import detect_capture
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
+    from lfgraph.detect.board import BoardSpec
+    from lfgraph.detect.detections import detect_capture
+    from lfgraph.io.capture import open_capture
     from lfgraph.pattern import calibrate
     from lfgraph.viz import RerunLogger
 
@@ -297,7 +297,7 @@ def test_unwritable_save_path_fails_before_work(board_capture, tmp_path, capsys,
 
 
 def test_blueprint_kinds_are_checked():
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
     from lfgraph.viz import default_blueprint
 
     with pytest.raises(ValueError, match="unknown blueprint"):

@@ -4,17 +4,17 @@ flag, rectifies with a far board's rows aligned, all against the rendering's tru
 import numpy as np
 import pytest
 
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration
-from lfgraph.capture import open_capture
 from lfgraph.cli import main
+from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.checkerboard import make_checkerboard_truth
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
-from lfgraph.detections import detect_capture
-from lfgraph.evaluation import evaluate_calibration
-from lfgraph.rectification import compute_rectification, rectify_points
-from lfgraph.wide_boards import rough_model
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.detections import detect_capture
+from lfgraph.detect.wide_boards import rough_model
+from lfgraph.io.capture import open_capture
+from lfgraph.judge.evaluation import evaluate_calibration
+from lfgraph.rectification.rectify import compute_rectification, rectify_points
 
 BOARD = BoardSpec.parse("9x6", 30)
 FRAMES = 24
@@ -132,11 +132,11 @@ FAR_BOARD_PX = 0.05  # issue 25: a far board rendered through the true fisheye l
 def test_a_far_board_rendered_through_the_fisheye_lenses_lines_up_after_rectification(fisheye_run):
     import cv2
 
-    from lfgraph.chessboard import detect_board
+    from lfgraph.core.geometry import make_T
     from lfgraph.datasets.board_render import render_checkerboard_view
     from lfgraph.datasets.checkerboard import CheckerboardConfig
-    from lfgraph.geometry import make_T
-    from lfgraph.rectification import build_maps, remap_views
+    from lfgraph.detect.chessboard import detect_board
+    from lfgraph.rectification.rectify import build_maps, remap_views
 
     _, est, truth = fisheye_run
     truth = truth.with_reference(truth.grid.reference)

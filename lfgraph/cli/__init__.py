@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 from lfgraph.cli import calibrate, fleet, interop, rectify, refine, selfcal, study, synth
 from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_INTERNAL, EXIT_OK, EXIT_USAGE, UsageError
-from lfgraph.io_utils import run_outputs
+from lfgraph.core.files import run_outputs
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_DRIFT", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
 

@@ -10,7 +10,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager, contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
 
-from lfgraph.io_utils import OutputError, check_replaceable
+from lfgraph.core.files import OutputError, check_replaceable
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_USAGE, EXIT_DRIFT, EXIT_INTERNAL = 0, 1, 2, 3, 4
 
@@ -55,8 +55,9 @@ def image_sizes(text: str) -> tuple[tuple[int, int], dict[str, tuple[int, int]]]
 
 
 def grid_size(text: str) -> tuple[int, int]:
-    """argparse type: ``ROWSxCOLS`` as (rows, cols) (`lfgraph.grid.parse_grid`; its ValueError becomes a type error)."""
-    from lfgraph.grid import parse_grid
+    """argparse type: ``ROWSxCOLS`` as (rows, cols) (`lfgraph.core.grid.parse_grid`; its ValueError becomes a type
+    error)."""
+    from lfgraph.core.grid import parse_grid
 
     try:
         return parse_grid(text)
@@ -319,7 +320,7 @@ def rerun_session(args: argparse.Namespace, grid, logging: bool, kind: str = "ca
             yield logger
     except StdoutClosed as exc:  # | head: the recording was cut, the command's own outputs were written
         err = OSError(f"--stdout: {exc}; every other output of the command was written")
-        err.keep_outputs = True  # type: ignore[attr-defined]  (`lfgraph.io_utils.run_outputs` keeps them)
+        err.keep_outputs = True  # type: ignore[attr-defined]  (`lfgraph.core.files.run_outputs` keeps them)
         raise err from None
     if logger.path is not None:
         print(f"rerun recording: {logger.path} (open it with: rerun {logger.path})")

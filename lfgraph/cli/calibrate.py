@@ -29,8 +29,8 @@ from lfgraph.cli.args import (
 
 def cmd_info(args: argparse.Namespace) -> int:
     """``lfgraph info``: print a calibration file as a table (``--json``: its summary as JSON); returns 0."""
-    from lfgraph.calibration import Calibration
-    from lfgraph.report import calibration_summary
+    from lfgraph.cli.tables import calibration_summary
+    from lfgraph.core.calibration import Calibration
 
     calib = Calibration.load(args.calibration)
     if args.json:
@@ -42,8 +42,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def _board_and_config(args: argparse.Namespace):
-    from lfgraph.board import BoardSpec
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
+    from lfgraph.detect.board import BoardSpec
     from lfgraph.pattern import CalibrateConfig
     from lfgraph.pattern.lenses import resolve_lenses
 
@@ -98,8 +98,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from lfgraph.cli.tables import calibration_report_text
     from lfgraph.pattern import calibrate
-    from lfgraph.report import calibration_report_text
 
     board, grid, config = _board_and_config(args)
     check_output_file(args.output)
@@ -108,7 +108,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     capture = None
     if args.detections is not None:
-        from lfgraph.points_io import load_detections
+        from lfgraph.io.points import load_detections
 
         sources = [args.input, *Path(args.input).glob("*"), *([args.object_points] if args.object_points else [])]
         check_output_file(args.output, inputs=sources)
@@ -119,8 +119,8 @@ def _calibrate(args: argparse.Namespace) -> int:
         seen = obs.seen
         print(f"target seen in {seen.sum()} of {seen.size} view-frames ({obs.num_observations} points)")
     else:
-        from lfgraph.capture import open_capture
-        from lfgraph.detections import detect_capture
+        from lfgraph.detect.detections import detect_capture
+        from lfgraph.io.capture import open_capture
 
         capture = open_capture(args.input, grid, args.layout or "auto", missing=args.missing_view or "error")
         check_output_file(args.output, inputs=capture.all_paths())
@@ -160,9 +160,9 @@ def _calibrate(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """``lfgraph evaluate``: print a calibration's errors against a ground truth (``--json``: as JSON); returns 0."""
 
-    from lfgraph.calibration import Calibration
-    from lfgraph.evaluation import evaluate_calibration
-    from lfgraph.report import evaluation_table
+    from lfgraph.cli.tables import evaluation_table
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.judge.evaluation import evaluate_calibration
 
     estimate = Calibration.load(args.calibration)
     truth = Calibration.load(args.truth)

@@ -12,9 +12,9 @@ from lfgraph.cli.args import EXIT_OK, UsageError, check_output_file, jobs_defaul
 def cmd_fleet(args: argparse.Namespace) -> int:
     """``lfgraph fleet``: check (and on drift refine) every camera of a manifest, write the rows to ``--output`` and
     print the verdict counts and the first errors; returns 0 (a bad ``--executor`` is a `UsageError`)."""
-    from lfgraph.executor import parse_executor
-    from lfgraph.fleet import VERDICTS, run_fleet, summarise
-    from lfgraph.report import format_table
+    from lfgraph.apps.fleet import VERDICTS, run_fleet, summarise
+    from lfgraph.cli.tables import format_table
+    from lfgraph.core.executor import parse_executor
 
     try:
         parse_executor(args.executor)

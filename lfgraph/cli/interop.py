@@ -27,7 +27,7 @@ IMPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "middlebury", "hci"
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Read ``args.calibration`` (calibration.json) and write it as ``args.fmt`` to ``args.output``."""
-    from lfgraph.calibration import Calibration
+    from lfgraph.core.calibration import Calibration
     from lfgraph.interop import FILE_FORMATS, export_calibration
 
     check_output_file(args.output, (args.calibration,), is_folder=args.fmt not in FILE_FORMATS)
@@ -45,7 +45,7 @@ def cmd_import(args: argparse.Namespace) -> int:
         ValueError: ``--reference`` without ``--grid``, a reference outside the grid, an output that is the input
             or cannot be written (`check_output`), or a bad input file (the message names the file and the key).
     """
-    from lfgraph.grid import ViewGrid
+    from lfgraph.core.grid import ViewGrid
     from lfgraph.interop import import_calibration, input_paths
 
     check_output_file(args.output, input_paths(args.source, args.fmt), is_folder=False)

@@ -26,9 +26,9 @@ from lfgraph.cli.args import (
 
 def _rectify_frame_task(task: tuple) -> int:
     capture, frame, calib_json, crop, out_dir, out_layout = task
-    from lfgraph.calibration import Calibration
-    from lfgraph.capture import write_frame
-    from lfgraph.rectification import build_maps, remap_views, stored_rectification
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.io.capture import write_frame
+    from lfgraph.rectification.rectify import build_maps, remap_views, stored_rectification
 
     calib = Calibration.from_dict(calib_json)
     maps = build_maps(calib, stored_rectification(calib))
@@ -45,13 +45,13 @@ def cmd_rectify(args: argparse.Namespace) -> int:
 
 
 def _rectify(args: argparse.Namespace) -> int:
-    from lfgraph.calibration import Calibration
-    from lfgraph.capture import open_capture
-    from lfgraph.io_utils import staged_folder
-    from lfgraph.parallel import run_tasks
-    from lfgraph.rectification import attach, compute_rectification
-    from lfgraph.rectification_checks import check_compatible
-    from lfgraph.report import rectification_text
+    from lfgraph.cli.tables import rectification_text
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.core.files import staged_folder
+    from lfgraph.core.parallel import run_tasks
+    from lfgraph.io.capture import open_capture
+    from lfgraph.rectification.checks import check_compatible
+    from lfgraph.rectification.rectify import attach, compute_rectification
 
     out = args.output
     check_output_folder(out, args.input)
@@ -67,7 +67,7 @@ def _rectify(args: argparse.Namespace) -> int:
     print(rectification_text(calib, rect))
     with rerun_session(args, calib.grid, logging, "rectify") as logger:
         if logger is not None:
-            from lfgraph.rectification import build_maps, remap_views
+            from lfgraph.rectification.rectify import build_maps, remap_views
 
             logger.rig(calib)
             logger.rectified(calib, remap_views(capture.load_frame(0, grayscale=False), build_maps(calib, rect)))
@@ -88,12 +88,12 @@ def cmd_check(args: argparse.Namespace) -> int:
     Returns 3 (`EXIT_DRIFT`) when a view drifted or the calibration does not fit the camera, else 0. Bad ``--depths``,
     ``--drift`` or ``--tolerance-px`` values are a `UsageError`.
     """
-    from lfgraph.calibration import Calibration
-    from lfgraph.capture import open_capture
-    from lfgraph.drift import check
-    from lfgraph.rectification_checks import check_compatible
+    from lfgraph.cli.tables import drift_text
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.io.capture import open_capture
+    from lfgraph.judge.check import check
+    from lfgraph.rectification.checks import check_compatible
     from lfgraph.refinement.config import DriftModel, RefineConfig
-    from lfgraph.report import drift_text
 
     try:
         depths = [float(x) for x in args.depths.split(",") if x.strip()] if args.depths else []

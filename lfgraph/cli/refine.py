@@ -34,13 +34,13 @@ def _refine(args: argparse.Namespace) -> int:
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    from lfgraph.calibration import Calibration
-    from lfgraph.capture import open_capture
+    from lfgraph.cli.tables import refinement_text
+    from lfgraph.core.calibration import Calibration
     from lfgraph.factors.noise import describe_noise
-    from lfgraph.rectification_checks import check_compatible
+    from lfgraph.io.capture import open_capture
+    from lfgraph.rectification.checks import check_compatible
     from lfgraph.refinement import RefineConfig, refine, with_reference
     from lfgraph.refinement.config import DriftModel, schedule_name
-    from lfgraph.report import refinement_text
 
     try:
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,

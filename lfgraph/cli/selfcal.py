@@ -37,10 +37,10 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    from lfgraph.capture import open_capture
-    from lfgraph.grid import ViewGrid
-    from lfgraph.io_utils import write_text_atomic
-    from lfgraph.rectification import rectify
+    from lfgraph.core.files import write_text_atomic
+    from lfgraph.core.grid import ViewGrid
+    from lfgraph.io.capture import open_capture
+    from lfgraph.rectification.rectify import rectify
     from lfgraph.selfcal import Design, SelfCalConfig, calibrate_scene
 
     rows, cols = args.grid
@@ -77,8 +77,8 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     with logging_redirect_tqdm():
         calib, report = calibrate_scene(bar, design, config)
     if not args.no_rectify:
-        from lfgraph.rectification import stored_rectification
-        from lfgraph.report import rectification_text
+        from lfgraph.cli.tables import rectification_text
+        from lfgraph.rectification.rectify import stored_rectification
 
         calib = rectify(calib, args.crop)
         print(rectification_text(calib, stored_rectification(calib)))

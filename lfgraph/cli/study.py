@@ -34,8 +34,8 @@ def cmd_depth_error(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from lfgraph.depth import depth_error_m
-    from lfgraph.report import format_table
+    from lfgraph.cli.tables import format_table
+    from lfgraph.judge.depth import depth_error_m
 
     near, far = args.range_m
     if not 0 < near <= far:
@@ -71,7 +71,7 @@ FIGURE_SUFFIXES = (".png", ".pdf")  # the study figures beside the CSV
 
 
 def _study_common(args: argparse.Namespace) -> None:
-    from lfgraph.executor import parse_executor
+    from lfgraph.core.executor import parse_executor
 
     try:
         parse_executor(args.executor)
@@ -96,10 +96,7 @@ def cmd_study_shake(args: argparse.Namespace) -> int:
 
 
 def _study_shake(args: argparse.Namespace) -> int:
-    from lfgraph.datasets.scenes import get_scene
-    from lfgraph.factors.noise import RobustKernel
-    from lfgraph.refinement import parse_stages
-    from lfgraph.study import (
+    from lfgraph.apps.study import (
         SHAKE_COLUMNS,
         make_shake_trials,
         run_shake_trial,
@@ -108,6 +105,9 @@ def _study_shake(args: argparse.Namespace) -> int:
         shake_row_key,
         shake_trial_rows,
     )
+    from lfgraph.datasets.scenes import get_scene
+    from lfgraph.factors.noise import RobustKernel
+    from lfgraph.refinement import parse_stages
 
     _study_common(args)
     try:
@@ -136,8 +136,8 @@ def _study_shake(args: argparse.Namespace) -> int:
 
 
 def _shake_summary(rows) -> str:
-    from lfgraph.report import format_table
-    from lfgraph.study import summarise
+    from lfgraph.apps.study import summarise
+    from lfgraph.cli.tables import format_table
 
     metrics = ["transfer_before_px", "transfer_px", "rot_err_deg", "rms_after_px"]
     summary = summarise(rows, ("stages", "robust"), "rot_deg", metrics)
@@ -154,9 +154,7 @@ def cmd_study_calibration(args: argparse.Namespace) -> int:
     plots and print the RMS over seeds; returns 0."""
     import numpy as np
 
-    from lfgraph.datasets.scenes import get_scene
-    from lfgraph.report import format_table
-    from lfgraph.study import (
+    from lfgraph.apps.study import (
         CALIBRATION_COLUMNS,
         CalibrationTrial,
         calibration_plots,
@@ -166,6 +164,8 @@ def cmd_study_calibration(args: argparse.Namespace) -> int:
         run_study,
         summarise,
     )
+    from lfgraph.cli.tables import format_table
+    from lfgraph.datasets.scenes import get_scene
 
     _study_common(args)
     try:

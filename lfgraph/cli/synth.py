@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from lfgraph.cli.args import EXIT_OK, UsageError, grid_size, image_size, jobs_default, non_negative, positive_int
-from lfgraph.io_utils import staged_folder
+from lfgraph.core.files import staged_folder
 
 
 def _synth_rig(args: argparse.Namespace, named):
@@ -67,10 +67,10 @@ def cmd_synth_checkerboard(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from lfgraph.board import BoardSpec
     from lfgraph.datasets.checkerboard import make_checkerboard_truth, write_checkerboard_dataset
     from lfgraph.datasets.rig import make_rig
     from lfgraph.datasets.scenes import get_scene
+    from lfgraph.detect.board import BoardSpec
 
     named = get_scene(args.scene)
     rig = _synth_rig(args, named)
@@ -105,13 +105,13 @@ def cmd_synth_scene(args: argparse.Namespace) -> int:
     ground truth (and the rig before the shake) into ``args.out``; returns 0."""
     import dataclasses
 
+    from lfgraph.apps.synth import knocked_rig, scene_config
     from lfgraph.datasets.scene import write_scene_dataset
     from lfgraph.datasets.scenes import get_scene
-    from lfgraph.synth import knocked_rig, scene_config
 
     named = get_scene(args.scene)
     named = dataclasses.replace(named, rig=_synth_rig(args, named))
-    cfg = scene_config(named, args.keyboard)  # the library's own (lfgraph.synth.scene_capture renders the same)
+    cfg = scene_config(named, args.keyboard)  # the library's own (lfgraph.apps.synth.scene_capture renders the same)
     frames = args.frames if args.frames is not None else named.frames
     original, truth = knocked_rig(named, args.shake_rot_deg, args.shake_trans_mm, args.shake_axis, args.seed)
     shaken = truth is not original
@@ -127,8 +127,8 @@ def cmd_synth_scene(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """``lfgraph demo``: `lfgraph.demo.run_demo` in ``args.out``; returns its exit code."""
-    from lfgraph.demo import run_demo
+    """``lfgraph demo``: `lfgraph.cli.demo.run_demo` in ``args.out``; returns its exit code."""
+    from lfgraph.cli.demo import run_demo
 
     return run_demo(Path(args.out), jobs=args.jobs, quiet=args.quiet, scene_name=args.scene,
                     with_refinement=not args.no_refine)

@@ -18,8 +18,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from lfgraph.board import BoardSpec
-from lfgraph.camera import Intrinsics, transform_points
+from lfgraph.core.camera import Intrinsics, transform_points
 from lfgraph.datasets.render import (
     NEAR_PLANE_M,
     LensRays,
@@ -28,6 +27,7 @@ from lfgraph.datasets.render import (
     sample_rays,
     to_uint8,
 )
+from lfgraph.detect.board import BoardSpec
 
 BLACK_LEVEL, WHITE_LEVEL = 30.0, 220.0
 EDGE_WINDOW_MARGIN_PX = 2  # pixels around the board's footprint in its render window (3x3 edge test + rounding)

@@ -13,13 +13,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.board import BoardSpec
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics, in_image, transform_points
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics, in_image, transform_points
+from lfgraph.core.files import atomic_path
+from lfgraph.core.geometry import make_T, rotation_from_rotvec
+from lfgraph.core.parallel import run_tasks
 from lfgraph.datasets.board_render import CheckerboardConfig, ViewRays, render_checkerboard_view
-from lfgraph.geometry import make_T, rotation_from_rotvec
-from lfgraph.io_utils import atomic_path
-from lfgraph.parallel import run_tasks
+from lfgraph.detect.board import BoardSpec
 
 OUTLINE_SAMPLES_PER_EDGE = 24  # points per printed-board edge checked for visibility (edges bend under distortion)
 MAX_POSE_TRIES = 2000

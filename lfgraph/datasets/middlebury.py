@@ -8,11 +8,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.capture import CaptureError
-from lfgraph.geometry import invert_T, make_T
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.core.grid import ViewGrid
+from lfgraph.io.capture import CaptureError
 
 
 def load_mview(folder: str | os.PathLike) -> tuple[Calibration, list[np.ndarray]]:

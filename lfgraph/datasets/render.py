@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
 
 NEAR_PLANE_M = 1e-3  # surfaces are clipped to z >= this before their image footprint is bounded
 RAY_CACHE_SIZE = 4  # lenses kept in the cache; a 960x960 view at 1 sample per pixel holds ~22 MB

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.core.grid import ViewGrid
 
 
 @dataclass(frozen=True)
@@ -24,7 +24,7 @@ class RigConfig:
         image_size_px: (width, height) of every view.
         focal_px: design focal length (pixels); fx = fy before jitter.
         k1, k2: design radial distortion shared by all lenses (the lens model's own k1, k2).
-        lens: the lens model of every view (``radtan``, ``fisheye`` or ``unified``, see `lfgraph.camera`).
+        lens: the lens model of every view (``radtan``, ``fisheye`` or ``unified``, see `lfgraph.core.camera`).
         xi: the unified model's design xi (0 for the others).
         focal_jitter_px: std of each view's fx and fy about ``focal_px``.
         principal_jitter_px: std of each view's cx, cy about the image centre.

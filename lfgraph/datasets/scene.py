@@ -23,9 +23,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.capture import write_frame
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.files import atomic_path
+from lfgraph.core.geometry import rotation_from_rotvec
+from lfgraph.core.parallel import run_tasks
 from lfgraph.datasets.render import (
     NEAR_PLANE_M,
     LensRays,
@@ -35,9 +37,7 @@ from lfgraph.datasets.render import (
     sample_rays,
     to_uint8,
 )
-from lfgraph.geometry import rotation_from_rotvec
-from lfgraph.io_utils import atomic_path
-from lfgraph.parallel import run_tasks
+from lfgraph.io.capture import write_frame
 
 PLANE_EDGE_ON_M3 = 1e-12  # |normal . centre| below this (axes in metres): the camera lies in the quad's plane
 

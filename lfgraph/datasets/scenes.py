@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lfgraph.board import BoardSpec
 from lfgraph.datasets.checkerboard import CheckerboardConfig
 from lfgraph.datasets.rig import RigConfig
+from lfgraph.detect.board import BoardSpec
 
 
 @dataclass(frozen=True)

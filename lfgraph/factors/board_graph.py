@@ -18,10 +18,10 @@ import gtsam
 import gtsam_unstable
 import numpy as np
 
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.keys import board_corner_key, board_point_key, board_pose_key, calib_key, view_pose_key
 from lfgraph.factors.noise import FREE_SIGMA, GAUGE_SIGMA, MIN_SIGMA, lens_noise, point_noise
-from lfgraph.geometry import to_pose3
 
 RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
 BOARD_POINT_SIGMA_M = 1e-6  # a unified view's board point is its frame's board corner (1 µm, as a rigid board)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import gtsam
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 
 
 @dataclass(frozen=True)

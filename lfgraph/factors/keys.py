@@ -10,7 +10,7 @@ _BOARD_POSE = "b"  # board_T_ref of frame f (the reference view's pose in that f
 _BOARD_CORNER = "c"  # board corner j (board frame), shared by all frames
 _LANDMARK = "l"  # scene landmark j (reference frame)
 _BOARD_POINT = "q"  # board corner j of frame f in the reference frame (views whose lens has no board factor)
-LANDMARK_CHAR = _LANDMARK  # for solvers that eliminate landmarks (`lfgraph.schur`)
+LANDMARK_CHAR = _LANDMARK  # for solvers that eliminate landmarks (`lfgraph.engine.schur`)
 BOARD_CORNER_CHAR = _BOARD_CORNER  # the board's corners: the landmarks of a calibration's joint graph
 
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from lfgraph.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.noise import calibration_noise, gauge_pose_noise, pose_noise
-from lfgraph.geometry import to_pose3
 
 POSE_TANGENT = 6  # rotation x y z (rad, body frame), then position x y z (m): GTSAM's Pose3 tangent order
 CAL_TANGENT = {RADTAN: 9, FISHEYE: 9, UNIFIED: 10}  # each lens model's calibration tangent (module docstring)

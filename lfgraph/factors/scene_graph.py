@@ -27,13 +27,13 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import FISHEYE, RADTAN, UNIFIED
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED
+from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, range_noise
 from lfgraph.factors.prior_table import POSE_TANGENT, calibration_vectors, intrinsics_prior_factors, pose_prior_factors
-from lfgraph.geometry import to_pose3
 
 RANGE_GAUGE_SIGMA_M = 1e-3  # a pure gauge: any sigma keeps the range; 1e-6 m made LM fail on a 14 mm baseline
 FOCAL_FREE_SIGMA_PX = 1e4  # fx, fy, cx, cy when a refinement stage frees them (no practical pull)

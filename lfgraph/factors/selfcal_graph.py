@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.grid import ViewGrid
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA
 from lfgraph.factors.prior_table import (
@@ -30,7 +31,6 @@ from lfgraph.factors.prior_table import (
     intrinsics_prior_factors,
     pose_prior_factors,
 )
-from lfgraph.grid import ViewGrid
 
 
 @dataclass(frozen=True)

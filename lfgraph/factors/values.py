@@ -9,7 +9,8 @@ from collections.abc import Iterable, Sequence
 import gtsam
 import numpy as np
 
-from lfgraph.camera import Intrinsics
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import from_pose3, to_pose3
 from lfgraph.factors.keys import (
     board_corner_key,
     board_point_key,
@@ -18,7 +19,6 @@ from lfgraph.factors.keys import (
     landmark_key,
     view_pose_key,
 )
-from lfgraph.geometry import from_pose3, to_pose3
 
 
 def insert_view_poses(values: gtsam.Values, ref_T_view: np.ndarray) -> None:  # noqa: N803
@@ -79,7 +79,7 @@ def read_intrinsics(values: gtsam.Values, n_views: int, keep: Sequence[Intrinsic
         keep: when given, distortion (k1, k2, p1, p2; a wide model's coefficients and xi) is taken from these
             instead (stages that hold it).
         tangential: False clears p1, p2 (held at 0 by priors; this removes their ~1e-13 round-off).
-        lenses: each view's lens model (`lfgraph.camera.LENSES`); all radtan (Cal3DS2) when None.
+        lenses: each view's lens model (`lfgraph.core.camera.LENSES`); all radtan (Cal3DS2) when None.
     """
     out = []
     for v in range(n_views):

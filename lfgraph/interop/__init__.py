@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, mrcal, opencv_yaml, ros
 from lfgraph.interop.colmap import COLMAP_CAMERA_MODELS, COLMAP_MODEL_FILES, COLMAP_PIXEL_OFFSET_PX
 from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike, in_folder

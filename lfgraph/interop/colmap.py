@@ -23,10 +23,10 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.geometry import invert_T, make_T
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.core.grid import ViewGrid
 from lfgraph.interop.common import (
     GridLike,
     build,

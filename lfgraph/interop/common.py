@@ -23,11 +23,11 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
-from lfgraph.calibration import REFERENCE_POSE_TOLERANCE, Calibration, CalibrationFileError
-from lfgraph.camera import Intrinsics
-from lfgraph.geometry import invert_T, is_rotation, make_T
-from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import default_mode, input_problem
+from lfgraph.core.calibration import REFERENCE_POSE_TOLERANCE, Calibration, CalibrationFileError
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.files import default_mode, input_problem
+from lfgraph.core.geometry import invert_T, is_rotation, make_T
+from lfgraph.core.grid import ViewGrid
 
 MM_PER_M = 1000.0
 HOMOGENEOUS_ROW_TOLERANCE = 1e-9  # the last row of a 4x4 transform must be [0, 0, 0, 1] to this

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.grid import ViewGrid
 from lfgraph.interop.common import (
     MM_PER_M,
     GridLike,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.interop.common import GridLike, fit_grid
 
 

@@ -23,9 +23,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import Intrinsics
-from lfgraph.geometry import invert_T
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.files import write_text_atomic
+from lfgraph.core.geometry import invert_T
 from lfgraph.interop.common import (
     GridLike,
     array,
@@ -39,7 +40,6 @@ from lfgraph.interop.common import (
     transform,
     whole,
 )
-from lfgraph.io_utils import write_text_atomic
 
 KALIBR_DISTORTION_MODELS = ("radtan", "equidistant", "none")
 KALIBR_CAMERA_MODELS = ("pinhole", "omni")  # pinhole-radtan, pinhole-equi (lfgraph fisheye), omni-radtan (unified)

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.geometry import make_T
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import make_T
+from lfgraph.core.grid import ViewGrid
 from lfgraph.interop.common import (
     MM_PER_M,
     GridLike,

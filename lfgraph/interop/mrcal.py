@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.interop.common import num, write_folder
 
 VIEW_FILE = re.compile(r"^r\d+_c\d+\.cameramodel$")  # what an export writes (and may replace)

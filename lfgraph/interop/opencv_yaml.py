@@ -14,7 +14,7 @@ and per view ``R_rect_i`` (3x3, rectified from view; the role of ``cv2.stereoRec
 camera 1) to rectified pixels of view i, with ``p_i = -K_r R_rect_from_ref c_i`` and ``c_i`` the view's ideal grid
 position (lfgraph's rectified projection, re-expressed). Hence
 ``cv2.initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, rect_image_height), m1type)`` (which uses
-``P_i``'s left 3x3 as the new camera matrix) gives exactly lfgraph's rectified view i (`lfgraph.rectification
+``P_i``'s left 3x3 as the new camera matrix) gives exactly lfgraph's rectified view i (`lfgraph.rectification.rectify
 .build_maps`). Import reads the calibration, not the rectification (recompute that with ``lfgraph rectify``):
 ``K_r``, ``R_rect_i`` and ``P_i`` alone do not make a complete lfgraph rectification.
 
@@ -36,9 +36,10 @@ import cv2
 import numpy as np
 import yaml
 
-from lfgraph.calibration import Calibration
-from lfgraph.geometry import invert_T, make_T
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.files import atomic_path
+from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.core.grid import ViewGrid
 from lfgraph.interop.common import (
     GridLike,
     array,
@@ -53,8 +54,7 @@ from lfgraph.interop.common import (
     rotation,
     whole,
 )
-from lfgraph.io_utils import atomic_path
-from lfgraph.rectification import stored_rectification
+from lfgraph.rectification.rectify import stored_rectification
 
 _OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML[: ]\s*\d+\.\d+[^\n]*\n")  # OpenCV 3/4 write %YAML:1.0, OpenCV 5 %YAML 1.2
 # cv2.FileStorage writes these for non-finite numbers; YAML 1.1 spells them .nan/.NaN/.inf only

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.interop.common import write_folder
 from lfgraph.interop.opencv_yaml import rectified_projection
-from lfgraph.rectification import stored_rectification
+from lfgraph.rectification.rectify import stored_rectification
 
 VIEW_FILE = re.compile(r"^r\d+_c\d+\.yaml$")  # what an export writes (and may replace)
 ROS_DISTORTION_MODELS = {"radtan": "plumb_bob", "fisheye": "equidistant"}  # lfgraph lens -> ROS distortion_model

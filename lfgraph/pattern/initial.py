@@ -6,9 +6,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from lfgraph.camera import Intrinsics
-from lfgraph.detections import BoardObservations
-from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.detect.detections import BoardObservations
 from lfgraph.pattern.pose_fit import board_pose
 
 MIN_FRAMES_PER_VIEW = 3  # Zhang's method needs >= 3 board poses for fx, fy, cx, cy, k1, k2

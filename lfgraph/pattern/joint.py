@@ -1,6 +1,6 @@
 """The joint route: one GTSAM factor graph over all views and frames (`lfgraph.factors.board_graph`),
 started from the paper route or design values; 1-sigma uncertainties from the marginals of the graph at its optimum
-(`lfgraph.schur.CameraMarginals`, the one posterior path: the board's corners eliminated like a refinement's
+(`lfgraph.engine.schur.CameraMarginals`, the one posterior path: the board's corners eliminated like a refinement's
 landmarks, GTSAM's `Marginals` where that cannot reduce the graph)."""
 
 from __future__ import annotations
@@ -12,8 +12,10 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from lfgraph.camera import Intrinsics
-from lfgraph.detections import BoardObservations
+from lfgraph.core.camera import Intrinsics
+from lfgraph.detect.detections import BoardObservations
+from lfgraph.engine.optimize import IterationCallback, OptimizationResult, OptimizerSettings, gtsam_quiet, optimize
+from lfgraph.engine.schur import CameraMarginals
 from lfgraph.factors import board_graph
 from lfgraph.factors.hooks import GraphContext, run_hooks
 from lfgraph.factors.keys import BOARD_CORNER_CHAR, calib_key, view_pose_key
@@ -29,11 +31,9 @@ from lfgraph.factors.values import (
     read_intrinsics,
     read_view_poses,
 )
-from lfgraph.optimize import IterationCallback, OptimizationResult, OptimizerSettings, gtsam_quiet, optimize
 from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.initial import weak_views
 from lfgraph.pattern.scoring import rig_residuals
-from lfgraph.schur import CameraMarginals
 
 SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below this (noise-free synthetic data)
 
@@ -54,7 +54,7 @@ class JointResult:
 
 def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
                      ref_T_view: np.ndarray, lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:  # noqa: N803
-    with gtsam_quiet():  # the board's corners eliminated as a refinement's landmarks are (`lfgraph.schur`)
+    with gtsam_quiet():  # the board's corners eliminated as a refinement's landmarks are (`lfgraph.engine.schur`)
         marginals = CameraMarginals(graph, values, BOARD_CORNER_CHAR)
     out = []
     for v in range(n_views):

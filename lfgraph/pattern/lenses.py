@@ -12,10 +12,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lfgraph.camera import FISHEYE, LENSES, RADTAN, UNIFIED, Intrinsics
-from lfgraph.detections import BoardObservations
-from lfgraph.geometry import invert_T, make_T, rotation_from_rotvec
-from lfgraph.grid import ViewGrid
+from lfgraph.core.camera import FISHEYE, LENSES, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.core.grid import ViewGrid
+from lfgraph.detect.detections import BoardObservations
 from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.pose_fit import board_pose

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lfgraph.camera import Intrinsics
-from lfgraph.detections import MIN_CORNERS_PER_BOARD, BoardObservations
-from lfgraph.geometry import invert_T, make_T
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.detect.detections import MIN_CORNERS_PER_BOARD, BoardObservations
 from lfgraph.pattern.initial import (
     MIN_FRAMES_PER_VIEW,
     CalibrationInputError,

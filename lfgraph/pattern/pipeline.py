@@ -10,12 +10,12 @@ from typing import Any
 
 import numpy as np
 
-from lfgraph.board_order import order_symmetric_boards
-from lfgraph.calibration import Calibration
-from lfgraph.detections import BoardObservations
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.observer import Observer, resolve, tell
+from lfgraph.detect.board_order import order_symmetric_boards
+from lfgraph.detect.detections import BoardObservations
 from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
 from lfgraph.factors.noise import RobustKernel
-from lfgraph.observer import Observer, resolve, tell
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
 from lfgraph.pattern.initial import (
     check_observations,
@@ -235,7 +235,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         obs: corners of every view and frame (`lfgraph.detect_capture`).
         config: method, start and options (`CalibrateConfig()` by default: the joint graph started from the paper
             route).
-        observer: hears one log line per route and every optimiser iteration (`lfgraph.observer`); default: log
+        observer: hears one log line per route and every optimiser iteration (`lfgraph.core.observer`); default: log
             lines go to `logging`.
 
     Returns:

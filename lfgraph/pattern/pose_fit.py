@@ -5,8 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from lfgraph.camera import Intrinsics
-from lfgraph.geometry import make_T, rotation_from_rotvec
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import make_T, rotation_from_rotvec
 
 POSE_ITERATIONS = 8  # Gauss-Newton steps of a held-out board pose in distorted pixels
 

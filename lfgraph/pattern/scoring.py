@@ -9,13 +9,13 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from lfgraph.camera import Intrinsics
-from lfgraph.detections import BoardObservations
+from lfgraph.core.camera import Intrinsics
+from lfgraph.core.geometry import invert_T
+from lfgraph.detect.detections import BoardObservations
+from lfgraph.engine.optimize import OptimizationResult, OptimizerSettings, optimize
 from lfgraph.factors import board_graph
 from lfgraph.factors.noise import pixel_noise
 from lfgraph.factors.values import insert_board_corners, insert_board_poses, read_board_poses
-from lfgraph.geometry import invert_T
-from lfgraph.optimize import OptimizationResult, OptimizerSettings, optimize
 from lfgraph.pattern.initial import initial_board_T_ref, pnp_all
 
 COVERAGE_CELLS = 8  # coverage is measured on an 8x8 grid of image cells

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.observer import SilentObserver
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.observer import SilentObserver
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, fit_tracks
 from lfgraph.refinement.posterior import (

@@ -174,7 +174,7 @@ class RefineConfig:
             pixels —, ``"cauchy"`` — its usual constant, in measurement sigmas —, ``"huber:1.345sigma"``,
             ``"none"``), a `RobustKernel`, any ``gtsam.noiseModel.mEstimator`` object (wrapped around the isotropic
             ``measurement_sigma_px``: its threshold is then in sigmas), or a full ``gtsam`` noise model (used as it
-            is). Every one runs on the bulk solver (`lfgraph.bulk_noise`).
+            is). Every one runs on the bulk solver (`lfgraph.engine.bulk_noise`).
         clean_robust: the ``clean`` stage's own noise model; None (default) uses ``robust``.
         measurement_sigma_px: the feature position noise per coordinate (px); None (default): estimated from the
             residuals of a first fit (floored at ``MIN_MEASUREMENT_SIGMA_PX``), so the priors weigh what they should.

@@ -9,10 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import rotation_angle_deg
+from lfgraph.core.observer import Observer, SilentObserver, StageEnd, resolve, tell
 from lfgraph.factors.noise import describe_noise
-from lfgraph.geometry import rotation_angle_deg
-from lfgraph.observer import Observer, SilentObserver, StageEnd, resolve, tell
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.report import StageReport

@@ -9,7 +9,7 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from lfgraph.grid import ViewGrid
+from lfgraph.core.grid import ViewGrid
 
 DUPLICATE_PX = float(np.sqrt(2.0))  # the paper's duplicate filter: features closer than sqrt(2) px are one
 

@@ -8,18 +8,18 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.evaluation import reference_pixels
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.geometry import make_T, rotation_from_rotvec, to_pose3
+from lfgraph.engine.optimize import gtsam_quiet
+from lfgraph.engine.schur import CameraMarginals
 from lfgraph.factors.groups import DRIFT_GROUPS, VIEW_DIRECTIONS, Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_gauge, rotation_gauge
-from lfgraph.geometry import make_T, rotation_from_rotvec, to_pose3
-from lfgraph.optimize import gtsam_quiet
+from lfgraph.judge.evaluation import reference_pixels
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
 from lfgraph.refinement.stages import stage_graph, stage_problem
-from lfgraph.schur import CameraMarginals
 
 GROUPS = {g: VIEW_DIRECTIONS[g] for g in DRIFT_GROUPS}  # of the 10 directions (`lfgraph.factors.groups`)
 ROTATION = VIEW_DIRECTIONS[Group.ROTATION]  # also tested jointly: a tilt and a roll each just short of significance
@@ -198,7 +198,7 @@ def change_size_px(before: Calibration, after: Calibration,
     the figure disparity and refocusing see and that ``tolerance_px`` is stated in. With ``groups`` (view -> the
     groups whose change was significant) only those groups' part of the change counts: a significant position change
     that carries an insignificant turn is not a turn that matters."""
-    from lfgraph.evaluation import transfer_error_at_infinity
+    from lfgraph.judge.evaluation import transfer_error_at_infinity
 
     if groups is None:
         return transfer_error_at_infinity(after, before)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.refinement.config import DriftModel
 
 

@@ -18,8 +18,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.grid import ViewGrid
 from lfgraph.refinement.matching import Tracker, Tracks
 
 

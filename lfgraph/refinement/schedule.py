@@ -16,9 +16,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.capture import check_frame_array, check_frames_argument
-from lfgraph.observer import Observer, resolve, tell
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.observer import Observer, resolve, tell
+from lfgraph.io.capture import check_frame_array, check_frames_argument
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, fit_sigma
@@ -74,7 +74,7 @@ def refine(calib: Calibration, frames: Iterable[np.ndarray], config: RefineConfi
         frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size (for a rig
             whose views differ in size, a list of each view's (H, W) image, as `CaptureSet.frames` yields).
         config: options (`RefineConfig()` by default).
-        observer: hears log lines, frames, stages, outliers and optimiser iterations (`lfgraph.observer`);
+        observer: hears log lines, frames, stages, outliers and optimiser iterations (`lfgraph.core.observer`);
             default: log lines go to `logging`.
 
     Returns:

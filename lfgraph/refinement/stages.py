@@ -1,5 +1,5 @@
 """One stage of the refinement: its `StagePlan` (the priors from `lfgraph.factors.scene_graph`) run by the one stage
-runner, `lfgraph.stage_engine`.
+runner, `lfgraph.engine.stage_engine`.
 
 - ``points``: cameras constant, only landmarks move (`TriangulationFactorCal3DS2`, one small block per landmark).
 - ``intrinsics``: fx, fy, cx, cy free, distortion and poses held (`GeneralSFMFactor2Cal3DS2` + priors).
@@ -13,16 +13,16 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from lfgraph import stage_engine as engine
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
+from lfgraph.engine import stage_engine as engine
+from lfgraph.engine.optimize import IterationCallback, OptimizerSettings
+from lfgraph.engine.projections import ProjectionProblem
+from lfgraph.engine.stage_engine import REFINE_RELATIVE_TOL, ROBUST_RELATIVE_TOL, StagePlan
 from lfgraph.factors import scene_graph
 from lfgraph.factors.hooks import GraphHook
 from lfgraph.factors.noise import Noise, measurement_noise
-from lfgraph.optimize import IterationCallback, OptimizerSettings
-from lfgraph.projections import ProjectionProblem
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
-from lfgraph.stage_engine import REFINE_RELATIVE_TOL, ROBUST_RELATIVE_TOL, StagePlan
 
 
 def baseline_scale(centre: np.ndarray, new: np.ndarray) -> float:
@@ -70,7 +70,7 @@ def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.
                 priors: ViewPriors | None = None,
                 projections: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The graph and initial values of one stage at ``calib`` and ``points`` (`stage_plan` through
-    `lfgraph.stage_engine.stage_graph`): what `run_stage` optimises, and what the posterior marginals are taken
+    `lfgraph.engine.stage_engine.stage_graph`): what `run_stage` optimises, and what the posterior marginals are taken
     from. ``projections`` False: only the camera variables and their priors and gauges."""
     plan = stage_plan(stage, calib, scale_sigma_mm, held_views, priors)
     return engine.stage_graph(plan, calib, pixels, valid, points, model, projections)
@@ -82,7 +82,7 @@ def stage_problem(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: n
                   priors: ViewPriors | None = None,
                   hooks: tuple[GraphHook, ...] = ()) -> tuple[ProjectionProblem, tuple] | None:
     """The ``points`` or ``poses`` stage as a `ProjectionProblem` and its initial state, or None where GTSAM's factors
-    are needed (`lfgraph.stage_engine.bulk_problem`)."""
+    are needed (`lfgraph.engine.stage_engine.bulk_problem`)."""
     plan = stage_plan(stage, calib, scale_sigma_mm, held_views, priors)
     return engine.bulk_problem(plan, calib, pixels, valid, points, model, hooks)
 
@@ -93,7 +93,7 @@ def run_stage(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.nd
               hooks: tuple[GraphHook, ...] = (),
               priors: ViewPriors | None = None) -> tuple[Calibration, np.ndarray, int]:
     """Run one free-variable stage (``points``, ``intrinsics``, ``poses`` or ``all``) on the engine
-    (`lfgraph.stage_engine.run_plan`), then restore the calibrated baselines' lengths where scale was free.
+    (`lfgraph.engine.stage_engine.run_plan`), then restore the calibrated baselines' lengths where scale was free.
 
     Args:
         pixels: (V, N, 2) observations; valid: (V, N); points: (N, 3) initial landmarks (reference frame, m).

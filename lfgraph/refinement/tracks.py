@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.refinement.config import TriangulationFilter
 from lfgraph.refinement.matching import Tracks
 from lfgraph.refinement.triangulate import (

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import lens_table, undistort_views
-from lfgraph.lens_math import lens_distort
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import lens_table, undistort_views
+from lfgraph.core.lens_math import lens_distort
 
 
 def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -59,7 +59,7 @@ def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
 def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.ndarray,
                         valid: np.ndarray) -> np.ndarray:
     """(V, N) Euclidean reprojection error of each observation (NaN where not observed); all views at once, each
-    through its own lens (the model of `lfgraph.camera.Intrinsics.project`)."""
+    through its own lens (the model of `lfgraph.core.camera.Intrinsics.project`)."""
     out = np.full(valid.shape, np.nan)
     ok = np.all(np.isfinite(points_ref), axis=1)
     if not ok.any() or valid.shape[0] == 0:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.posterior import Posterior, predicted_transfer_px

@@ -7,13 +7,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.grid import ViewGrid
 from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.factors.selfcal_graph import DesignSigmas
-from lfgraph.grid import ViewGrid
 from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 from lfgraph.selfcal.defaults import (
     FOCAL_TOLERANCE,

@@ -8,9 +8,10 @@ from collections.abc import Iterable
 import gtsam
 import numpy as np
 
-from lfgraph.calibration import Calibration
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.observer import Observer, resolve
+from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
 from lfgraph.factors.noise import RobustKernel
-from lfgraph.observer import Observer, resolve
 from lfgraph.refinement.tracks import in_front
 from lfgraph.refinement.triangulate import per_coordinate_sigma
 from lfgraph.selfcal.config import Design, SelfCalConfig
@@ -27,7 +28,6 @@ from lfgraph.selfcal.solve import (
     zoom_to_prior,
 )
 from lfgraph.selfcal.tracks import MIN_TRACKS, PooledTracks, measure_coverage, pool_tracks
-from lfgraph.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
 
 NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
 FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to the MAP: give it more iterations

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfgraph.grid import ViewGrid
+from lfgraph.core.grid import ViewGrid
 from lfgraph.selfcal.solve import Posterior
 from lfgraph.selfcal.tracks import Coverage, PooledTracks
 

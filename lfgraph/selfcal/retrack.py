@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import in_image
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import in_image
 
 WINDOW_RADIUS_PX = 7  # half side of the re-tracking window (15 x 15 px) ...
 WINDOW_SIGMA_PX = 3.5  # ... weighted by a Gaussian of this sigma (fewer pixels across depth edges)

@@ -9,18 +9,18 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import RADTAN, Intrinsics
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import RADTAN, Intrinsics
+from lfgraph.engine.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
+from lfgraph.engine.schur import CameraMarginals
+from lfgraph.engine.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.factors.selfcal_graph import DesignSigmas
-from lfgraph.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
 from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
-from lfgraph.schur import CameraMarginals
-from lfgraph.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
 
-# after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.schur`'s
+# after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.engine.schur`'s
 # embedded point iterations). The common zoom and the hidden principal-point gauge are long curved valleys that move
 # every landmark: plain LM crawled along them (each step ~0.96 of the last's decrease) and stopped at its 150-iteration
 # cap (paper-4x4 rig, 10 frames of exact tracks: principal-point slope 0.72 px per grid step and zoom 1.52 px, at the
@@ -51,16 +51,16 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
                   relative_tol: float = INTERMEDIATE_RELATIVE_TOL, callback: IterationCallback | None = None,
                   hooks: tuple[Callable, ...] = (), hold_gauges: bool = True, landmark_iterations: int | None = None,
                   ) -> tuple[Calibration, np.ndarray, gtsam.NonlinearFactorGraph, gtsam.Values, int]:
-    """One stage on the one stage runner (`lfgraph.stage_engine.run_plan`): poses and intrinsics are variables; the
-    groups in ``free`` are pulled to the design, the rest pinned at ``calib``; ``hold_gauges`` pins
+    """One stage on the one stage runner (`lfgraph.engine.stage_engine.run_plan`): poses and intrinsics are variables;
+    the groups in ``free`` are pulled to the design, the rest pinned at ``calib``; ``hold_gauges`` pins
     `selfcal_graph.intrinsics_gauges` too (intermediate stages: measured on paper-4x4 with 20 frames, releasing the
     common zoom before distortion was free let it absorb the unmodelled distortion and drift 25 % away, 110 px,
     beyond what 50 iterations walk back). Returns the calibration, landmarks, the graph, its optimum and the LM
-    iterations. ``landmark_iterations``: None runs GTSAM's Levenberg–Marquardt; a number runs `lfgraph.schur`'s with
-    that many embedded point iterations per step (the final stage: from the staged start it walks the near-gauge
+    iterations. ``landmark_iterations``: None runs GTSAM's Levenberg–Marquardt; a number runs `lfgraph.engine.schur`'s
+    with that many embedded point iterations per step (the final stage: from the staged start it walks the near-gauge
     valleys; from the design values, where landmarks start far off, GTSAM's loop is kept: on the 2x2 test rig the
-    first stage in `lfgraph.schur`'s loop, with or without embedded iterations, lost 95 % of its tracks behind the
-    views)"""
+    first stage in `lfgraph.engine.schur`'s loop, with or without embedded iterations, lost 95 % of its tracks behind
+    the views)"""
     priors = gtsam.NonlinearFactorGraph()
     priors.push_back(selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference, sigmas,
                                                    free))
@@ -143,8 +143,8 @@ def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     """Marginal sigmas of every view's calibration and pose at the optimum, and the (DV, DV) joint covariance of
     every view's calibration (views in order, each in its model's tangent order: D = 9, or 10 for Cal3Unified).
 
-    The covariances are `lfgraph.schur.CameraMarginals` (the one posterior path): the inverse of the reduced camera
-    system (the same numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every
+    The covariances are `lfgraph.engine.schur.CameraMarginals` (the one posterior path): the inverse of the reduced
+    camera system (the same numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every
     landmark twice; paper-4x4 with 20 frames: the whole graph 176 -> 134 s); a graph the Schur complement cannot
     reduce goes through `Marginals`.
 

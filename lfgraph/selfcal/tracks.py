@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgraph.calibration import Calibration
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.grid import ViewGrid
 from lfgraph.refinement.matching import Tracker
 from lfgraph.selfcal.retrack import Patches, cut_patches
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import rerun.blueprint as rrb
 
-from lfgraph.calibration import Calibration
-from lfgraph.grid import ViewGrid
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.grid import ViewGrid
 
 RESIDUAL_ARROW_SCALE = 50.0  # residual arrows are drawn this many times longer than they are (sub-pixel otherwise)
 RESIDUAL_COLOUR_MAX_PX = 1.0  # residual colour map saturates here

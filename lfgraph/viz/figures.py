@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
-from lfgraph.io_utils import atomic_path  # noqa: E402
+from lfgraph.core.files import atomic_path  # noqa: E402
 
 FORMATS = ("png", "pdf")
 DPI = 110  # PNG resolution: small files, readable text
@@ -321,7 +321,7 @@ def frame_rms_figure(obs: Any, residuals_px: np.ndarray, frame_rms_px: np.ndarra
 def grid_deviation_figure(calib: Any, stem: str | os.PathLike) -> list[Path]:
     """Each view's centre minus its ideal grid position (rectified frame): in-plane arrows on the grid, depth and
     rotation deviation as labels."""
-    from lfgraph.rectification import compute_rectification
+    from lfgraph.rectification.rectify import compute_rectification
 
     rect = compute_rectification(calib)
     dev = np.asarray(rect.deviation_mm)

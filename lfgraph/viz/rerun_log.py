@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from lfgraph.calibration import Calibration
-from lfgraph.grid import ViewGrid
-from lfgraph.io_utils import check_replaceable, record_created
-from lfgraph.observer import WARNING_PREFIX, BaseObserver, StageEnd
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.files import check_replaceable, record_created
+from lfgraph.core.grid import ViewGrid
+from lfgraph.core.observer import WARNING_PREFIX, BaseObserver, StageEnd
 from lfgraph.viz.blueprint import (
     APP_ID,
     ERROR_COLOUR,
@@ -253,7 +253,7 @@ class RerunLogger(SceneLog, BaseObserver):
 
     def stage_end(self, event: StageEnd) -> None:
         """Landmarks, and on every frame so far that frame's tracks with the calibration after this stage."""
-        from lfgraph.camera import project_world
+        from lfgraph.core.camera import project_world
 
         calib, points, valid = event.calib, event.points_ref_m, event.valid
         with np.errstate(invalid="ignore"):
@@ -322,7 +322,7 @@ class RerunLogger(SceneLog, BaseObserver):
         self._n_measurements = int(n)
 
     def on_iteration(self, _iteration: int, _before: float, after: float) -> None:
-        """`lfgraph.optimize` callback: one step on the ``iteration`` timeline per optimiser iteration."""
+        """`lfgraph.engine.optimize` callback: one step on the ``iteration`` timeline per optimiser iteration."""
         self.iteration_count += 1
         self.rec.set_time("iteration", sequence=self.iteration_count)
         self.rec.log("optimizer/error", rr.Scalars(after))

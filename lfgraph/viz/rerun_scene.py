@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 import rerun as rr
 
-from lfgraph.calibration import Calibration
-from lfgraph.camera import RADTAN, Intrinsics, pinhole_to_view_px, view_to_pinhole_px
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import RADTAN, Intrinsics, pinhole_to_view_px, view_to_pinhole_px
 from lfgraph.viz.blueprint import (
     CHANGE_ARROW_BASELINE_SHARE,
     CHANGE_COLOUR,
@@ -125,7 +125,7 @@ class SceneLog:
         longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, labelled with the change of
         rotation (deg), position (mm) and focal length (px, where it changed); the reference view's label gives the
         factor."""
-        from lfgraph.geometry import rotation_angle_deg
+        from lfgraph.core.geometry import rotation_angle_deg
 
         rot_deg = np.array([rotation_angle_deg(a[:3, :3] @ b[:3, :3].T)
                             for a, b in zip(after.ref_T_view, before.ref_T_view, strict=True)])
@@ -196,10 +196,10 @@ class SceneLog:
         reprojections, residuals and (outlier frames) the corners in red; the optimiser summary.
 
         Args:
-            calib: the calibration; obs: its `lfgraph.detections.Observations`; report: its `CalibrationReport`.
+            calib: the calibration; obs: its `lfgraph.detect.detections.Observations`; report: its `CalibrationReport`.
             frames: per-frame images (optional: without them the 2-D views show the points only).
         """
-        from lfgraph.geometry import invert_T
+        from lfgraph.core.geometry import invert_T
 
         self.rig(calib, name="calibrated_rig")
         if report.board_T_ref is not None:

@@ -1,0 +1,286 @@
+"""Fleet scale: check and refine many recordings (one per camera array) on a process pool or a Dask cluster.
+
+A manifest CSV names each recording (columns ``camera``, ``calibration``, ``capture``; paths relative to the
+manifest; optional ``layout``, ``max_frames``, ``max_px``, ``tolerance_px``). For each camera the drift check
+runs first; when it finds drift, the refinement runs and, when that improves the calibration, the refined
+calibration is written next to the input as a new version (``NAME.v2.json``, ``NAME.v3.json``, ...; never over
+the input, atomically). One row per camera goes into the results CSV (sorted, rewritten atomically after every
+camera; a re-run skips cameras already in it), with a verdict:
+
+- ``OK``: the drift check finds no view DRIFTED (a change both significant and above ``tolerance_px`` at infinity,
+  default 0.1 px: the rule of `lfgraph refine` and `lfgraph check`) and the reprojection RMS is <= ``max_px``;
+- ``DRIFTED``: a view drifted (or the RMS is above ``max_px``) and the refinement changed the calibration (views
+  confirmed by held-out tracks; the new version's path is in the row);
+- ``UNCERTAIN``: it did not fit, but the refinement could not improve it (too little texture, too few frames):
+  inspect the recording;
+- ``ERROR``: the recording or calibration could not be used (the message is in the row); other cameras go on.
+
+A refined version stores what it was made from (``metrics["fleet_source"]``: the input calibration's SHA-256, the
+capture, the options): a run interrupted between writing a version and writing its row is resumed by reusing that
+version, never by writing another. One run at a time writes a results file (an exclusive lock beside it,
+``.NAME.lock``); a second is refused with a message.
+
+Results do not depend on the executor or on the order in which cameras finish (every step is deterministic), except
+the ``seconds`` column. Paths in the results are relative to the manifest's folder.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lfgraph.core.files import atomic_path
+
+MANIFEST_COLUMNS = ("camera", "calibration", "capture")
+RESULT_COLUMNS = ("camera", "verdict", "rms_before_px", "rms_after_px", "max_rotation_change_deg",
+                  "max_position_change_mm", "view_changes", "refined_calibration", "frames", "seconds", "error")
+VERDICTS = ("OK", "DRIFTED", "UNCERTAIN", "ERROR")
+DEFAULT_MAX_PX = 0.5  # the drift check's threshold, as `lfgraph check --max-px`
+DEFAULT_MAX_FRAMES = 3
+DEFAULT_TOLERANCE_PX = 0.1  # as RefineConfig.tolerance_px: a drift must move the transfer at infinity by more
+MAX_VERSIONS = 10_000  # calibration versions tried before giving up (a folder that is filling up with them)
+
+
+class ManifestError(ValueError):
+    """A manifest that cannot be used; the message names the file, line and column."""
+
+
+@dataclass(frozen=True)
+class FleetItem:
+    """One manifest row, paths resolved against the manifest's folder."""
+
+    camera: str
+    calibration: Path
+    capture: Path
+    layout: str = "auto"
+    max_frames: int = DEFAULT_MAX_FRAMES
+    max_px: float = DEFAULT_MAX_PX
+    root: Path = Path(".")  # the manifest's folder: result paths are written relative to it
+    tolerance_px: float = DEFAULT_TOLERANCE_PX
+
+
+def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
+    """Parse a manifest CSV.
+
+    Raises:
+        ManifestError: unreadable file, missing columns, an empty or repeated camera, a bad number (named by line).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"{path}: cannot read the manifest ({exc})") from None
+    reader = csv.DictReader(text.splitlines())
+    missing = [c for c in MANIFEST_COLUMNS if c not in (reader.fieldnames or [])]
+    if missing:
+        raise ManifestError(f"{path}: the manifest needs the columns {', '.join(MANIFEST_COLUMNS)}; missing "
+                            f"{', '.join(missing)} (found {', '.join(reader.fieldnames or []) or 'none'})")
+    items, seen = [], {}
+    for row in reader:
+        line = reader.line_num
+        camera = (row.get("camera") or "").strip()
+        if not camera:
+            raise ManifestError(f"{path}, line {line}: empty camera name")
+        if camera in seen:
+            raise ManifestError(f"{path}, line {line}: camera {camera!r} is listed twice (also line {seen[camera]})")
+        seen[camera] = line
+        for col in ("calibration", "capture"):
+            if not (row.get(col) or "").strip():
+                raise ManifestError(f"{path}, line {line}: empty {col} for camera {camera!r}")
+        try:
+            max_frames = int(row.get("max_frames") or DEFAULT_MAX_FRAMES)
+            max_px = float(row.get("max_px") or DEFAULT_MAX_PX)
+            tolerance_px = float(row.get("tolerance_px") or DEFAULT_TOLERANCE_PX)
+        except ValueError as exc:
+            raise ManifestError(f"{path}, line {line}: {exc}") from None
+        if max_frames < 1 or not (np.isfinite(max_px) and max_px > 0):
+            raise ManifestError(f"{path}, line {line}: max_frames must be >= 1 and max_px > 0")
+        if not (np.isfinite(tolerance_px) and tolerance_px >= 0):
+            raise ManifestError(f"{path}, line {line}: tolerance_px must be >= 0, got {tolerance_px:g}")
+        base = path.parent
+        given = row["calibration"].strip()
+        target = (base / given).resolve()
+        if not Path(given).is_absolute() and base.resolve() not in target.parents:
+            raise ManifestError(f"{path}, line {line}: calibration {given!r} climbs out of the manifest's folder "
+                                f"{base}; the fleet writes new versions beside the calibrations, so a relative path "
+                                f"must stay inside it (an absolute path says where on purpose)")
+        items.append(FleetItem(camera, base / row["calibration"].strip(), base / row["capture"].strip(),
+                               (row.get("layout") or "auto").strip(), max_frames, max_px, base, tolerance_px))
+    if not items:
+        raise ManifestError(f"{path}: the manifest lists no camera")
+    return items
+
+
+def _versions(calibration: Path) -> Iterator[Path]:
+    """``NAME.v2.json``, ``NAME.v3.json``, ... beside ``calibration`` (whose own version suffix is dropped)."""
+    stem = calibration.stem
+    base = stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
+    for n in range(2, MAX_VERSIONS):
+        yield calibration.with_name(f"{base}.v{n}{calibration.suffix}")
+
+
+def next_version(calibration: Path) -> Path:
+    """``NAME.vN.json`` beside ``calibration`` for the first N >= 2 that is free (the input is version 1)."""
+    for candidate in _versions(calibration):
+        if not candidate.exists():
+            return candidate
+    raise OSError(f"{calibration.parent}: {MAX_VERSIONS} versions of {calibration.stem} already; clean the folder")
+
+
+def source_key(item: FleetItem) -> dict[str, Any]:
+    """What a refined version was made from: the input calibration's bytes (SHA-256), the capture and the options
+    that decide the result. A re-run that finds a version with the same key reuses it instead of writing another."""
+    digest = hashlib.sha256(Path(item.calibration).read_bytes()).hexdigest()
+    return {"calibration_sha256": digest, "capture": os.path.relpath(item.capture, item.root),
+            "max_frames": item.max_frames, "tolerance_px": item.tolerance_px}
+
+
+def existing_version(input_path: Path, key: dict[str, Any]) -> Path | None:
+    """A version beside ``input_path`` that a run interrupted before its results row was written made from the same
+    source (``metrics["fleet_source"]`` equal to ``key``), or None."""
+    for candidate in _versions(input_path):
+        if not candidate.exists():
+            return None
+        try:
+            stored = json.loads(candidate.read_text(encoding="utf-8")).get("metrics", {}).get("fleet_source")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if stored == key:
+            return candidate
+    return None
+
+
+def _save_new_version(calib: Any, input_path: Path, key: dict[str, Any] | None = None) -> Path:
+    """Write ``calib`` as the next free version, atomically and without ever replacing an existing file; with
+    ``key`` (`source_key`) stored in its metrics, and an earlier version of the same source reused."""
+    if key is not None:
+        found = existing_version(input_path, key)
+        if found is not None:
+            return found
+        calib = calib.replace(metrics={**dict(calib.metrics or {}), "fleet_source": key})
+    for _ in range(MAX_VERSIONS):
+        target = next_version(input_path)
+        with atomic_path(target.with_name(f".{target.name}.partial")) as tmp:
+            tmp.write_text(calib.to_json(), encoding="utf-8")
+            try:
+                os.link(tmp, target)  # fails when another worker took this version meanwhile
+            except FileExistsError:
+                continue
+        return target
+    raise OSError(f"could not write a new version of {input_path}")
+
+
+def process_camera(item: FleetItem) -> list[dict[str, Any]]:
+    """Check one camera's recording, refine on drift, write the new version; one result row (never raises)."""
+    from lfgraph.core.calibration import Calibration
+    from lfgraph.io.capture import open_capture
+    from lfgraph.judge.check import check
+    from lfgraph.rectification.checks import check_compatible
+    from lfgraph.refinement import RefineConfig, refine
+
+    start = time.perf_counter()
+    row: dict[str, Any] = {"camera": item.camera, "verdict": "ERROR", "rms_before_px": float("nan"),
+                           "rms_after_px": float("nan"), "max_rotation_change_deg": 0.0,
+                           "max_position_change_mm": 0.0, "view_changes": "{}", "refined_calibration": "",
+                           "frames": 0, "error": ""}
+    try:
+        calib = Calibration.load(item.calibration)
+        capture = open_capture(item.capture, calib.grid, item.layout)
+        check_compatible(calib, capture.grid, capture.sizes_px, str(item.capture))
+        config = RefineConfig(max_frames=item.max_frames, tolerance_px=item.tolerance_px)
+        report = check(calib, capture.frames(item.max_frames), config=config)
+        row.update(rms_before_px=report.rms_px, frames=report.frames)
+        drifted = [v for v in report.verdicts if v.verdict == "DRIFTED"]
+        if not drifted and report.rms_px <= item.max_px:
+            row.update(verdict="OK", rms_after_px=report.rms_px, view_changes=_verdicts_json(report.verdicts))
+        else:
+            refined, ref_report = refine(calib, capture.frames(item.max_frames), config)
+            rot, pos = _changes(calib, refined)
+            row.update(rms_after_px=ref_report.rms_after_px if ref_report.accepted else report.rms_px,
+                       max_rotation_change_deg=float(rot.max()), max_position_change_mm=float(pos.max()),
+                       view_changes=_verdicts_json(ref_report.verdicts))
+            if ref_report.accepted and (rot.max() > 0 or pos.max() > 0):  # some view really changed
+                written = _save_new_version(refined, item.calibration, source_key(item))
+                row.update(verdict="DRIFTED", refined_calibration=os.path.relpath(written, item.root))
+            else:
+                row.update(verdict="UNCERTAIN", error="; ".join(ref_report.warnings))
+    except Exception as exc:  # one bad recording must never stop the fleet: it becomes an ERROR row
+        row.update(verdict="ERROR", error=f"{type(exc).__name__}: {exc}")
+    row["seconds"] = time.perf_counter() - start
+    return [row]
+
+
+def _verdicts_json(verdicts: Sequence[Any]) -> str:
+    """Per view: verdict, significance and posterior sigmas (JSON, sorted keys: identical across executors)."""
+    out = {}
+    for v in verdicts:
+        d = v.as_dict()
+        out[v.name] = {k: d[k] for k in ("verdict", "change_sigma", "rotation_change_deg", "position_change_mm",
+                                         "sigma_rotation_deg", "sigma_position_mm") if k in d}
+    return json.dumps(out, sort_keys=True)
+
+
+def _changes(before: Any, after: Any) -> tuple[np.ndarray, np.ndarray]:
+    from lfgraph.core.geometry import rotation_angle_deg
+
+    rot = np.asarray(rotation_angle_deg(np.swapaxes(before.ref_T_view[:, :3, :3], 1, 2)
+                                        @ after.ref_T_view[:, :3, :3]))
+    pos = 1e3 * np.linalg.norm(after.ref_T_view[:, :3, 3] - before.ref_T_view[:, :3, 3], axis=1)
+    return rot, pos
+
+
+def run_fleet(manifest: str | os.PathLike, results_csv: str | os.PathLike, executor: str = "local",
+              jobs: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
+    """Process every camera of ``manifest`` not yet in ``results_csv``; returns all result rows.
+
+    Args:
+        manifest: the manifest CSV (see the module docstring).
+        results_csv: the results CSV, created or resumed.
+        executor: ``local`` (a process pool), ``dask-local`` or ``dask://HOST:PORT``.
+        jobs: processes / Dask workers (default: all cores).
+
+    Raises:
+        ManifestError: a bad manifest; ValueError: a results CSV of another kind.
+    """
+    import fcntl
+
+    from lfgraph.apps.study import run_study
+
+    items = read_manifest(manifest)
+    lock_path = Path(results_csv).with_name(f".{Path(results_csv).name}.lock")
+    with open(lock_path, "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{results_csv}: another fleet run is writing these results (lock {lock_path}); wait "
+                             f"for it to finish, or give this run its own results file") from None
+        try:
+            return run_study(items, process_camera, results_csv, RESULT_COLUMNS, _item_rows, _row_key, executor,
+                             jobs, progress)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _item_rows(item: FleetItem) -> set[tuple]:
+    return {(item.camera,)}
+
+
+def _row_key(row: dict) -> tuple:
+    return (str(row["camera"]),)
+
+
+def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Cameras per verdict."""
+    counts = {v: 0 for v in VERDICTS}
+    for r in rows:
+        counts[str(r["verdict"])] = counts.get(str(r["verdict"]), 0) + 1
+    return counts

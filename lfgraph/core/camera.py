@@ -1,0 +1,361 @@
+"""Per-view lens models (paper eq. 1-3 and two wide-angle models), vectorised.
+
+Three models, each exactly the GTSAM calibration class named beside it (no skew):
+
+- ``radtan`` — pinhole + Brown distortion, GTSAM's ``Cal3DS2`` and OpenCV's 5-coefficient model with ``k3 = 0``::
+
+      r2 = x^2 + y^2,  radial = 1 + k1 r2 + k2 r2^2
+      x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+      y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+
+- ``fisheye`` — equidistant Kannala–Brandt, GTSAM's ``Cal3Fisheye`` and OpenCV's ``cv2.fisheye`` (k1..k4)::
+
+      theta = atan(r),  theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+      (x_d, y_d) = (x, y) theta_d / r
+
+- ``unified`` — Mei's unified (omnidirectional) model with radial-tangential terms, GTSAM's ``Cal3Unified`` and
+  Kalibr's ``omni-radtan``: the point on the unit sphere is shifted by ``xi`` along the axis, then ``radtan``::
+
+      (x, y) -> (x, y) / (1 + xi sqrt(x^2 + y^2 + 1)),  then the radtan distortion with k1, k2, p1, p2
+
+and for every model ``u = fx x_d + cx,  v = fy y_d + cy``, where ``(x, y)`` are normalised image coordinates
+(``X/Z, Y/Z`` in the camera frame). Pixels follow OpenCV's convention: ``(0, 0)`` is the centre of the top-left pixel,
+``x`` right, ``y`` down. The distortion centre is the principal point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.core.lens_math import (  # noqa: F401  (the models' arithmetic; re-exported where callers import it)
+    UNDISTORT_MAX_ITERATIONS,
+    UNDISTORT_RESIDUAL_LIMIT,
+    UNDISTORT_TOLERANCE,
+    distort_fisheye_xy,
+    distort_xy,
+    distortion_jacobian,
+    fisheye_theta_d,
+    lift_unified,
+    undo_fisheye,
+    undo_radtan,
+    unified_to_plane,
+)
+
+RADTAN, FISHEYE, UNIFIED = "radtan", "fisheye", "unified"
+LENSES = (RADTAN, FISHEYE, UNIFIED)
+# the distortion keys of each model, as calibration.json stores them (OpenCV's names; Kalibr's xi for unified)
+DISTORTION_KEYS = {RADTAN: ("k1", "k2", "p1", "p2"), FISHEYE: ("k1", "k2", "k3", "k4"),
+                   UNIFIED: ("xi", "k1", "k2", "p1", "p2")}
+_UNUSED = {RADTAN: ("k3", "k4", "xi"), FISHEYE: ("p1", "p2", "xi"), UNIFIED: ("k3", "k4")}
+
+
+def _as_points(points: np.ndarray, dims: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] not in dims:
+        raise ValueError(f"{name} must have shape (N, {' or '.join(map(str, dims))}), got {arr.shape}")
+    return arr
+
+
+def _float_fields(obj: object) -> None:
+    for field in dataclasses.fields(obj):
+        if field.name == "lens":
+            continue
+        value = float(getattr(obj, field.name))
+        if not np.isfinite(value):
+            raise ValueError(f"Intrinsics.{field.name} must be finite, got {value}")
+        object.__setattr__(obj, field.name, value)
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """One view's intrinsics: focal lengths and principal point in pixels, the lens model and its coefficients.
+
+    ``lens`` is one of `LENSES`; each model uses the coefficients `DISTORTION_KEYS` names and the others must be
+    0: ``radtan`` k1, k2, p1, p2; ``fisheye`` k1..k4 (OpenCV's ``cv2.fisheye`` convention); ``unified`` xi, k1, k2,
+    p1, p2 (Kalibr's ``omni-radtan``). No skew. ``Intrinsics(fx, fy, cx, cy, k1, k2, p1, p2)`` is a radtan lens."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    xi: float = 0.0
+    lens: str = RADTAN
+
+    def __post_init__(self) -> None:
+        if self.lens not in LENSES:
+            raise ValueError(f"Intrinsics.lens must be one of {', '.join(LENSES)}, got {self.lens!r}")
+        _float_fields(self)
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        unused = [name for name in _UNUSED[self.lens] if getattr(self, name) != 0.0]
+        if unused:
+            raise ValueError(f"a {self.lens} lens has no {', '.join(unused)} (its distortion is "
+                             f"{', '.join(DISTORTION_KEYS[self.lens])}); got {unused[0]}={getattr(self, unused[0])}")
+        if self.lens == UNIFIED and self.xi < 0:
+            raise ValueError(f"a unified lens needs xi >= 0, got xi={self.xi}")
+
+    # ----------------------------------------------------------------------------------------- conversions
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the matrix is called K everywhere in the field
+        """(3, 3) camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def distortion(self) -> dict[str, float]:
+        """The model's coefficients by name (`DISTORTION_KEYS`), as ``calibration.json`` stores them."""
+        return {k: getattr(self, k) for k in DISTORTION_KEYS[self.lens]}
+
+    @property
+    def dist_cv(self) -> np.ndarray:
+        """OpenCV's distortion vector: ``[k1, k2, p1, p2, k3=0]`` (radtan, for ``cv2``) or ``[k1, k2, k3, k4]``
+        (fisheye, for ``cv2.fisheye``). The unified model has none in OpenCV's main modules (ValueError)."""
+        if self.lens == FISHEYE:
+            return np.array([self.k1, self.k2, self.k3, self.k4])
+        if self.lens == UNIFIED:
+            raise ValueError("a unified lens has no OpenCV distortion vector (cv2.omnidir is not in OpenCV's main "
+                             "modules); use Intrinsics.undistort / project")
+        return np.array([self.k1, self.k2, self.p1, self.p2, 0.0])
+
+    def as_vector(self) -> np.ndarray:
+        """(8,) ``[fx, fy, cx, cy, k1, k2, p1, p2]`` of a radtan lens (the fast solvers' layout)."""
+        if self.lens != RADTAN:
+            raise ValueError(f"as_vector is the radtan layout; this lens is {self.lens}")
+        return np.array([self.fx, self.fy, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2])
+
+    @classmethod
+    def from_vector(cls, v: np.ndarray) -> Intrinsics:
+        """A radtan `Intrinsics` from fx, fy, cx, cy (px) [, k1, k2 [, p1, p2]] (the inverse of `as_vector`)."""
+        v = np.asarray(v, dtype=np.float64).ravel()
+        if v.shape not in ((4,), (6,), (8,)):
+            raise ValueError(f"intrinsics vector must have 4, 6 or 8 entries (fx fy cx cy [k1 k2 [p1 p2]]), "
+                             f"got {v.shape}")
+        return cls(*v.tolist())
+
+    def with_distortion(self, lens: str, **coefficients: float) -> Intrinsics:
+        """The same fx, fy, cx, cy with another lens model and its coefficients (the others 0)."""
+        zero = dict.fromkeys(("k1", "k2", "p1", "p2", "k3", "k4", "xi"), 0.0)
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, **{**zero, **coefficients, "lens": lens})
+
+    def pinhole(self) -> Intrinsics:
+        """fx, fy, cx, cy without distortion (a radtan lens with zero coefficients)."""
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy)
+
+    def to_gtsam(self) -> gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified:
+        """The GTSAM calibration of this lens (skew 0): ``Cal3DS2``, ``Cal3Fisheye`` or ``Cal3Unified``."""
+        if self.lens == FISHEYE:
+            return gtsam.Cal3Fisheye(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.k3, self.k4)
+        if self.lens == UNIFIED:
+            return gtsam.Cal3Unified(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2,
+                                     self.xi)
+        return gtsam.Cal3DS2(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2)
+
+    @classmethod
+    def from_gtsam(cls, cal: gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified,
+                   max_skew_px: float = 1e-12) -> Intrinsics:
+        """From a GTSAM calibration of one of the three models; raises if its skew exceeds ``max_skew_px`` (these
+        models have none; an optimiser that held it at 0 by a prior leaves round-off: pass that bound)."""
+        if abs(cal.skew()) > max_skew_px:
+            raise ValueError(f"{type(cal).__name__} has skew {cal.skew()}, but lfgraph's models have none")
+        if isinstance(cal, gtsam.Cal3Fisheye):
+            return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), k3=cal.k3(), k4=cal.k4(),
+                       lens=FISHEYE)
+        if isinstance(cal, gtsam.Cal3Unified):
+            return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), cal.p1(), cal.p2(), xi=cal.xi(),
+                       lens=UNIFIED)
+        k = cal.k()
+        return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), float(k[2]), float(k[3]))
+
+    @classmethod
+    def from_opencv(cls, K: np.ndarray, dist: np.ndarray | None = None, lens: str = RADTAN) -> Intrinsics:  # noqa: N803
+        """From an OpenCV camera matrix and distortion vector: radtan (4, 5 or more coefficients; those beyond
+        k1 k2 p1 p2 must be 0) or fisheye (``cv2.fisheye``'s 4 coefficients k1..k4).
+
+        Raises:
+            ValueError: K has skew or is not a camera matrix, or ``dist`` uses coefficients this model lacks.
+        """
+        K = np.asarray(K, dtype=np.float64)  # noqa: N806
+        if K.shape != (3, 3) or abs(K[0, 1]) > 1e-12 or np.any(np.abs(K[2] - [0, 0, 1]) > 1e-12) or K[1, 0] != 0:
+            raise ValueError(f"K must be a skew-free 3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K.tolist()}")
+        d = np.zeros(4) if dist is None else np.asarray(dist, dtype=np.float64).ravel()
+        if lens == FISHEYE:
+            if d.size != 4:
+                raise ValueError(f"a fisheye distortion has 4 coefficients (k1 k2 k3 k4), got {d.size}")
+            return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], d[0], d[1], k3=d[2], k4=d[3], lens=FISHEYE)
+        if lens != RADTAN:
+            raise ValueError(f"OpenCV has no {lens} lens in its main modules; choose radtan or fisheye")
+        if d.size < 4:
+            raise ValueError(f"distortion needs at least 4 coefficients (k1 k2 p1 p2), got {d.size}")
+        if np.any(np.abs(d[4:]) > 0):
+            raise ValueError(f"distortion coefficients beyond k1 k2 p1 p2 must be 0 (k3 and higher are not modelled), "
+                             f"got {d[4:].tolist()}")
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d[:4].tolist())
+
+    # ----------------------------------------------------------------------------------------- model
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Apply the lens to normalised coordinates.
+
+        Args:
+            xy: (N, 2) undistorted normalised coordinates (``X/Z, Y/Z``).
+
+        Returns:
+            (N, 2) distorted normalised coordinates (pixels are ``fx x_d + cx, fy y_d + cy``).
+        """
+        xy = _as_points(xy, (2,), "xy")
+        return np.stack(distort_lens_xy(self, xy[:, 0], xy[:, 1]), axis=1)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Project camera-frame points or normalised coordinates to pixels.
+
+        Args:
+            points: (N, 3) points in this camera's frame (metres, Z > 0) or (N, 2) normalised coordinates.
+
+        Returns:
+            (N, 2) pixel coordinates. Points with Z <= 0 give NaN.
+        """
+        pts = _as_points(points, (2, 3), "points")
+        if pts.shape[1] == 3:
+            z = pts[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xy = pts[:, :2] / np.where(z > 0, z, np.nan)[:, None]
+        else:
+            xy = pts
+        d = self.distort(xy)
+        return np.stack([self.fx * d[:, 0] + self.cx, self.fy * d[:, 1] + self.cy], axis=1)
+
+    def undistort(self, pixels: np.ndarray) -> np.ndarray:
+        """Invert :meth:`project` for (N, 2) pixels: returns (N, 2) normalised coordinates.
+
+        Newton's method on the model's distortion with its analytic Jacobian; converges to ~1e-15 for real lenses.
+        Pixels the model cannot reach (beyond the radius where strong barrel distortion folds back on itself, rays
+        at 90 degrees or more from the axis), or whose solution lies on the folded branch, give NaN rather than a
+        wrong answer.
+        """
+        px = _as_points(pixels, (2,), "pixels")
+        return undistort_views((self,), px[None])[0]
+
+    def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
+        """(N, 2) distorted pixels -> (N, 2) pixels of the same camera without distortion."""
+        xy = self.undistort(pixels)
+        return np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], axis=1)
+
+
+def distort_lens_xy(intr: Intrinsics, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distortion of one lens (any model) applied to normalised coordinates."""
+    if intr.lens == FISHEYE:
+        return distort_fisheye_xy(x, y, intr.k1, intr.k2, intr.k3, intr.k4)
+    if intr.lens == UNIFIED:
+        x, y = unified_to_plane(x, y, intr.xi)
+    return distort_xy(x, y, intr.k1, intr.k2, intr.p1, intr.p2)
+
+
+def in_image(px: np.ndarray, image_size_px: tuple[int, int], margin_px: float = 0.0) -> np.ndarray:
+    """Whether pixel positions (..., 2) lie at least ``margin_px`` inside an image of (width, height) (NaN: no)."""
+    w, h = image_size_px
+    with np.errstate(invalid="ignore"):
+        return ((px[..., 0] >= margin_px) & (px[..., 0] <= w - 1 - margin_px)
+                & (px[..., 1] >= margin_px) & (px[..., 1] <= h - 1 - margin_px))
+
+
+def transform_points(a_T_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:  # noqa: N803
+    """Map (N, 3) points from frame b to frame a with a (4, 4) transform ``a_T_b``."""
+    pts = _as_points(points_b, (3,), "points_b")
+    return pts @ a_T_b[:3, :3].T + a_T_b[:3, 3]
+
+
+def project_world(intrinsics: Intrinsics, view_T_world: np.ndarray, points_world: np.ndarray) -> np.ndarray:  # noqa: N803
+    """Project (N, 3) world points into a view whose extrinsics are ``view_T_world`` (4, 4). Returns (N, 2) px."""
+    return intrinsics.project(transform_points(view_T_world, points_world))
+
+
+def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixels: np.ndarray) -> np.ndarray:
+    """`Intrinsics.undistort` of (V, N, 2) pixels, view v with ``intrinsics[v]``, all views of one lens model in one
+    Newton loop (a loop per view costs ~25x the Python overhead for the few hundred tracks of a frame).
+
+    NaN pixels stay NaN. Same models, iteration and validity rules as the method; values agree with it to
+    round-off."""
+    px = np.asarray(pixels, dtype=np.float64)
+    f = np.array([[i.fx, i.fy] for i in intrinsics])[:, None, :]
+    c = np.array([[i.cx, i.cy] for i in intrinsics])[:, None, :]
+    target = (px - c) / f
+    lenses = np.array([i.lens for i in intrinsics])
+    if np.all(lenses == RADTAN):  # the common case without copies
+        return undo_radtan(target, np.array([[i.k1, i.k2, i.p1, i.p2] for i in intrinsics])[:, :, None])
+    out = np.full(target.shape, np.nan)
+    for lens in LENSES:
+        idx = np.nonzero(lenses == lens)[0]
+        if not len(idx):
+            continue
+        sub = [intrinsics[v] for v in idx]
+        if lens == FISHEYE:
+            out[idx] = undo_fisheye(target[idx], np.array([[i.k1, i.k2, i.k3, i.k4] for i in sub])[:, :, None])
+            continue
+        m = undo_radtan(target[idx], np.array([[i.k1, i.k2, i.p1, i.p2] for i in sub])[:, :, None])
+        out[idx] = m if lens == RADTAN else lift_unified(m, np.array([i.xi for i in sub])[:, None])
+    return out
+
+def lens_table(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Every view's lens in one array, for the bulk solvers: ((V, 11) fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, xi;
+    (V,) each view's lens as its index in `LENSES`). `lfgraph.core.lens_math.lens_distort` applies them."""
+    table = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2, i.k3, i.k4, i.xi] for i in intrinsics],
+                     dtype=np.float64).reshape(-1, 11)
+    return table, np.array([LENSES.index(i.lens) for i in intrinsics], dtype=np.int64)
+
+
+ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a ray that a unified lens maps back to itself is truly imaged
+FOLD_SAMPLES = 2048  # angles sampled over [0, pi] for the first fold of a fisheye lens model
+
+
+def _folded(intr: Intrinsics, rays: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """(N,) whether ``project`` gave a pixel beyond the radius where the lens model folds back (plausible but
+    wrong: the lens does not image that ray there). Radtan and fisheye by the slope of their radial map, unified by
+    a round trip through `Intrinsics.undistort`."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xy = rays[:, :2] / rays[:, 2:3]
+    if intr.lens == RADTAN:
+        r2 = np.sum(xy**2, axis=1)
+        return ~(1.0 + r2 * (3.0 * intr.k1 + 5.0 * intr.k2 * r2) > 0)
+    if intr.lens == FISHEYE:  # theta_d(theta) must rise all the way from 0 to the ray's angle
+        t = np.linspace(0.0, np.pi, FOLD_SAMPLES)
+        t2 = t * t
+        slope = 1.0 + t2 * (3 * intr.k1 + t2 * (5 * intr.k2 + t2 * (7 * intr.k3 + t2 * 9 * intr.k4)))
+        fold = t[np.argmax(slope <= 0)] if np.any(slope <= 0) else np.inf
+        return ~(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]) < fold)
+    back = np.full_like(xy, np.nan)
+    ok = np.all(np.isfinite(px), axis=1)
+    back[ok] = intr.undistort(px[ok])
+    with np.errstate(invalid="ignore"):
+        return ~(np.max(np.abs(back - xy), axis=1) <= ROUND_TRIP_TOLERANCE * np.maximum(1.0, np.abs(xy).max(1)))
+
+
+def pinhole_to_view_px(px: np.ndarray, K: np.ndarray, pinhole_R_view: np.ndarray,  # noqa: N803
+                       intr: Intrinsics) -> np.ndarray:
+    """(N, 2) pixels of a pinhole camera ``K`` (no skew) at the view's centre, turned by ``pinhole_R_view`` (view to
+    pinhole coordinates) -> (N, 2) pixels of the view on the same rays, NaN behind the view or beyond its lens
+    model's fold. The rectified views, a wide view's virtual pinholes and rerun's undistorted views all use it."""
+    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+    rays_pinhole = np.column_stack([(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px))])
+    rays = rays_pinhole @ pinhole_R_view  # pinhole_R_view.T @ ray, row-wise
+    out = intr.project(rays)
+    out[_folded(intr, rays, out) | ~(rays[:, 2] > 0)] = np.nan
+    return out
+
+
+def view_to_pinhole_px(px: np.ndarray, K: np.ndarray, pinhole_R_view: np.ndarray,  # noqa: N803
+                       intr: Intrinsics) -> np.ndarray:
+    """(N, 2) pixels of the view -> (N, 2) pixels of the pinhole camera of `pinhole_to_view_px` (NaN where the lens
+    has no inverse)."""
+    xy = intr.undistort(np.asarray(px, dtype=np.float64).reshape(-1, 2))
+    rays = np.column_stack([xy, np.ones(len(xy))]) @ pinhole_R_view.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = rays[:, :2] / rays[:, 2:3]
+    return np.column_stack([K[0, 0] * n[:, 0] + K[0, 2], K[1, 1] * n[:, 1] + K[1, 2]])
