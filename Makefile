@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.lfgraph-installed
 
-.PHONY: demo test bench lint screenshots clean
+.PHONY: demo test test-fast bench lint screenshots clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check lfgraph tests benchmarks
 	$(BIN)/pytest -q
+
+# the quick subset for local work (no sweeps, renders or end-to-end CLI runs); `make test` and CI run everything
+test-fast: $(STAMP)
+	$(BIN)/ruff check lfgraph tests benchmarks
+	$(BIN)/pytest -q -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

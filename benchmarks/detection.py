@@ -32,7 +32,7 @@ from lfgraph.detect.chessboard import _canonical_order, detect_board
 
 TARGET_TIME_RATIO = 1 / 3  # A's time per image over B's
 TARGET_LOFO_RATIO = 1.05  # A's leave-one-out error over B's (5 %: LOFO from 4-29 frames varies by a few percent)
-TARGET_RENDERED_RMS_PX = 0.05  # same limit as tests/test_checkerboard.py
+TARGET_RENDERED_RMS_PX = 0.05  # same limit as tests/detect/test_checkerboard.py
 MIN_FRAMES_FOR_LOFO = 4  # fewer common frames per camera: no calibration reported
 CALIB_FLAGS = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
 SB_ACCURATE_FLAGS = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
@@ -164,7 +164,7 @@ def real_set_rows(spec: RealSet, root: Path) -> tuple[list[list], list[str], lis
 
 
 def rendered_truth_rows() -> tuple[list[list], list[str]]:
-    """Detection error against the true corners on the rendered boards of tests/test_checkerboard.py."""
+    """Detection error against the true corners on the rendered boards of tests/detect/test_checkerboard.py."""
     from lfgraph.datasets.checkerboard import CheckerboardConfig, iter_view_images, make_checkerboard_truth
     from lfgraph.datasets.rig import RigConfig, make_rig
 
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
             failures.append(f"A takes {ratio_all:.2f} x B's time")
     truth_rows, f = rendered_truth_rows()
     failures += f
-    print("\nRendered boards (tests/test_checkerboard.py setup), error against the true corners, px")
+    print("\nRendered boards (tests/detect/test_checkerboard.py setup), error against the true corners, px")
     print(format_table(["visible", "found A", "B", "C", "RMS A", "B", "C"], truth_rows, floatfmt=".4f"))
     print(f"\n{time.perf_counter() - start:.0f} s")
     for msg in failures:

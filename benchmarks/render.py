@@ -13,7 +13,7 @@ Cases, all measured in this run on this machine:
   ``write_checkerboard_dataset``. Old and new render ``--old-frames`` frames of ``--old-views`` views in this
   process (each view's rays computed once, timed apart: CPU ms per view in the note), noise-free and as the
   writers do; the old set is extrapolated the same way, swapping the per-view rays too.
-* ``test rig`` checkerboards (the accuracy case of tests/test_checkerboard.py: 2x2 views of 640x480, k1 = -0.12,
+* ``test rig`` checkerboards (the accuracy case of tests/detect/test_checkerboard.py: 2x2 views of 640x480, k1 = -0.12,
   noise-free, blur 0.8 px): RMS of OpenCV-detected corners vs the true projections; the test's limit is 0.05 px.
 
 Like with like: each writer is timed with its own PNG parameters and noise source. The old writers and the new
@@ -75,7 +75,7 @@ from lfgraph.detect.chessboard import detect_board
 
 SCENE_FRAME_TARGET_S = 2.0  # issue 16: a paper-5x5 scene frame
 BOARD_SET_TARGET_S = 60.0  # issue 16: the paper-4x4 board set
-CORNER_RMS_LIMIT_PX = 0.05  # tests/test_checkerboard.py
+CORNER_RMS_LIMIT_PX = 0.05  # tests/detect/test_checkerboard.py
 SPEEDUP_TARGET = 20.0  # issue 16, for the renderers
 PEER_PX_PER_SQUARE = 40
 PEER_BACKGROUND = 120

@@ -2,7 +2,6 @@
 graph hooks really change results, one observer hears everything, the Values boundary round-trips, and the
 package's import graph has no circle and no arrow back up."""
 
-import ast
 import dataclasses
 import re
 import subprocess
@@ -50,6 +49,7 @@ def scene_dir(tmp_path_factory):
 README_BLOCK_LINES = 15  # issue 28: each of the card's three uses is a README block of at most this many lines
 
 
+@pytest.mark.slow
 def test_readme_python_section_runs_as_written(scene_dir, monkeypatch, capsys):
     monkeypatch.chdir(scene_dir)
     blocks = python_blocks((ROOT / "README.md").read_text(encoding="utf-8"), "## Python")
@@ -68,7 +68,7 @@ def test_readme_python_section_runs_as_written(scene_dir, monkeypatch, capsys):
     assert Path("run.rrd").stat().st_size > 0 and not list(Path(".").glob(".run.rrd.*"))
     # the README's recording of a refine run opens in refine's layout, with both rigs (issue 28: it showed the
     # calibrate layout, an empty "calibrated rig" panel and two empty charts)
-    from test_viz import read_blueprint, read_rrd
+    from tests.viz.test_rerun import read_blueprint, read_rrd
 
     views, _ = read_blueprint("run.rrd")
     assert ("TextLog", "optimizer/stages") in {(k, o) for k, o, _ in views}
@@ -240,75 +240,6 @@ def test_a_users_iteration_callback_prints_while_gtsam_is_muted():
     assert "user-callback-line" in out.stdout
 
 
-def _module_imports(path: Path) -> set[str]:
-    """lfgraph modules imported anywhere in the file — at module level and inside functions (a lazy import hides a
-    circle, it does not remove it) — except in TYPE_CHECKING blocks; ``from lfgraph.a import b`` counts as
-    importing ``lfgraph.a`` and, where ``b`` is a submodule, ``lfgraph.a.b``."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    typing_only = {id(n) for node in ast.walk(tree)
-                   if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.dump(node.test) for n in ast.walk(node)}
-    found = set()
-    for node in ast.walk(tree):
-        if id(node) in typing_only:
-            continue
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("lfgraph"):
-            found.add(node.module)
-            found.update(f"{node.module}.{a.name}" for a in node.names)
-        elif isinstance(node, ast.Import):
-            found.update(a.name for a in node.names if a.name.startswith("lfgraph"))
-    return found
-
-
-def _all_imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    names = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module:
-            names.add(node.module)
-        elif isinstance(node, ast.Import):
-            names.update(a.name for a in node.names)
-    return names
-
-
-def test_import_graph_has_no_circle_and_no_arrow_back_up():
-    package = ROOT / "lfgraph"
-    modules = {}
-    for path in package.rglob("*.py"):
-        name = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
-        modules[name] = path
-    graph = {m: {i for i in _module_imports(p) if i in modules and i != m} for m, p in modules.items()}
-    # allow-listed: the top (the CLI, ``python -m lfgraph``) and the package's lazy attribute table, which name
-    # everything below them by design
-    for top in [m for m in graph if m.startswith("lfgraph.cli") or m in ("lfgraph", "lfgraph.__main__")]:
-        graph[top] = set()
-    # the core never reaches up into the CLI or the viewer, and only lfgraph.viz imports rerun
-    for m, p in modules.items():
-        names = _all_imports(p)
-        if not m.startswith("lfgraph.cli") and m != "lfgraph.__main__":  # python -m lfgraph runs the CLI
-            assert not any(n.startswith("lfgraph.cli") for n in names), f"{m} imports the CLI"
-            assert "argparse" not in names, f"{m} imports argparse"
-        if not m.startswith("lfgraph.viz"):
-            assert not any(n.split(".")[0] == "rerun" for n in names), f"{m} imports rerun"
-        # the CLI and the demo (a CLI job) sit on top; figures (matplotlib) are a leaf any layer may use
-        if not m.startswith(("lfgraph.viz", "lfgraph.cli", "lfgraph.cli.demo")):
-            assert "lfgraph.viz.rerun_log" not in names, f"{m} (the core) imports the rerun logger"
-    # no circle among module-level imports (depth-first search)
-    state: dict[str, int] = {}
-
-    def visit(m: str, stack: list[str]) -> None:
-        state[m] = 1
-        for n in graph[m]:
-            if state.get(n) == 1:
-                raise AssertionError("import circle: " + " -> ".join([*stack, m, n]))
-            if n not in state:
-                visit(n, [*stack, m])
-        state[m] = 2
-
-    for m in graph:
-        if m not in state:
-            visit(m, [])
-
-
 def test_the_entry_points_name_arguments_of_the_wrong_kind():
     """Issues 27/28: None, wrong types and a single frame gave tracebacks deep inside lfgraph."""
     import numpy as np
@@ -327,21 +258,3 @@ def test_the_entry_points_name_arguments_of_the_wrong_kind():
     for call, message in cases:
         with pytest.raises(TypeError, match=message):
             call()
-
-
-MAX_FUNCTION_LINES = 80  # issue 26: a function longer than this does more than one thing
-MAX_MODULE_LINES = 400  # ... and a module longer than this holds more than one subject
-
-
-def test_no_function_over_80_lines_and_no_module_over_400():
-    too_long = []
-    for path in (ROOT / "lfgraph").rglob("*.py"):
-        text = path.read_text(encoding="utf-8")
-        if text.count("\n") > MAX_MODULE_LINES:
-            too_long.append(f"{path.relative_to(ROOT)}: {text.count(chr(10))} lines")
-        for node in ast.walk(ast.parse(text)):
-            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                n = node.end_lineno - node.lineno + 1
-                if n > MAX_FUNCTION_LINES:
-                    too_long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {n} lines")
-    assert not too_long, "; ".join(too_long)

@@ -95,6 +95,7 @@ def test_library_warnings_are_logged_at_warning(caplog):
     assert levels["stage poses: 100 landmarks"] == logging.INFO
 
 
+@pytest.mark.slow
 def test_a_synthetic_capture_in_memory_is_the_one_the_cli_writes(tmp_path):
     from lfgraph.cli import main
 
@@ -119,6 +120,7 @@ def test_a_synthetic_capture_in_memory_is_the_one_the_cli_writes(tmp_path):
         lf.synth.scene_capture("paper-9x9")
 
 
+@pytest.mark.slow
 def test_a_study_swaps_in_any_noise_object_or_hook(tmp_path):
     import gtsam
 
@@ -146,8 +148,8 @@ def test_a_study_swaps_in_any_noise_object_or_hook(tmp_path):
 
 
 def test_a_calibration_recorded_from_the_library_shows_its_result(tmp_path):
-    from test_api import corner_observations
-    from test_viz import read_blueprint, read_rrd
+    from tests.test_api import corner_observations
+    from tests.viz.test_rerun import read_blueprint, read_rrd
 
     _, obs = corner_observations()
     with lf.viz.RerunLogger.to_file(tmp_path / "cal.rrd", obs.grid) as rec:

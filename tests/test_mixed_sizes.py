@@ -27,7 +27,9 @@ from lfgraph.refinement import refine
 from lfgraph.refinement.matching import Tracks
 from lfgraph.refinement.resample import ViewCanvas
 
-FAR_BOARD_PX = 0.1  # as tests/test_rectify.py: corners detected in rectified renders of a board at >= 20 m
+pytestmark = pytest.mark.slow  # end-to-end runs (`make test-fast` leaves them out)
+
+FAR_BOARD_PX = 0.1  # as tests/rectification/test_rectify.py: rectified corners of a board at >= 20 m
 FOCAL_REL = 0.003  # each view's focal length from its own rendered images, relative to the truth (measured 0.05 %)
 PRINCIPAL_PX = 1.5  # each view's principal point from its own images, in that view's pixels (measured <= 0.66 px)
 POSITION_MM = 0.5  # each view's position relative to the reference, 10 mm pitch (measured <= 0.17 mm)

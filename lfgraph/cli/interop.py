@@ -19,8 +19,8 @@ from typing import Any
 
 from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size, view_index
 
-# the format names as lfgraph.interop defines them (tests/test_interop.py checks they agree), here so that building
-# the parser does not import the format modules (OpenCV, GTSAM)
+# the format names as lfgraph.interop defines them (tests/interop/test_interop.py checks they agree), here so that
+# building the parser does not import the format modules (OpenCV, GTSAM)
 EXPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "ros", "mrcal")
 IMPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "middlebury", "hci")
 

@@ -2,7 +2,7 @@
 using any Gaussian model and any M-estimator without a GTSAM factor per observation.
 
 GTSAM's semantics, which this reproduces (checked against GTSAM's own ``whiten`` and ``loss`` and against its
-Levenberg–Marquardt on the same graph in tests/test_bulk_noise.py):
+Levenberg–Marquardt on the same graph in tests/engine/test_bulk_noise.py):
 
 - a Gaussian model whitens a residual ``r`` by its square-root information ``R`` (``e = R r``); the factor's error
   is ``0.5 |e|^2``;

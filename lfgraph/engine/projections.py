@@ -1,7 +1,7 @@
 """The refinement's points and poses stages as a `lfgraph.engine.schur` problem: the projections of every landmark into
 every view evaluated in bulk in numpy (GTSAM's Cal3DS2, Cal3Fisheye and Cal3Unified projection residuals and
-Jacobians, checked against GTSAM's factors in tests/test_schur.py), the priors and gauges as a small GTSAM graph on
-the camera variables."""
+Jacobians, checked against GTSAM's factors in tests/engine/test_schur.py), the priors and gauges as a small GTSAM graph
+on the camera variables."""
 
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ _KERNELS: dict[str, Callable[[float], object]] = {
 }
 # the usual tuning constants, in measurement sigmas: 95 % efficiency on Gaussian noise (GTSAM's default Cauchy is 0.1;
 # Geman–McClure's and DCS's 1.0 had 44 % and 64 %: their constants here are computed from GTSAM's own weights in
-# tests/test_bulk_noise.py). A DCS threshold is a distance as every other: GTSAM's parameter is its square.
+# tests/engine/test_bulk_noise.py). A DCS threshold is a distance as every other: GTSAM's parameter is its square.
 DEFAULT_THRESHOLDS = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685, "gm": 3.787, "gemanmcclure": 3.787, "dcs": 1.898,
                       "welsch": 2.985, "fair": 1.3998}
 KERNEL_UNITS = ("px", "sigma")
