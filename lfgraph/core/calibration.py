@@ -18,7 +18,7 @@ from lfgraph.core.files import input_problem, write_text_atomic
 from lfgraph.core.geometry import invert_T, is_rotation, make_T
 from lfgraph.core.grid import ViewGrid
 
-FORMAT_NAME = "lfgraph.core.calibration"
+FORMAT_NAME = "lfgraph.calibration"  # the file format's name (not a module path: files written since 0.1 carry it)
 FORMAT_VERSION = 1
 REFERENCE_POSE_TOLERANCE = 1e-9  # the reference view's pose must be the identity to this (rad, m)
 DEFAULT_METRICS: dict[str, Any] = {"e_mono_px": None, "e_pnp_px": None, "rig_rms_px": None}

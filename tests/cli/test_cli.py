@@ -60,7 +60,7 @@ def test_synth_shaken_scene_writes_truth_and_original(tmp_path):
 
 def test_info_bad_json_exits_nonzero_naming_the_file(tmp_path, capsys):
     bad = tmp_path / "calib.json"
-    bad.write_text(json.dumps({"format": "lfgraph.core.calibration", "version": 7}))
+    bad.write_text(json.dumps({"format": "lfgraph.calibration", "version": 7}))
     assert main(["info", str(bad)]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "calib.json: version: unknown version 7" in err

@@ -28,7 +28,7 @@ def test_round_trip(tmp_path, calib):
         assert np.max(np.abs(a.as_vector() - b.as_vector())) < ROUND_TRIP_TOLERANCE
     assert back.metrics["rig_rms_px"] == 0.123 and back.metrics["e_mono_px"] is None
     data = json.loads(path.read_text())
-    assert data["format"] == "lfgraph.core.calibration" and data["version"] == 1
+    assert data["format"] == "lfgraph.calibration" and data["version"] == 1
     assert data["views"][4]["row"] == 1 and data["views"][4]["col"] == 1
     assert set(data["views"][0]) >= {"K", "distortion", "R_view_from_ref", "t_view_from_ref_m"}
     # OpenCV convention in the file: x_view = R x_ref + t
