@@ -65,20 +65,25 @@ _EXPORTS = {
     "Observers": "lfgraph.core.observer",
     "StageEnd": "lfgraph.core.observer",
     "SilentObserver": "lfgraph.core.observer",
+    "calibrate_scene": "lfgraph.selfcal.pipeline",
+    "Design": "lfgraph.selfcal.config",
+    "SelfCalConfig": "lfgraph.selfcal.config",
+    "SelfCalReport": "lfgraph.selfcal.report",
 }
 # public submodule -> where it lives
 _SUBMODULES = {"viz": "lfgraph.viz", "factors": "lfgraph.factors", "datasets": "lfgraph.datasets",
                "pattern": "lfgraph.pattern", "refinement": "lfgraph.refinement", "synth": "lfgraph.apps.synth",
-               "study": "lfgraph.apps.study"}
+               "study": "lfgraph.apps.study", "selfcal": "lfgraph.selfcal"}
 
 __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
-           "CaptureSet", "ChainTracker", "DriftModel", "DriftReport", "GraphContext", "Init", "Intrinsics",
+           "CaptureSet", "ChainTracker", "Design", "DriftModel", "DriftReport", "GraphContext", "Init", "Intrinsics",
            "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
-           "RobustKernel", "SilentObserver", "Stage", "StageEnd", "Tracker", "Tracks", "TriangulationFilter",
-           "ViewGrid", "calib_key", "calibrate", "check", "detect_capture", "evaluate", "landmark_key",
-           "load_detections", "open_capture", "pose_noise", "rectify", "refine", "vectorised_estimator",
-           "view_pose_key", "viz", "factors", "datasets", "pattern", "refinement", "synth", "study"]
+           "RobustKernel", "SelfCalConfig", "SelfCalReport", "SilentObserver", "Stage", "StageEnd", "Tracker",
+           "Tracks", "TriangulationFilter", "ViewGrid", "calib_key", "calibrate", "calibrate_scene", "check",
+           "detect_capture", "evaluate", "landmark_key", "load_detections", "open_capture", "pose_noise", "rectify",
+           "refine", "vectorised_estimator", "view_pose_key", "viz", "factors", "datasets", "pattern", "refinement",
+           "synth", "study", "selfcal"]
 
 
 def __getattr__(name: str) -> Any:
@@ -119,3 +124,6 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, Tracks
     from lfgraph.refinement.report import RefinementReport
     from lfgraph.refinement.schedule import refine
+    from lfgraph.selfcal.config import Design, SelfCalConfig
+    from lfgraph.selfcal.pipeline import calibrate_scene
+    from lfgraph.selfcal.report import SelfCalReport

@@ -258,3 +258,12 @@ def test_the_entry_points_name_arguments_of_the_wrong_kind():
     for call, message in cases:
         with pytest.raises(TypeError, match=message):
             call()
+
+
+def test_every_public_name_resolves():
+    """Every name `lf.__all__` promises loads (issue 39: self-calibration was reachable only below `lf`)."""
+    missing = [name for name in lf.__all__ if getattr(lf, name, None) is None]
+    assert not missing, missing
+    from lfgraph.selfcal.pipeline import calibrate_scene
+
+    assert lf.calibrate_scene is calibrate_scene and lf.Design is lf.selfcal.Design
