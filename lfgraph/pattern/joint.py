@@ -53,16 +53,16 @@ class JointResult:
 
 
 def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
-                     ref_T_view: np.ndarray, lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:  # noqa: N803
+                     lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:
     with gtsam_quiet():  # the board's corners eliminated as a refinement's landmarks are (`lfgraph.engine.schur`)
         marginals = CameraMarginals(graph, values, BOARD_CORNER_CHAR)
     out = []
     for v in range(n_views):
         kc = np.sqrt(np.maximum(np.diag(marginals.block(calib_key(v))), 0.0)) * scale
+        # Pose3's covariance is in the body frame (rotation first): about / along the view's own axes, the frame
+        # `ViewSigmas` documents, calibrate-scene stores and refine's priors (Pose3 tangents) read
         pc = marginals.block(view_pose_key(v)) * scale**2
-        R = ref_T_view[v][:3, :3]  # noqa: N806  Pose3 covariance is in the body frame, rotation first
-        pos_cov = R @ pc[3:, 3:] @ R.T
-        rot_cov = R @ pc[:3, :3] @ R.T
+        pos_cov, rot_cov = pc[3:, 3:], pc[:3, :3]
         out.append({
             "fx_px": float(kc[0]), "fy_px": float(kc[1]), "cx_px": float(kc[3]), "cy_px": float(kc[4]),
             "k1": float(kc[5]), "k2": float(kc[6]), **({"xi": float(kc[9])} if lenses[v] == "unified" else {}),
@@ -123,7 +123,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     if settings.marginals:
         scale = max(noise_sigma, SIGMA_FLOOR_PX) / settings.corner_sigma_px
         try:
-            sigmas = _marginal_sigmas(graph, est, n_views, scale, poses, lenses)
+            sigmas = _marginal_sigmas(graph, est, n_views, scale, lenses)
         except RuntimeError:  # GTSAM: an indeterminate system (e.g. a unified lens whose xi the board cannot fix)
             logging.getLogger("lfgraph").warning(
                 "the calibration's uncertainties cannot be computed: some parameters are not determined by these "

@@ -126,10 +126,45 @@ def test_the_joint_graphs_sigmas_are_gtsams_marginals(monkeypatch):
         for i, name in enumerate(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2"), start=0):
             j = i if i < 2 else i + 1  # Cal3DS2 tangent: fx fy s cx cy k1 k2
             assert report.sigmas[v][name] == pytest.approx(np.sqrt(cov[j, j]), rel=SAME_COVARIANCE)
-        pose = np.asarray(theirs.marginalCovariance(view_pose_key(v))) * scale**2
-        rot = est.ref_T_view[v][:3, :3]
-        position = np.sqrt(np.diag(rot @ pose[3:, 3:] @ rot.T)) * 1e3
+        pose = np.asarray(theirs.marginalCovariance(view_pose_key(v))) * scale**2  # body frame: the view's axes
+        position = np.sqrt(np.diag(pose[3:, 3:])) * 1e3
         np.testing.assert_allclose(report.sigmas[v]["position_mm"], position, rtol=SAME_COVARIANCE, atol=1e-12)
+        rotation = np.degrees(np.sqrt(np.diag(pose[:3, :3])))
+        np.testing.assert_allclose(report.sigmas[v]["rotation_deg"], rotation, rtol=SAME_COVARIANCE, atol=1e-12)
+
+
+SIGMA_SEEDS = 20  # noise draws of the frame test (a sample scatter's relative 1-sigma ~ 1/sqrt(2 * 20) = 16 %)
+SIGMA_MATCH = 1.6  # stored sigma / scatter of the errors over the draws, per axis of the view, within [1/1.6, 1.6]
+TURNED_PAN_DEG, TURNED_BASELINE_M = -25.0, 0.25  # the second view turned towards the boards, 0.25 m to the right ...
+
+
+@pytest.mark.slow
+def test_stored_pose_sigmas_are_about_the_views_own_axes():
+    """Issue 39: calibrate stored a view's pose sigmas rotated into the reference frame while calibrate-scene stores
+    them about the view's own axes, as `ViewSigmas` documents and refine's priors read them. A view rolled 90° about
+    its optical axis (and panned towards the boards) has its large baseline-direction uncertainty along its own y:
+    the stored sigmas must match the scatter of its position error in its own frame over noise draws (the old,
+    rotated figures were 5x and 2.6x off on x and y)."""
+    import cv2
+
+    from lfgraph.core.geometry import make_T
+
+    scene = get_scene("small-2x2")
+    rng = np.random.default_rng(0)
+    calib = make_rig(dataclasses.replace(scene.rig, rows=1, cols=2), rng)
+    turn = (cv2.Rodrigues(np.array([0.0, np.radians(TURNED_PAN_DEG), 0.0]))[0]
+            @ cv2.Rodrigues(np.array([0.0, 0.0, np.pi / 2]))[0])  # ... and rolled 90° about its optical axis
+    poses = calib.ref_T_view.copy()
+    poses[1] = make_T(turn, np.array([TURNED_BASELINE_M, 0.0, 0.0]))
+    calib = calib.replace(ref_T_view=poses)
+    truth = make_checkerboard_truth(calib, dataclasses.replace(scene.checkerboard, frames=16), rng)
+    errors, sigmas = [], []
+    for seed in range(SIGMA_SEEDS):
+        est, report = calibrate(observations(calib, truth, SIGMA_PX, seed=100 + seed))
+        errors.append(turn.T @ (est.ref_T_view[1][:3, 3] - poses[1][:3, 3]) * 1e3)  # in the true view's axes, mm
+        sigmas.append(report.sigmas[1]["position_mm"])
+    ratio = np.median(sigmas, axis=0) / np.sqrt(np.mean(np.square(errors), axis=0))
+    assert np.all((ratio > 1 / SIGMA_MATCH) & (ratio < SIGMA_MATCH)), ratio
 
 
 def test_paper_route_reports_e_mono_and_e_pnp_like_opencv():
