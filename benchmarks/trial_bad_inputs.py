@@ -2257,7 +2257,7 @@ def build_cases() -> list[Case]:
                            ("frames-none", "lf.check(calib, None)", "error")):
         a(f"check-{key}", "check", call, pre_sc + call + "\n", SC, exp)
     a("check-valid", "check", "lf.check on a shaken rig finds the drift",
-      pre_sc + "rep = lf.check(calib, frames)\nd = rep.drifted(0.1)\n"
+      pre_sc + "rep = lf.check(calib, frames)\nd = rep.drifted()\n"
       "verdict = ('CORRECT' if d else 'SILENT_WRONG', f'drifted views: {d}')\n", SC, "ok")
     for key, call, exp in (("none", "lf.evaluate(None, truth)", "error"),
                            ("paths", "lf.evaluate('cal.json', 'cb/truth.json')", "error"),

@@ -139,7 +139,7 @@ def test_check_and_refine_from_the_command_line_on_a_mixed_capture(tmp_path, cap
     original.save(tmp_path / "original.json")
     main(["check", str(tmp_path / "original.json"), str(capture), "--json"])
     report = json.loads(capsys.readouterr().out)
-    assert report["verdict"] == "DRIFT"
+    assert report["verdict"] == "DRIFTED"
     assert main(["refine", str(tmp_path / "original.json"), str(capture), "-o", str(tmp_path / "r.json"),
                  "--quiet"]) == 0
     refined = Calibration.load(tmp_path / "r.json")

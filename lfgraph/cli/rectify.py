@@ -17,7 +17,7 @@ from lfgraph.cli.args import (
     check_side_outputs,
     jobs_default,
     json_text,
-    positive_float,
+    non_negative,
     positive_int,
     reports_to_stderr,
     rerun_session,
@@ -82,7 +82,7 @@ def _rectify(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    """``lfgraph check``: does the calibration still fit a capture? Prints the figures and a verdict (MISMATCH, DRIFT,
+    """``lfgraph check``: does the calibration still fit a capture? Prints the figures and a verdict (MISMATCH, DRIFTED,
     UNCERTAIN or OK; ``--json``: as JSON).
 
     Returns 3 (`EXIT_DRIFT`) when a view drifted or the calibration does not fit the camera, else 0. Bad ``--depths``,
@@ -90,6 +90,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     """
     from lfgraph.cli.tables import drift_text
     from lfgraph.core.calibration import Calibration
+    from lfgraph.core.verdict import Verdict
     from lfgraph.io.capture import open_capture
     from lfgraph.judge.check import check
     from lfgraph.rectification.checks import check_compatible
@@ -99,7 +100,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         depths = [float(x) for x in args.depths.split(",") if x.strip()] if args.depths else []
         if any(not d > 0 for d in depths):
             raise ValueError("depths must be positive")
-        config = RefineConfig(drift=DriftModel.parse(args.drift), tolerance_px=args.max_px)
+        config = RefineConfig(drift=DriftModel.parse(args.drift), tolerance_px=args.tolerance_px)
     except ValueError as exc:
         raise UsageError(f"{exc}") from None
     calib = Calibration.load(args.calibration)
@@ -108,36 +109,32 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"note: {note}")
     check_compatible(calib, capture.grid, capture.sizes_px, str(args.input))
     report = check(calib, capture.frames(args.max_frames), config=config)
-    drifted = report.drifted(args.max_px)
-    judged = [v for v in report.verdicts if v.verdict not in ("REFERENCE",)]
-    uncertain = [v.name for v in judged if v.verdict == "UNCERTAIN"]
-    # no view confirmed OK (every one UNCERTAIN, or no verdict at all): the frames cannot tell, which is not "OK"
-    undecided = not drifted and (not judged or len(uncertain) == len(judged))
-    mismatch = report.intrinsics_mismatch_px
-    verdict = "MISMATCH" if mismatch is not None else "DRIFT" if drifted else "UNCERTAIN" if undecided else "OK"
+    verdict = report.verdict
     if args.json:
-        print(json_text({"calibration": str(args.calibration), "capture": str(args.input), "max_px": args.max_px,
-                          "verdict": verdict, **report.to_dict(calib),
-                          "depth_error_m": {"depths_m": depths, "per_view": report.depth_errors(calib, depths)}},
-                         indent=1))
-        return EXIT_DRIFT if drifted or mismatch is not None else EXIT_OK
+        print(json_text({"calibration": str(args.calibration), "capture": str(args.input),
+                         "tolerance_px": args.tolerance_px, **report.to_dict(calib),
+                         "depth_error_m": {"depths_m": depths, "per_view": report.depth_errors(calib, depths)}},
+                        indent=1))
+        return EXIT_DRIFT if verdict in (Verdict.DRIFTED, Verdict.MISMATCH) else EXIT_OK
     print(drift_text(calib, report, depths))
-    if mismatch is not None:
+    if verdict == Verdict.MISMATCH:
+        mismatch = report.intrinsics_mismatch_px
         print(f"MISMATCH: this calibration does not fit this camera: other intrinsics explain the tracks far better "
               f"than any poses ({mismatch[0]:.3f} px RMS with the poses alone, {mismatch[1]:.3f} px with the "
               f"intrinsics free); is it another camera's? Re-calibrate")
         return EXIT_DRIFT
-    if drifted:
+    if verdict == Verdict.DRIFTED:
         names = ", ".join(f"{v.name} ({v.transfer_change_px:.2f} px at infinity, {v.change_sigma:.1f} sigma)"
-                          for v in drifted)
-        print(f"DRIFT: {names} moved by more than --tolerance-px {args.max_px:g} px; run lfgraph refine "
+                          for v in report.drifted())
+        print(f"DRIFTED: {names} moved by more than --tolerance-px {args.tolerance_px:g} px; run lfgraph refine "
               "(or re-calibrate)")
         return EXIT_DRIFT
-    if undecided:
+    if verdict == Verdict.UNCERTAIN:
         print("UNCERTAIN: the frames cannot tell whether any view drifted (no view could be confirmed OK); check with "
               "more textured frames, or check that this calibration belongs to this camera")
         return EXIT_OK
-    print(f"OK: no view drifted by more than --tolerance-px {args.max_px:g} px at infinity"
+    uncertain = [v.name for v in report.verdicts if v.verdict == Verdict.UNCERTAIN]
+    print(f"OK: no view drifted by more than --tolerance-px {args.tolerance_px:g} px at infinity"
           + (f" (UNCERTAIN, the frames cannot tell: {', '.join(uncertain)})" if uncertain else ""))
     return EXIT_OK
 
@@ -161,7 +158,7 @@ def add_parsers(sub: Any) -> None:
                                       "prints UNCERTAIN, exit 0, when no view can be confirmed OK)")
     ck.add_argument("calibration", type=Path, help="calibration.json")
     ck.add_argument("input", type=Path, help="capture folder of any textured scene")
-    ck.add_argument("--tolerance-px", "--max-px", dest="max_px", type=positive_float, default=0.1,
+    ck.add_argument("--tolerance-px", "--max-px", dest="tolerance_px", type=non_negative, default=0.1,
                     help="a view fails the check when its change is significant and moves its transfer at infinity "
                          "by more than this (px; default 0.1, as refine's --tolerance-px)")
     ck.add_argument("--depths", default="1,2,5",

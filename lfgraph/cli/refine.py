@@ -16,6 +16,7 @@ from lfgraph.cli.args import (
     check_side_outputs,
     cli_observer,
     json_text,
+    non_negative,
     positive_float,
     positive_int,
     reports_to_stderr,
@@ -111,7 +112,7 @@ def add_parsers(sub: Any) -> None:
                     help="held-out folds (whole frames when there are several; 0: no held-out test; default 3)")
     rf.add_argument("--significance", type=positive_float, default=3.0,
                     help="a view's change must exceed this many posterior sigmas to be applied (default 3)")
-    rf.add_argument("--tolerance-px", type=float, default=0.1,
+    rf.add_argument("--tolerance-px", type=non_negative, default=0.1,
                     help="a view is DRIFTED (and changed) only when its change is significant and moves its transfer "
                          "at infinity by more than this (px, default 0.1; 0: apply every significant change)")
     rf.add_argument("--json", action="store_true", help="print the report (verdicts, sigmas) as JSON")

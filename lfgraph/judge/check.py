@@ -15,6 +15,7 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import SilentObserver
+from lfgraph.core.verdict import Verdict
 from lfgraph.io.capture import check_frame_array, check_frames_argument
 from lfgraph.judge.alignment import PointAlignmentReport, align_points
 from lfgraph.rectification.rectify import Rectification
@@ -60,9 +61,23 @@ class DriftReport:
     notes: tuple[str, ...] = field(default=())
     intrinsics_mismatch_px: tuple[float, float] | None = None
 
-    def drifted(self, min_px: float) -> list:
-        """Views judged DRIFTED whose change moves the transfer at infinity by more than ``min_px``."""
-        return [v for v in self.verdicts if v.verdict == "DRIFTED" and v.transfer_change_px > min_px]
+    def drifted(self) -> list:
+        """The views judged DRIFTED: a significant change, confirmed by held-out tracks, that moves the transfer at
+        infinity by more than the config's ``tolerance_px`` (applied once, by the test that gave the verdicts)."""
+        return [v for v in self.verdicts if v.verdict == Verdict.DRIFTED]
+
+    @property
+    def verdict(self) -> Verdict:
+        """The capture's verdict: MISMATCH (the calibration does not fit this camera), DRIFTED (a view drifted),
+        UNCERTAIN (no view could be confirmed OK: the frames cannot tell) or OK."""
+        if self.intrinsics_mismatch_px is not None:
+            return Verdict.MISMATCH
+        if self.drifted():
+            return Verdict.DRIFTED
+        judged = [v for v in self.verdicts if v.verdict != Verdict.REFERENCE]
+        if all(v.verdict == Verdict.UNCERTAIN for v in judged):  # also: no view judged at all
+            return Verdict.UNCERTAIN
+        return Verdict.OK
 
     def depth_errors(self, calib: Calibration, depths_m: Iterable[float]) -> dict[str, list[float | None]]:
         """Per view, the predicted depth error (m) at each range against the reference view: the paper's formula
@@ -97,7 +112,8 @@ class DriftReport:
     def to_dict(self, calib: Calibration) -> dict:
         """JSON-friendly figures, views named as in the grid (``rRR_cCC``)."""
         return {
-            "rms_px": _finite_or_none(self.rms_px), "frames": self.frames, "tracks": dict(self.counts),
+            "verdict": self.verdict, "rms_px": _finite_or_none(self.rms_px), "frames": self.frames,
+            "tracks": dict(self.counts),
             "view_rms_px": {calib.grid.name(v): _finite_or_none(x) for v, x in enumerate(self.view_rms_px)},
             "alignment": {name: getattr(self.alignment, name).as_dict()
                           for name in ("before", "after", "compensated", "parallax")},

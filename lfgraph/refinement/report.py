@@ -6,7 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-OK, DRIFTED, UNCERTAIN, REFERENCE = "OK", "DRIFTED", "UNCERTAIN", "REFERENCE"
+from lfgraph.core.verdict import Verdict
+
+OK, DRIFTED, UNCERTAIN, REFERENCE = Verdict.OK, Verdict.DRIFTED, Verdict.UNCERTAIN, Verdict.REFERENCE
 VERDICTS = (OK, DRIFTED, UNCERTAIN, REFERENCE)  # a view's verdict (`lfgraph.refinement.assess.ViewVerdict`)
 
 

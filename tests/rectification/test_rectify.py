@@ -1,6 +1,7 @@
 """Multi-view rectification: alignment at infinity and as seen, LUTs, storage, CLI, real stereo data."""
 
 import dataclasses
+import json
 import shutil
 
 import cv2
@@ -234,7 +235,15 @@ def test_check_command_flags_a_shaken_rig(tmp_path, capsys):
     good = capsys.readouterr().out
     assert main(["check", str(scene_dir / "original.json"), str(scene_dir)]) == EXIT_DRIFT
     bad = capsys.readouterr().out
-    assert "OK" in good and "DRIFT" in bad and "parallax removed" in good
+    assert "OK: " in good and "DRIFTED: " in bad and "parallax removed" in good
+    # issue 39: one tolerance, one name, applied once: 0 (every significant change) is refine's rule and check's too;
+    # the JSON verdict is the library's (`DriftReport.verdict`) in the one vocabulary
+    assert main(["check", str(scene_dir / "original.json"), str(scene_dir), "--tolerance-px", "0", "--json"]) == 3
+    report = json.loads(capsys.readouterr().out)
+    assert report["verdict"] == "DRIFTED" and report["tolerance_px"] == 0
+    assert any(v["verdict"] == "DRIFTED" for v in report["views"])
+    with pytest.raises(SystemExit):
+        main(["check", str(scene_dir / "original.json"), str(scene_dir), "--tolerance-px", "-1"])
 
 
 # ------------------------------------------------------------------------------------------------ real data
