@@ -66,6 +66,8 @@ _EXPORTS = {
     "StageEnd": "lfgraph.core.observer",
     "SilentObserver": "lfgraph.core.observer",
     "calibrate_scene": "lfgraph.selfcal.pipeline",
+    "export_calibration": "lfgraph.interop",
+    "import_calibration": "lfgraph.interop",
     "Design": "lfgraph.selfcal.config",
     "SelfCalConfig": "lfgraph.selfcal.config",
     "SelfCalReport": "lfgraph.selfcal.report",
@@ -81,9 +83,9 @@ __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "Cal
            "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
            "RobustKernel", "SelfCalConfig", "SelfCalReport", "SilentObserver", "Stage", "StageEnd", "Tracker",
            "Tracks", "TriangulationFilter", "ViewGrid", "calib_key", "calibrate", "calibrate_scene", "check",
-           "detect_capture", "evaluate", "landmark_key", "load_detections", "open_capture", "pose_noise", "rectify",
-           "refine", "vectorised_estimator", "view_pose_key", "viz", "factors", "datasets", "pattern", "refinement",
-           "synth", "study", "selfcal"]
+           "detect_capture", "evaluate", "export_calibration", "import_calibration", "landmark_key", "load_detections",
+           "open_capture", "pose_noise", "rectify", "refine", "vectorised_estimator", "view_pose_key", "viz",
+           "factors", "datasets", "pattern", "refinement", "synth", "study", "selfcal"]
 
 
 def __getattr__(name: str) -> Any:
@@ -111,6 +113,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.factors.hooks import GraphContext
     from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
     from lfgraph.factors.noise import RobustKernel, pose_noise
+    from lfgraph.interop import export_calibration, import_calibration
     from lfgraph.io.capture import CaptureError, CaptureSet, open_capture
     from lfgraph.io.points import load_detections
     from lfgraph.judge.check import DriftReport, check

@@ -5,7 +5,8 @@ Top level ``grid_rows``, ``grid_cols``, ``reference``, ``image_width``, ``image_
 ``x_view = R_i x_ref + T_i`` (= ``calib.view_T_ref(i)``, the convention of ``cv2.stereoCalibrate``).
 
 A pair (two views) is also written under the names OpenCV's stereo functions use (`stereo_entries`): ``M1 D1 M2
-D2 R T`` and, with a rectification, ``R1 R2 P1 P2 Q``.
+D2 R T`` and ``R1 R2 P1 P2 Q`` (of the stored rectification, else of the one ``lfgraph rectify`` would store,
+computed for the export; left out, with a warning, when the pair cannot be rectified).
 
 A stored rectification adds ``rect_image_width``, ``rect_image_height`` (the rectified image size), ``K_r`` (3x3),
 and per view ``R_rect_i`` (3x3, rectified from view; the role of ``cv2.stereoRectify``'s R1/R2) and ``P_i`` (3x4) in
@@ -54,7 +55,7 @@ from lfgraph.interop.common import (
     rotation,
     whole,
 )
-from lfgraph.rectification.rectify import stored_rectification
+from lfgraph.rectification.rectify import rectification_for_export, stored_rectification
 
 _OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML[: ]\s*\d+\.\d+[^\n]*\n")  # OpenCV 3/4 write %YAML:1.0, OpenCV 5 %YAML 1.2
 # cv2.FileStorage writes these for non-finite numbers; YAML 1.1 spells them .nan/.NaN/.inf only
@@ -118,8 +119,8 @@ def write(calib: Calibration, path: Path) -> None:
                 for i in range(calib.num_views):
                     fs.write(f"R_rect_{i}", rect.rect_R_view[i])
                     fs.write(f"P_{i}", rectified_projection(rect.K_r, rect.P[i]))
-            if calib.num_views == 2:
-                for key, value in stereo_entries(calib, rect).items():
+            if calib.num_views == 2:  # without a stored rectification, the one `rectify` would store (R1 R2 P1 P2 Q)
+                for key, value in stereo_entries(calib, rect or rectification_for_export(calib, False)).items():
                     fs.write(key, value)
         finally:
             fs.release()

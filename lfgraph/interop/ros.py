@@ -8,9 +8,10 @@
 With a stored rectification, R is the view's rectifying rotation (rectified from view) and P = ``[K_r | -K_r c_i]``
 with ``c_i`` the view's ideal position relative to the reference in the rectified frame: ROS's stereo convention
 (the reference view has a zero last column, a view at baseline b along x has ``P[0, 3] = -fx b``), so
-``cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size, ...)`` gives lfgraph's rectified view. Without one, R is the
-identity and P is ``[K | 0]`` (a monocular camera_info). Views with a unified lens are refused (ROS's
-image_geometry has no such model).
+``cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size, ...)`` gives lfgraph's rectified view. Without a stored one
+the rectification `lfgraph.rectification.rectify.rectify` would store is computed (never ``[K | 0]`` for every view:
+a zero baseline); a calibration that cannot be rectified is refused, a single view gets R = I, P = ``[K | 0]`` (a
+monocular camera_info). Views with a unified lens are refused (ROS's image_geometry has no such model).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import yaml
 from lfgraph.core.calibration import Calibration
 from lfgraph.interop.common import write_folder
 from lfgraph.interop.opencv_yaml import rectified_projection
-from lfgraph.rectification.rectify import stored_rectification
+from lfgraph.rectification.rectify import rectification_for_export
 
 VIEW_FILE = re.compile(r"^r\d+_c\d+\.yaml$")  # what an export writes (and may replace)
 ROS_DISTORTION_MODELS = {"radtan": "plumb_bob", "fisheye": "equidistant"}  # lfgraph lens -> ROS distortion_model
@@ -41,7 +42,7 @@ def camera_infos(calib: Calibration) -> dict[str, str]:
     if unified:
         raise ValueError(f"ROS camera_info has no unified (omnidirectional) distortion model, which views "
                          f"{', '.join(unified)} use; export them to Kalibr (omni-radtan) instead")
-    rect = stored_rectification(calib)
+    rect = rectification_for_export(calib, required=True)
     out = {}
     for v, intr in enumerate(calib.intrinsics):
         w, h = calib.image_size(v)

@@ -27,6 +27,7 @@ Relation to the paper:
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -323,6 +324,25 @@ def stored_rectification(calib: Calibration) -> Rectification | None:
     if calib.rectification is None:
         return None
     return Rectification.from_dict(calib.rectification, calib.num_views)
+
+
+def rectification_for_export(calib: Calibration, required: bool) -> Rectification | None:
+    """The rectification an export writes: the stored one, else the one `rectify` would store (computed here, not
+    stored), so an exported pair always carries its rectified matrices and no format is given a zero baseline.
+
+    None for a single view, and where none can be computed but the format can do without one (``required`` False:
+    a warning says why). Raises `RectificationError` (naming the cause) where the format needs one."""
+    rect = stored_rectification(calib)
+    if rect is not None or calib.num_views < 2:
+        return rect
+    try:
+        return compute_rectification(calib)
+    except RectificationError as exc:
+        if required:
+            raise RectificationError(f"this format needs the rectified views' matrices, and this calibration cannot "
+                                     f"be rectified: {exc}") from None
+        logging.getLogger("lfgraph").warning("the export carries no rectification: %s", exc)
+        return None
 
 
 # --------------------------------------------------------------------------------------------- look-up tables

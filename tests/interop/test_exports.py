@@ -16,11 +16,15 @@ from lfgraph.rectification.rectify import attach, compute_rectification, stored_
 ROW_ALIGNED_PX = 1e-6  # rectified rows of one point in the two views of a pair (both through OpenCV)
 DEPTH_REL = 1e-6  # Q's reconstruction against the true point, relative
 SAME = 1e-12  # a number written and read back
+BASELINE_REL = 0.01  # ROS P[0, 3] against -fx * the pair's true baseline (rectified: its ideal spacing)
 
 
-def pair(rows: int, cols: int, seed: int = 3) -> lf.Calibration:
+def pair(rows: int, cols: int, seed: int = 3, stored: bool = True) -> lf.Calibration:
+    """A knocked pair, with its rectification stored (``lfgraph rectify``) or, as ``calibrate`` writes it, without:
+    then the export computes the rectification it needs (issue 40: ROS got ``P = [K|0]`` for every view, a zero
+    baseline, and OpenCV's pair had no ``Q``)."""
     calib, _ = lf.synth.knocked_rig("small-2x2", seed=seed, rows=rows, cols=cols, pitch_m=0.06)
-    return attach(calib, compute_rectification(calib))
+    return attach(calib, compute_rectification(calib)) if stored else calib
 
 
 def read_fs(path):
@@ -31,9 +35,10 @@ def read_fs(path):
         fs.release()
 
 
+@pytest.mark.parametrize("stored", [True, False])
 @pytest.mark.parametrize("shape", [(1, 2), (2, 1)])
-def test_a_pair_carries_opencvs_stereo_names_and_its_q_reconstructs_points(tmp_path, shape):
-    calib = pair(*shape)
+def test_a_pair_carries_opencvs_stereo_names_and_its_q_reconstructs_points(tmp_path, shape, stored):
+    calib = pair(*shape, stored=stored)
     m = read_fs(export_calibration(calib, "opencv-yaml", tmp_path / "stereo.yml"))
     two_T_one = calib.view_T_ref(1) @ np.linalg.inv(calib.view_T_ref(0))
     np.testing.assert_allclose(m["R"], two_T_one[:3, :3], atol=SAME)
@@ -57,11 +62,12 @@ def test_a_pair_carries_opencvs_stereo_names_and_its_q_reconstructs_points(tmp_p
     np.testing.assert_allclose(xyz_rect1, expected, rtol=DEPTH_REL, atol=1e-9)
 
 
-def test_ros_camera_info_per_view_rectifies_as_lfgraph_does(tmp_path):
-    calib = pair(1, 2)
+@pytest.mark.parametrize("stored", [True, False])
+def test_ros_camera_info_per_view_rectifies_as_lfgraph_does(tmp_path, stored):
+    calib = pair(1, 2, stored=stored)
     folder = export_calibration(calib, "ros", tmp_path / "ros")
     assert sorted(p.name for p in folder.iterdir()) == ["r00_c00.yaml", "r00_c01.yaml"]
-    rect = stored_rectification(calib)
+    rect = stored_rectification(calib) if stored else compute_rectification(calib)
     for v in range(2):
         info = yaml.safe_load((folder / f"{calib.grid.name(v)}.yaml").read_text())
         assert set(info) == {"image_width", "image_height", "camera_name", "camera_matrix", "distortion_model",
@@ -84,8 +90,10 @@ def test_ros_camera_info_per_view_rectifies_as_lfgraph_does(tmp_path):
         np.testing.assert_allclose(ours, theirs, atol=1e-9)
         if v == 0:  # the reference: zero last column (ROS's left camera); the other: -fx * baseline
             np.testing.assert_allclose(p[:, 3], 0.0, atol=SAME)
-        else:
-            assert p[0, 3] < 0 and abs(p[1, 3]) < 1e-9 * abs(p[0, 3])
+        else:  # ROS's -fx' B, B the baseline (the rectified grid's ideal spacing: its fit of the knocked pair)
+            baseline = np.linalg.norm(calib.ref_T_view[1][:3, 3] - calib.ref_T_view[0][:3, 3])
+            assert p[0, 3] == pytest.approx(-rect.K_r[0, 0] * baseline, rel=BASELINE_REL)
+            assert abs(p[1, 3]) < 1e-9 * abs(p[0, 3])
 
 
 def test_mrcal_cameramodel_per_view_follows_the_format(tmp_path):
