@@ -1,26 +1,11 @@
-"""Per-view lens models (paper eq. 1-3 and two wide-angle models), vectorised.
+"""Per-view intrinsics (paper eq. 1-3 and two wide-angle models), vectorised.
 
-Three models, each exactly the GTSAM calibration class named beside it (no skew):
-
-- ``radtan`` — pinhole + Brown distortion, GTSAM's ``Cal3DS2`` and OpenCV's 5-coefficient model with ``k3 = 0``::
-
-      r2 = x^2 + y^2,  radial = 1 + k1 r2 + k2 r2^2
-      x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
-      y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
-
-- ``fisheye`` — equidistant Kannala–Brandt, GTSAM's ``Cal3Fisheye`` and OpenCV's ``cv2.fisheye`` (k1..k4)::
-
-      theta = atan(r),  theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
-      (x_d, y_d) = (x, y) theta_d / r
-
-- ``unified`` — Mei's unified (omnidirectional) model with radial-tangential terms, GTSAM's ``Cal3Unified`` and
-  Kalibr's ``omni-radtan``: the point on the unit sphere is shifted by ``xi`` along the axis, then ``radtan``::
-
-      (x, y) -> (x, y) / (1 + xi sqrt(x^2 + y^2 + 1)),  then the radtan distortion with k1, k2, p1, p2
-
-and for every model ``u = fx x_d + cx,  v = fy y_d + cy``, where ``(x, y)`` are normalised image coordinates
-(``X/Z, Y/Z`` in the camera frame). Pixels follow OpenCV's convention: ``(0, 0)`` is the centre of the top-left pixel,
-``x`` right, ``y`` down. The distortion centre is the principal point.
+An `Intrinsics` is fx, fy, cx, cy and a lens model with its coefficients; the models themselves (their distortion,
+Jacobian, inverse, GTSAM class, OpenCV form) are `lfgraph.lenses`, one module each: ``radtan`` (pinhole + Brown,
+``Cal3DS2``), ``fisheye`` (Kannala–Brandt, ``Cal3Fisheye``, ``cv2.fisheye``), ``unified`` (Mei, ``Cal3Unified``).
+For every model ``u = fx x_d + cx,  v = fy y_d + cy``, where ``(x_d, y_d)`` is the model's distortion of the
+normalised image coordinates ``(x, y) = (X/Z, Y/Z)`` in the camera frame. Pixels follow OpenCV's convention:
+``(0, 0)`` is the centre of the top-left pixel, ``x`` right, ``y`` down. The distortion centre is the principal point.
 """
 
 from __future__ import annotations
@@ -31,26 +16,12 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from lfgraph.core.lens_math import (  # noqa: F401  (the models' arithmetic; re-exported where callers import it)
-    UNDISTORT_MAX_ITERATIONS,
-    UNDISTORT_RESIDUAL_LIMIT,
-    UNDISTORT_TOLERANCE,
-    distort_fisheye_xy,
-    distort_xy,
-    distortion_jacobian,
-    fisheye_theta_d,
-    lift_unified,
-    undo_fisheye,
-    undo_radtan,
-    unified_to_plane,
-)
+from lfgraph.lenses import COEFFICIENTS, DEFAULT_LENS, lens_code, lens_model, lens_names
 
-RADTAN, FISHEYE, UNIFIED = "radtan", "fisheye", "unified"
-LENSES = (RADTAN, FISHEYE, UNIFIED)
+RADTAN, FISHEYE, UNIFIED = "radtan", "fisheye", "unified"  # the built-in models' names (`lfgraph.lenses`)
+LENSES = lens_names()  # the models known at import (`lfgraph.lenses.lens_names` also sees later registrations)
 # the distortion keys of each model, as calibration.json stores them (OpenCV's names; Kalibr's xi for unified)
-DISTORTION_KEYS = {RADTAN: ("k1", "k2", "p1", "p2"), FISHEYE: ("k1", "k2", "k3", "k4"),
-                   UNIFIED: ("xi", "k1", "k2", "p1", "p2")}
-_UNUSED = {RADTAN: ("k3", "k4", "xi"), FISHEYE: ("p1", "p2", "xi"), UNIFIED: ("k3", "k4")}
+DISTORTION_KEYS = {name: lens_model(name).coefficients for name in LENSES}
 
 
 def _as_points(points: np.ndarray, dims: tuple[int, ...], name: str) -> np.ndarray:
@@ -89,20 +60,28 @@ class Intrinsics:
     k3: float = 0.0
     k4: float = 0.0
     xi: float = 0.0
-    lens: str = RADTAN
+    lens: str = DEFAULT_LENS
 
     def __post_init__(self) -> None:
-        if self.lens not in LENSES:
-            raise ValueError(f"Intrinsics.lens must be one of {', '.join(LENSES)}, got {self.lens!r}")
+        try:
+            model = lens_model(self.lens)
+        except ValueError:
+            raise ValueError(f"Intrinsics.lens must be one of {', '.join(lens_names())}, got {self.lens!r}") from None
         _float_fields(self)
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
-        unused = [name for name in _UNUSED[self.lens] if getattr(self, name) != 0.0]
+        unused = [name for name in COEFFICIENTS if name not in model.coefficients and getattr(self, name) != 0.0]
         if unused:
             raise ValueError(f"a {self.lens} lens has no {', '.join(unused)} (its distortion is "
-                             f"{', '.join(DISTORTION_KEYS[self.lens])}); got {unused[0]}={getattr(self, unused[0])}")
-        if self.lens == UNIFIED and self.xi < 0:
-            raise ValueError(f"a unified lens needs xi >= 0, got xi={self.xi}")
+                             f"{', '.join(model.coefficients)}); got {unused[0]}={getattr(self, unused[0])}")
+        problem = model.check(self) if model.check else None
+        if problem:
+            raise ValueError(problem)
+
+    @property
+    def model(self):  # -> lfgraph.lenses.LensModel
+        """The lens model (`lfgraph.lenses.LensModel`): its coefficients, GTSAM class, distortion and inverse."""
+        return lens_model(self.lens)
 
     # ----------------------------------------------------------------------------------------- conversions
     @property
@@ -113,18 +92,13 @@ class Intrinsics:
     @property
     def distortion(self) -> dict[str, float]:
         """The model's coefficients by name (`DISTORTION_KEYS`), as ``calibration.json`` stores them."""
-        return {k: getattr(self, k) for k in DISTORTION_KEYS[self.lens]}
+        return {k: getattr(self, k) for k in self.model.coefficients}
 
     @property
     def dist_cv(self) -> np.ndarray:
         """OpenCV's distortion vector: ``[k1, k2, p1, p2, k3=0]`` (radtan, for ``cv2``) or ``[k1, k2, k3, k4]``
         (fisheye, for ``cv2.fisheye``). The unified model has none in OpenCV's main modules (ValueError)."""
-        if self.lens == FISHEYE:
-            return np.array([self.k1, self.k2, self.k3, self.k4])
-        if self.lens == UNIFIED:
-            raise ValueError("a unified lens has no OpenCV distortion vector (cv2.omnidir is not in OpenCV's main "
-                             "modules); use Intrinsics.undistort / project")
-        return np.array([self.k1, self.k2, self.p1, self.p2, 0.0])
+        return self.model.opencv_distortion(self)
 
     def as_vector(self) -> np.ndarray:
         """(8,) ``[fx, fy, cx, cy, k1, k2, p1, p2]`` of a radtan lens (the fast solvers' layout)."""
@@ -152,28 +126,19 @@ class Intrinsics:
 
     def to_gtsam(self) -> gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified:
         """The GTSAM calibration of this lens (skew 0): ``Cal3DS2``, ``Cal3Fisheye`` or ``Cal3Unified``."""
-        if self.lens == FISHEYE:
-            return gtsam.Cal3Fisheye(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.k3, self.k4)
-        if self.lens == UNIFIED:
-            return gtsam.Cal3Unified(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2,
-                                     self.xi)
-        return gtsam.Cal3DS2(self.fx, self.fy, 0.0, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2)
+        return self.model.to_gtsam(self)
 
     @classmethod
     def from_gtsam(cls, cal: gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified,
                    max_skew_px: float = 1e-12) -> Intrinsics:
-        """From a GTSAM calibration of one of the three models; raises if its skew exceeds ``max_skew_px`` (these
+        """From a GTSAM calibration of a registered model; raises if its skew exceeds ``max_skew_px`` (these
         models have none; an optimiser that held it at 0 by a prior leaves round-off: pass that bound)."""
         if abs(cal.skew()) > max_skew_px:
             raise ValueError(f"{type(cal).__name__} has skew {cal.skew()}, but lfgraph's models have none")
-        if isinstance(cal, gtsam.Cal3Fisheye):
-            return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), k3=cal.k3(), k4=cal.k4(),
-                       lens=FISHEYE)
-        if isinstance(cal, gtsam.Cal3Unified):
-            return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), cal.p1(), cal.p2(), xi=cal.xi(),
-                       lens=UNIFIED)
-        k = cal.k()
-        return cls(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), float(k[2]), float(k[3]))
+        model = next((lens_model(n) for n in lens_names() if lens_model(n).gtsam_name == type(cal).__name__), None)
+        if model is None:
+            raise ValueError(f"{type(cal).__name__} is no registered lens model's GTSAM calibration")
+        return cls(**model.from_gtsam(cal), lens=model.name)
 
     @classmethod
     def from_opencv(cls, K: np.ndarray, dist: np.ndarray | None = None, lens: str = RADTAN) -> Intrinsics:  # noqa: N803
@@ -251,11 +216,7 @@ class Intrinsics:
 
 def distort_lens_xy(intr: Intrinsics, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distortion of one lens (any model) applied to normalised coordinates."""
-    if intr.lens == FISHEYE:
-        return distort_fisheye_xy(x, y, intr.k1, intr.k2, intr.k3, intr.k4)
-    if intr.lens == UNIFIED:
-        x, y = unified_to_plane(x, y, intr.xi)
-    return distort_xy(x, y, intr.k1, intr.k2, intr.p1, intr.p2)
+    return intr.model.distort(intr, x, y)
 
 
 def in_image(px: np.ndarray, image_size_px: tuple[int, int], margin_px: float = 0.0) -> np.ndarray:
@@ -288,53 +249,29 @@ def undistort_views(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...], pixel
     c = np.array([[i.cx, i.cy] for i in intrinsics])[:, None, :]
     target = (px - c) / f
     lenses = np.array([i.lens for i in intrinsics])
-    if np.all(lenses == RADTAN):  # the common case without copies
-        return undo_radtan(target, np.array([[i.k1, i.k2, i.p1, i.p2] for i in intrinsics])[:, :, None])
+    if np.all(lenses == DEFAULT_LENS):  # the common case without copies
+        return lens_model(DEFAULT_LENS).undistort(target, intrinsics)
     out = np.full(target.shape, np.nan)
-    for lens in LENSES:
+    for lens in dict.fromkeys(lenses.tolist()):
         idx = np.nonzero(lenses == lens)[0]
-        if not len(idx):
-            continue
-        sub = [intrinsics[v] for v in idx]
-        if lens == FISHEYE:
-            out[idx] = undo_fisheye(target[idx], np.array([[i.k1, i.k2, i.k3, i.k4] for i in sub])[:, :, None])
-            continue
-        m = undo_radtan(target[idx], np.array([[i.k1, i.k2, i.p1, i.p2] for i in sub])[:, :, None])
-        out[idx] = m if lens == RADTAN else lift_unified(m, np.array([i.xi for i in sub])[:, None])
+        out[idx] = lens_model(lens).undistort(target[idx], [intrinsics[v] for v in idx])
     return out
+
 
 def lens_table(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Every view's lens in one array, for the bulk solvers: ((V, 11) fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, xi;
-    (V,) each view's lens as its index in `LENSES`). `lfgraph.core.lens_math.lens_distort` applies them."""
+    (V,) each view's lens code, `lfgraph.lenses.lens_code`). `lfgraph.lenses.lens_distort` applies them."""
     table = np.array([[i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2, i.k3, i.k4, i.xi] for i in intrinsics],
                      dtype=np.float64).reshape(-1, 11)
-    return table, np.array([LENSES.index(i.lens) for i in intrinsics], dtype=np.int64)
-
-
-ROUND_TRIP_TOLERANCE = 1e-8  # normalised units: a ray that a unified lens maps back to itself is truly imaged
-FOLD_SAMPLES = 2048  # angles sampled over [0, pi] for the first fold of a fisheye lens model
+    return table, np.array([lens_code(i.lens) for i in intrinsics], dtype=np.int64)
 
 
 def _folded(intr: Intrinsics, rays: np.ndarray, px: np.ndarray) -> np.ndarray:
     """(N,) whether ``project`` gave a pixel beyond the radius where the lens model folds back (plausible but
-    wrong: the lens does not image that ray there). Radtan and fisheye by the slope of their radial map, unified by
-    a round trip through `Intrinsics.undistort`."""
+    wrong: the lens does not image that ray there); each model says where (`lfgraph.lenses.LensModel.folded`)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         xy = rays[:, :2] / rays[:, 2:3]
-    if intr.lens == RADTAN:
-        r2 = np.sum(xy**2, axis=1)
-        return ~(1.0 + r2 * (3.0 * intr.k1 + 5.0 * intr.k2 * r2) > 0)
-    if intr.lens == FISHEYE:  # theta_d(theta) must rise all the way from 0 to the ray's angle
-        t = np.linspace(0.0, np.pi, FOLD_SAMPLES)
-        t2 = t * t
-        slope = 1.0 + t2 * (3 * intr.k1 + t2 * (5 * intr.k2 + t2 * (7 * intr.k3 + t2 * 9 * intr.k4)))
-        fold = t[np.argmax(slope <= 0)] if np.any(slope <= 0) else np.inf
-        return ~(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]) < fold)
-    back = np.full_like(xy, np.nan)
-    ok = np.all(np.isfinite(px), axis=1)
-    back[ok] = intr.undistort(px[ok])
-    with np.errstate(invalid="ignore"):
-        return ~(np.max(np.abs(back - xy), axis=1) <= ROUND_TRIP_TOLERANCE * np.maximum(1.0, np.abs(xy).max(1)))
+    return intr.model.folded(intr, rays, xy, px)
 
 
 def pinhole_to_view_px(px: np.ndarray, K: np.ndarray, pinhole_R_view: np.ndarray,  # noqa: N803

@@ -10,8 +10,6 @@ import copy
 import gtsam
 import numpy as np
 
-from lfgraph.core.camera import distort_xy, distortion_jacobian
-from lfgraph.core.lens_math import lens_distort
 from lfgraph.engine.bulk_noise import BulkNoise, NotBulk
 from lfgraph.engine.schur_system import (
     NotReducible,
@@ -21,6 +19,8 @@ from lfgraph.engine.schur_system import (
     sparse_jacobian,
     vector_values,
 )
+from lfgraph.lenses import lens_distort
+from lfgraph.lenses.radtan import distort_xy, distortion_jacobian
 
 
 class ProjectionProblem:

@@ -6,7 +6,7 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.camera import lens_table, undistort_views
-from lfgraph.core.lens_math import lens_distort
+from lfgraph.lenses import lens_distort
 
 
 def normalized_coordinates(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -103,7 +103,7 @@ class Design:
             return float(np.degrees(2 * np.arctan(half)))
         if self.lens == FISHEYE:  # equidistant: the angle is the radius / focal
             return float(np.degrees(2 * half))
-        disc = 1.0 + (1.0 - self.xi ** 2) * half ** 2  # Mei's model back to the unit sphere (`lens_math.lift_unified`)
+        disc = 1.0 + (1.0 - self.xi ** 2) * half ** 2  # Mei back to the unit sphere (`lenses.unified.lift_unified`)
         if disc < 0:
             return float("nan")  # beyond the lens's image
         factor = (self.xi + np.sqrt(disc)) / (half ** 2 + 1.0)
