@@ -12,6 +12,7 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
 from lfgraph.core.grid import ViewGrid
+from lfgraph.lenses import DEFAULT_LENS
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,7 @@ class RigConfig:
     distortion_jitter: float = 0.01
     rot_jitter_deg: float = 0.3
     trans_jitter_mm: float = 0.15
-    lens: str = "radtan"
+    lens: str = DEFAULT_LENS
     xi: float = 0.0
 
     def __post_init__(self) -> None:

@@ -12,6 +12,7 @@ GTSAM has no such factor for Cal3Unified: a unified view observes the corner as 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import gtsam
@@ -22,22 +23,22 @@ from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.keys import board_corner_key, board_point_key, board_pose_key, calib_key, view_pose_key
 from lfgraph.factors.noise import FREE_SIGMA, GAUGE_SIGMA, MIN_SIGMA, lens_noise, point_noise
+from lfgraph.lenses import DEFAULT_LENS, lens_model
 
 RIGID_BOARD_SIGMA_M = 1e-6  # a printed board treated as rigid and flat: 1 µm
 BOARD_POINT_SIGMA_M = 1e-6  # a unified view's board point is its frame's board corner (1 µm, as a rigid board)
-BOARD_FACTORS = {"radtan": gtsam_unstable.ProjectionFactorPPPCCal3DS2,
-                 "fisheye": gtsam_unstable.ProjectionFactorPPPCCal3Fisheye}
-FIXED_RIG_FACTORS = {"radtan": gtsam.GenericProjectionFactorCal3DS2,
-                     "fisheye": gtsam.GenericProjectionFactorCal3Fisheye,
-                     "unified": gtsam.GenericProjectionFactorCal3Unified}
-CALIBRATION_PRIORS = {"radtan": gtsam.PriorFactorCal3DS2, "fisheye": gtsam.PriorFactorCal3Fisheye,
-                      "unified": gtsam.PriorFactorCal3Unified}
-BOARD_LENSES = (*BOARD_FACTORS, "unified")  # the lens models the joint board graph can estimate
+
+
+def board_factor(lens: str):
+    """The projection factor of a board corner seen by a view of this model (pose, rig transform, point,
+    calibration: `gtsam_unstable.ProjectionFactorPPPC` of its class), or None where GTSAM has none (Cal3Unified:
+    the view observes per-frame board points, module docstring)."""
+    return lens_model(lens).gtsam("ProjectionFactorPPPC", gtsam_unstable)
 
 
 def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.ndarray, valid: np.ndarray,
                            noise: gtsam.noiseModel.Base, lenses: Sequence[str] | None = None) -> int:
-    """One projection factor (`BOARD_FACTORS`, by the view's lens; unified: module docstring) per valid corner
+    """One projection factor (`board_factor`, by the view's lens; unified: module docstring) per valid corner
     observation. Unified views need their board points in the values (`unified_board_points`).
 
     Args:
@@ -52,15 +53,15 @@ def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.nda
     """
     vs, fs, cs = np.nonzero(valid)
     pts = corners_px[vs, fs, cs]
-    lenses = tuple(lenses or ("radtan",) * corners_px.shape[0])
+    lenses = tuple(lenses or (DEFAULT_LENS,) * corners_px.shape[0])
     n_corners = corners_px.shape[2]
+    factors = [board_factor(lens) for lens in lenses]
+    points = [lens_model(lens).gtsam("GeneralSFMFactor2") for lens in lenses]
     for v, f, c, uv in zip(vs.tolist(), fs.tolist(), cs.tolist(), pts, strict=True):
-        if lenses[v] == "unified":
-            graph.add(gtsam.GeneralSFMFactor2Cal3Unified(uv, noise, view_pose_key(v),
-                                                         board_point_key(f, c, n_corners), calib_key(v)))
+        if factors[v] is None:
+            graph.add(points[v](uv, noise, view_pose_key(v), board_point_key(f, c, n_corners), calib_key(v)))
         else:
-            graph.add(BOARD_FACTORS[lenses[v]](uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c),
-                                               calib_key(v)))
+            graph.add(factors[v](uv, noise, board_pose_key(f), view_pose_key(v), board_corner_key(c), calib_key(v)))
     tie = gtsam.noiseModel.Isotropic.Sigma(3, BOARD_POINT_SIGMA_M)
     for f, c in unified_board_points(valid, lenses):
         graph.add(gtsam.ReferenceFrameFactorPoint3Pose3(board_point_key(f, c, n_corners), board_pose_key(f),
@@ -69,8 +70,9 @@ def add_board_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np.nda
 
 
 def unified_board_points(valid: np.ndarray, lenses: Sequence[str]) -> list[tuple[int, int]]:
-    """(frame, corner) of every board point a unified view observes (each once), from the (V, F, C) mask."""
-    unified = np.array([lens == "unified" for lens in lenses], dtype=bool)
+    """(frame, corner) of every board point a view without a board factor (unified) observes (each once), from the
+    (V, F, C) mask."""
+    unified = np.array([board_factor(lens) is None for lens in lenses], dtype=bool)
     if not unified.any():
         return []
     fs, cs = np.nonzero(np.any(valid[unified], axis=0))
@@ -87,7 +89,7 @@ def add_fixed_rig_observations(graph: gtsam.NonlinearFactorGraph, corners_px: np
     calibration from any route is scored as one rig.
     """
     cals = [intr.to_gtsam() for intr in intrinsics]
-    factors = [FIXED_RIG_FACTORS[intr.lens] for intr in intrinsics]
+    factors = [intr.model.gtsam("GenericProjectionFactor") for intr in intrinsics]
     bodies = [to_pose3(T) for T in ref_T_view]
     vs, fs, cs = np.nonzero(valid)
     pts = corners_px[vs, fs, cs]
@@ -138,8 +140,8 @@ def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[
     """
     widths = np.broadcast_to(np.asarray(image_width_px, dtype=np.float64), (len(intrinsics),))
     for v, intr in enumerate(intrinsics):
-        if not tangential and intr.lens != "fisheye":
-            intr = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy, intr.k1, intr.k2, xi=intr.xi, lens=intr.lens)
+        if not tangential:
+            intr = dataclasses.replace(intr, **dict.fromkeys(intr.model.tangential, 0.0))
         if weak is not None and weak[v]:
             focal, principal, radial = WEAK_FOCAL_SIGMA_REL * intr.fx, WEAK_PRINCIPAL_SIGMA_REL * widths[v], \
                 WEAK_RADIAL_SIGMA
@@ -147,4 +149,4 @@ def add_intrinsics_pins(graph: gtsam.NonlinearFactorGraph, intrinsics: Sequence[
             focal = principal = radial = FREE_SIGMA
         noise = lens_noise(intr.lens, focal, principal, radial, tangential=FREE_SIGMA if tangential else MIN_SIGMA,
                            xi=UNIFIED_XI_SIGMA)
-        graph.add(CALIBRATION_PRIORS[intr.lens](calib_key(v), intr.to_gtsam(), noise))
+        graph.add(intr.model.gtsam("PriorFactor")(calib_key(v), intr.to_gtsam(), noise))

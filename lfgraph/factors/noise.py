@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from lfgraph.lenses import lens_model
+
 MIN_SIGMA = 1e-7  # keep well above GTSAM's 1e-8 "constrained" threshold
 FREE_SIGMA = 1e8  # "no information" sigma for what the data determine (a pull of 1e-16 per unit²)
 HELD_SIGMA = 1e-6  # tight prior for what a stage holds (px, -, rad, m); >= 1e-8 keeps GTSAM's fast solver
@@ -94,12 +96,10 @@ def lens_noise(lens: str, focal_px: float, principal_px: float, distortion: floa
         skew_px: sigma of the skew; the default holds it at 0 (the models have none).
         xi: sigma of the unified model's xi; None: ``distortion``.
     """
+    model = lens_model(lens)
     head = [focal_px, focal_px, skew_px, principal_px, principal_px]
-    if lens == "fisheye":
-        return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + [distortion] * 4))
-    tail = [distortion, distortion, tangential, tangential]
-    if lens == "unified":
-        return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail + [distortion if xi is None else xi]))
+    tail = [tangential if k in model.tangential else distortion if k != "xi" or xi is None else xi
+            for k in model.tangent]
     return gtsam.noiseModel.Diagonal.Sigmas(_sigmas(head + tail))
 
 

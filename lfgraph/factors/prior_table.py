@@ -17,17 +17,14 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.noise import calibration_noise, gauge_pose_noise, pose_noise
+from lfgraph.lenses import DEFAULT_LENS, lens_model
 
 POSE_TANGENT = 6  # rotation x y z (rad, body frame), then position x y z (m): GTSAM's Pose3 tangent order
-CAL_TANGENT = {RADTAN: 9, FISHEYE: 9, UNIFIED: 10}  # each lens model's calibration tangent (module docstring)
-CAL_TANGENT_MAX = 10
-_PRIORS = {RADTAN: (gtsam.PriorFactorCal3DS2, gtsam.Cal3DS2),
-           FISHEYE: (gtsam.PriorFactorCal3Fisheye, gtsam.Cal3Fisheye),
-           UNIFIED: (gtsam.PriorFactorCal3Unified, gtsam.Cal3Unified)}
+CAL_TANGENT_MAX = 10  # the largest lens model's calibration tangent (Cal3Unified; `LensModel.tangent_size`)
 
 
 def pose_prior_factors(reference: int, mean: np.ndarray, sigmas: np.ndarray) -> gtsam.NonlinearFactorGraph:
@@ -48,9 +45,7 @@ def calibration_vectors(intrinsics: list[Intrinsics] | tuple[Intrinsics, ...]) -
     """(V, `CAL_TANGENT_MAX`) each view's calibration in its lens's tangent order (skew 0; NaN beyond its size)."""
     out = np.full((len(intrinsics), CAL_TANGENT_MAX), np.nan)
     for v, i in enumerate(intrinsics):
-        tail = {FISHEYE: [i.k1, i.k2, i.k3, i.k4], UNIFIED: [i.k1, i.k2, i.p1, i.p2, i.xi]}.get(i.lens,
-                                                                                            [i.k1, i.k2, i.p1, i.p2])
-        row = [i.fx, i.fy, 0.0, i.cx, i.cy, *tail]
+        row = i.model.vector(i)
         out[v, :len(row)] = row
     return out
 
@@ -61,16 +56,17 @@ def intrinsics_prior_factors(mean: np.ndarray, sigmas: np.ndarray,
     vectors (`calibration_vectors`) with their ``sigmas`` (same shape; px and
     unitless coefficients; a NaN row: no prior); ``lenses`` each view's model (all radtan when None)."""
     _check(mean.shape, sigmas.shape, "intrinsics")
-    lenses = [RADTAN] * len(mean) if lenses is None else list(lenses)
+    lenses = [DEFAULT_LENS] * len(mean) if lenses is None else list(lenses)
     graph = gtsam.NonlinearFactorGraph()
     for v, lens in enumerate(lenses):
-        n = CAL_TANGENT[lens]
+        model = lens_model(lens)
+        n = model.tangent_size
         if mean.shape[1] < n:
             raise ValueError(f"intrinsics priors: view {v} ({lens}) needs {n} columns, got {mean.shape[1]}")
         if np.any(np.isnan(sigmas[v, :n])):
             continue
-        factor, calibration = _PRIORS[lens]
-        graph.add(factor(calib_key(v), calibration(*mean[v, :n].tolist()), calibration_noise(sigmas[v, :n])))
+        graph.add(model.gtsam("PriorFactor")(calib_key(v), model.gtsam()(*mean[v, :n].tolist()),
+                                             calibration_noise(sigmas[v, :n])))
     return graph
 
 

@@ -28,12 +28,12 @@ import gtsam
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED
 from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, range_noise
 from lfgraph.factors.prior_table import POSE_TANGENT, calibration_vectors, intrinsics_prior_factors, pose_prior_factors
+from lfgraph.lenses import DEFAULT_LENS, lens_model
 
 RANGE_GAUGE_SIGMA_M = 1e-3  # a pure gauge: any sigma keeps the range; 1e-6 m made LM fail on a 14 mm baseline
 FOCAL_FREE_SIGMA_PX = 1e4  # fx, fy, cx, cy when a refinement stage frees them (no practical pull)
@@ -44,12 +44,9 @@ def _observations(valid: np.ndarray, pixels: np.ndarray) -> tuple[list[int], lis
     return vs.tolist(), js.tolist(), pixels[vs, js]
 
 
-_GTSAM_SUFFIX = {"radtan": "Cal3DS2", "fisheye": "Cal3Fisheye", "unified": "Cal3Unified"}  # by Intrinsics.lens
-
-
 def _by_lens(name: str, lens: str):
     """GTSAM's ``name`` class for a lens model (``TriangulationFactor`` + ``Cal3Fisheye``, ...)."""
-    return getattr(gtsam, name + _GTSAM_SUFFIX[lens])
+    return lens_model(lens).gtsam(name)
 
 
 def triangulation_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
@@ -79,17 +76,13 @@ def projection_factors(calib: Calibration, pixels: np.ndarray, valid: np.ndarray
     return graph
 
 
-_SFM_FACTORS = {RADTAN: gtsam.GeneralSFMFactor2Cal3DS2, FISHEYE: gtsam.GeneralSFMFactor2Cal3Fisheye,
-                UNIFIED: gtsam.GeneralSFMFactor2Cal3Unified}
-
-
 def sfm_factors(pixels: np.ndarray, valid: np.ndarray, noise: gtsam.noiseModel.Base,
                 lenses: Sequence[str] | None = None) -> gtsam.NonlinearFactorGraph:
     """Landmarks seen by free poses and free intrinsics (``GeneralSFMFactor2`` of each view's lens model: Cal3DS2,
     Cal3Fisheye or Cal3Unified; all radtan when ``lenses`` is None)."""
     graph = gtsam.NonlinearFactorGraph()
     vs, js, meas = _observations(valid, pixels)
-    factors = [_SFM_FACTORS[lens] for lens in (lenses or [RADTAN] * valid.shape[0])]
+    factors = [_by_lens("GeneralSFMFactor2", lens) for lens in (lenses or [DEFAULT_LENS] * valid.shape[0])]
     for v, j, uv in zip(vs, js, meas, strict=True):
         graph.add(factors[v](uv, noise, view_pose_key(v), landmark_key(j), calib_key(v)))
     return graph

@@ -19,6 +19,7 @@ from lfgraph.factors.keys import (
     landmark_key,
     view_pose_key,
 )
+from lfgraph.lenses import DEFAULT_LENS, lens_model
 
 
 def insert_view_poses(values: gtsam.Values, ref_T_view: np.ndarray) -> None:  # noqa: N803
@@ -28,7 +29,7 @@ def insert_view_poses(values: gtsam.Values, ref_T_view: np.ndarray) -> None:  # 
 
 
 def insert_intrinsics(values: gtsam.Values, intrinsics: Sequence[Intrinsics]) -> None:
-    """Per-view calibration (Cal3DS2, Cal3Fisheye or Cal3Unified by the view's lens) under `calib_key`."""
+    """Per-view calibration (its lens model's GTSAM class: Cal3DS2, Cal3Fisheye, ...) under `calib_key`."""
     for v, intr in enumerate(intrinsics):
         values.insert(calib_key(v), intr.to_gtsam())
 
@@ -65,41 +66,33 @@ def read_view_poses(values: gtsam.Values, n_views: int) -> np.ndarray:
     return np.stack([from_pose3(values.atPose3(view_pose_key(v))) for v in range(n_views)])
 
 
-_READERS = {"fisheye": "atCal3Fisheye", "unified": "atCal3Unified"}
-
-
 SKEW_ROUNDOFF_PX = 1e-6  # a skew held at 0 by a prior of `lfgraph.factors.noise.MIN_SIGMA` moves by ~1e-12: dropped
 
 
 def read_intrinsics(values: gtsam.Values, n_views: int, keep: Sequence[Intrinsics] | None = None,
                     tangential: bool = True, lenses: Sequence[str] | None = None) -> tuple[Intrinsics, ...]:
-    """Per-view intrinsics from their GTSAM calibrations.
+    """Per-view intrinsics from their GTSAM calibrations (each view's model's class, `lfgraph.lenses`).
 
     Args:
-        keep: when given, distortion (k1, k2, p1, p2; a wide model's coefficients and xi) is taken from these
-            instead (stages that hold it).
-        tangential: False clears p1, p2 (held at 0 by priors; this removes their ~1e-13 round-off).
-        lenses: each view's lens model (`lfgraph.core.camera.LENSES`); all radtan (Cal3DS2) when None.
+        keep: when given, the distortion (every coefficient of the model) is taken from these instead (stages that
+            hold it).
+        tangential: False clears the model's tangential coefficients (p1, p2: held at 0 by priors; this removes
+            their ~1e-13 round-off).
+        lenses: each view's lens model (`lfgraph.lenses.lens_names`); all the default (radtan, Cal3DS2) when None.
     """
     out = []
     for v in range(n_views):
-        lens = "radtan" if lenses is None else lenses[v]
-        if lens != "radtan":
-            intr = Intrinsics.from_gtsam(getattr(values, _READERS[lens])(calib_key(v)), max_skew_px=SKEW_ROUNDOFF_PX)
-            if keep is not None:  # the stage held the distortion: the input's, without round-off
-                intr = dataclasses.replace(keep[v], fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy)
-            if not tangential and lens == "unified":
-                intr = intr.with_distortion(lens, xi=intr.xi, k1=intr.k1, k2=intr.k2)
-            out.append(intr)
+        model = lens_model(DEFAULT_LENS if lenses is None else lenses[v])
+        cal = getattr(values, "at" + model.gtsam_name)(calib_key(v))
+        if abs(cal.skew()) > SKEW_ROUNDOFF_PX:
+            raise ValueError(f"view {v}: {model.gtsam_name} has skew {cal.skew()}, but lfgraph's models have none")
+        if keep is not None:  # the stage held the distortion: the input's, without round-off
+            out.append(dataclasses.replace(keep[v], fx=cal.fx(), fy=cal.fy(), cx=cal.px(), cy=cal.py()))
             continue
-        cal = values.atCal3DS2(calib_key(v))
-        if keep is not None:
-            old = keep[v]
-            out.append(Intrinsics(cal.fx(), cal.fy(), cal.px(), cal.py(), old.k1, old.k2, old.p1, old.p2))
-            continue
-        k = cal.k()
-        p1, p2 = (float(k[2]), float(k[3])) if tangential else (0.0, 0.0)
-        out.append(Intrinsics(cal.fx(), cal.fy(), cal.px(), cal.py(), float(k[0]), float(k[1]), p1, p2))
+        params = model.from_gtsam(cal)
+        if not tangential:
+            params.update(dict.fromkeys(model.tangential, 0.0))
+        out.append(Intrinsics(**params, lens=model.name))
     return tuple(out)
 
 

@@ -9,6 +9,7 @@ import numpy as np
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
 from lfgraph.detect.detections import BoardObservations
+from lfgraph.lenses import DEFAULT_LENS
 from lfgraph.pattern.pose_fit import board_pose
 
 MIN_FRAMES_PER_VIEW = 3  # Zhang's method needs >= 3 board poses for fx, fy, cx, cy, k1, k2
@@ -52,7 +53,7 @@ _BORROWED = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "xi")  # tangential
 
 
 def borrowed_intrinsics(obs: BoardObservations, view: int, known: dict[int, Intrinsics],
-                        lens: str = "radtan") -> tuple[Intrinsics, str]:
+                        lens: str = DEFAULT_LENS) -> tuple[Intrinsics, str]:
     """Starting intrinsics of a weakly seen view: the mean of its calibrated grid neighbours with the same lens
     model, else of every calibrated view with it, else design values (focal length = the larger image side,
     centred principal point, no distortion).
@@ -98,7 +99,7 @@ def pnp_all(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...]) -> np.nd
     seen = obs.seen
     for v, f in zip(*np.nonzero(seen), strict=True):
         mask = obs.valid[v, f]
-        if intrinsics[v].lens != "radtan":  # PnP on undistorted corners, then the pixel error (any model)
+        if intrinsics[v].model.opencv != "pinhole":  # PnP on undistorted corners, then the pixel error (any model)
             pose = board_pose(intrinsics[v], obs.board.object_points()[mask], obs.corners_px[v, f][mask])
             if pose is not None:
                 out[v, f] = pose

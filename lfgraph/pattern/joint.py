@@ -31,6 +31,7 @@ from lfgraph.factors.values import (
     read_intrinsics,
     read_view_poses,
 )
+from lfgraph.lenses import lens_model
 from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.initial import weak_views
 from lfgraph.pattern.scoring import rig_residuals
@@ -63,9 +64,11 @@ def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_
         # `ViewSigmas` documents, calibrate-scene stores and refine's priors (Pose3 tangents) read
         pc = marginals.block(view_pose_key(v)) * scale**2
         pos_cov, rot_cov = pc[3:, 3:], pc[:3, :3]
+        tangent = lens_model(lenses[v]).tangent  # k1, k2 (and a unified lens's xi) in its GTSAM tangent order
         out.append({
             "fx_px": float(kc[0]), "fy_px": float(kc[1]), "cx_px": float(kc[3]), "cy_px": float(kc[4]),
-            "k1": float(kc[5]), "k2": float(kc[6]), **({"xi": float(kc[9])} if lenses[v] == "unified" else {}),
+            "k1": float(kc[5]), "k2": float(kc[6]), **({"xi": float(kc[5 + tangent.index("xi")])} if "xi" in tangent
+                                                         else {}),
             "position_mm": [float(x) for x in 1e3 * np.sqrt(np.maximum(np.diag(pos_cov), 0.0))],
             "rotation_deg": [float(x) for x in np.degrees(np.sqrt(np.maximum(np.diag(rot_cov), 0.0)))],
         })
@@ -115,7 +118,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     boards = read_board_poses(est, obs.num_frames, frames)
     corners = read_board_corners(est, len(obj))
     res = rig_residuals(intr, poses, boards, obs, corners)
-    n_params = sum(len(i.distortion) + 4 - (2 if i.lens != "fisheye" and not settings.tangential else 0)
+    n_params = sum(len(i.distortion) + 4 - (0 if settings.tangential else len(i.model.tangential))
                    for i in intr) + 6 * (n_views - 1) + 6 * len(frames)
     dof = max(2 * n_obs - n_params, 1)
     noise_sigma = float(np.sqrt(np.nansum(res**2) / dof))

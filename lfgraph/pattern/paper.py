@@ -13,6 +13,7 @@ import numpy as np
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T
 from lfgraph.detect.detections import MIN_CORNERS_PER_BOARD, BoardObservations
+from lfgraph.lenses import DEFAULT_LENS, lens_model
 from lfgraph.pattern.initial import (
     MIN_FRAMES_PER_VIEW,
     CalibrationInputError,
@@ -47,13 +48,13 @@ def _pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics,
     with another lens than radtan is solved on corners undistorted by each view's model, with plain K. Returns
     (ref_T_view, RMS in px (E_PnP), number of residual coordinates)."""
     objs = [masked_object_points(obs, m) for m in masks]
-    radtan = all(i.lens == "radtan" for i in pair)
-    ref_pts, view_pts = ([(obs.corners_px[u, f][m] if radtan else
+    pinhole = all(i.model.opencv == "pinhole" for i in pair)  # cv2 takes their distortion
+    ref_pts, view_pts = ([(obs.corners_px[u, f][m] if pinhole else
                            intr.undistort_pixels(obs.corners_px[u, f][m])).astype(np.float32)
                           for f, m in zip(frames, masks, strict=True)] for u, intr in zip((ref, v), pair, strict=True))
     usable = [i for i in range(len(frames)) if np.isfinite(ref_pts[i]).all() and np.isfinite(view_pts[i]).all()]
     objs, ref_pts, view_pts = ([x[i] for i in usable] for x in (objs, ref_pts, view_pts))
-    dists = [i.dist_cv if radtan else np.zeros(5) for i in pair]
+    dists = [i.dist_cv if pinhole else np.zeros(5) for i in pair]
     view_T_ref = invert_T(start_ref_T_view)  # noqa: N806
     rms, *_, R, T, _, _ = cv2.stereoCalibrate(  # noqa: N806
         objs, ref_pts, view_pts, pair[0].K, dists[0], pair[1].K, dists[1], obs.image_size_px,
@@ -85,13 +86,13 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
     view_T_board = np.full((n_views, n_frames, 4, 4), np.nan)  # noqa: N806
     e_mono = np.full(n_views, np.nan)
     n_points = np.zeros(n_views)
-    lenses = lenses or ("radtan",) * n_views
+    lenses = lenses or (DEFAULT_LENS,) * n_views
     for v in np.nonzero(~weak)[0]:
         try:
             fit = fit_mono(obs, int(v), lenses[v])
         except FIT_ERRORS as exc:
-            what = {"fisheye": "OpenCV's fisheye.calibrate", "unified": "the unified one-view graph"}.get(
-                lenses[v], "OpenCV's calibrateCamera")
+            what = {"pinhole": "OpenCV's calibrateCamera", "fisheye": "OpenCV's fisheye.calibrate"}.get(
+                lens_model(lenses[v]).opencv, f"the {lenses[v]} one-view graph")
             raise CalibrationInputError(f"{obs.describe(v)}: {what} failed ({getattr(exc, 'err', exc)})") from None
         known[int(v)] = fit.intrinsics
         for f, pose in fit.view_T_board.items():

@@ -38,7 +38,7 @@ def check_rectifiable(calib: Calibration) -> None:
                     f"neighbours are {1e3 * scale:.1f} mm): the grid's directions are undefined; check the calibration")
     for v, intr in enumerate(calib.intrinsics):
         w, h = calib.image_size(v)
-        if intr.lens != "radtan":  # wide models: their field may end inside the image; the crop keeps what maps
+        if intr.model.wide:  # their field may end inside the image; the crop keeps what maps
             centre = intr.undistort(np.array([[intr.cx, intr.cy], [(w - 1) / 2.0, (h - 1) / 2.0]]))
             if not np.all(np.isfinite(centre)):
                 raise RectificationError(f"view {grid.name(v)}: its {intr.lens} lens model maps no ray to the image "

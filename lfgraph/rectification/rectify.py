@@ -364,7 +364,7 @@ def build_maps(calib: Calibration, rect: Rectification) -> RectificationMaps:
     w, h = rect.image_size_px
     for i in range(calib.num_views):
         intr = calib.intrinsics[i]
-        if intr.lens == "radtan":
+        if intr.model.opencv == "pinhole":
             m1, m2 = cv2.initUndistortRectifyMap(intr.K, intr.dist_cv, rect.rect_R_view[i], rect.K_r,
                                                  rect.image_size_px, cv2.CV_16SC2)
         else:

@@ -8,12 +8,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.camera import FISHEYE, RADTAN, Intrinsics
 from lfgraph.core.grid import ViewGrid
 from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.factors.selfcal_graph import DesignSigmas
+from lfgraph.lenses import DEFAULT_LENS, lens_model, lens_names
 from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 from lfgraph.selfcal.defaults import (
     FOCAL_TOLERANCE,
@@ -37,7 +38,6 @@ DEFAULT_STAGES: tuple[tuple[str, ...], ...] = (
 
 FIELD_OF_VIEW_DEG = (1.0, 170.0)  # the horizontal field of view a nominal focal length may give (a camera) ...
 WIDE_FIELD_OF_VIEW_DEG = (1.0, 240.0)  # ... and through a fisheye or a unified lens
-DESIGN_LENSES = (RADTAN, FISHEYE, UNIFIED)  # the lens models a self-calibration fits
 
 
 @dataclass(frozen=True)
@@ -65,14 +65,14 @@ class Design:
     reference: int = 0
     k1: float = 0.0
     k2: float = 0.0
-    lens: str = RADTAN
+    lens: str = DEFAULT_LENS
     xi: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.lens not in DESIGN_LENSES:
-            raise ValueError(f"lens must be one of {', '.join(DESIGN_LENSES)} for a self-calibration, got "
+        if self.lens not in lens_names():
+            raise ValueError(f"lens must be one of {', '.join(lens_names())} for a self-calibration, got "
                              f"{self.lens!r}")
-        if self.xi != 0.0 and self.lens != UNIFIED:
+        if self.xi != 0.0 and "xi" not in lens_model(self.lens).coefficients:
             raise ValueError(f"xi is a unified lens's; a {self.lens} design has none (got xi={self.xi})")
         if not (np.isfinite(self.xi) and self.xi >= 0):
             raise ValueError(f"a unified lens needs xi >= 0, got xi={self.xi}")
@@ -87,7 +87,7 @@ class Design:
         if w <= 0 or h <= 0:
             raise ValueError(f"image size must be positive, got {self.image_size_px}")
         fov_deg = self._field_of_view_deg(w / (2 * self.focal_px))
-        lo, hi = FIELD_OF_VIEW_DEG if self.lens == RADTAN else WIDE_FIELD_OF_VIEW_DEG
+        lo, hi = WIDE_FIELD_OF_VIEW_DEG if lens_model(self.lens).wide else FIELD_OF_VIEW_DEG
         if not lo <= fov_deg <= hi:  # --focal-px 1e9 failed deep in the marginals
             seen = "no field of view (the image reaches beyond the lens's)" if np.isnan(fov_deg) \
                 else f"a {fov_deg:.3g} deg field of view"

@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.camera import RADTAN, Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.engine.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
 from lfgraph.engine.schur import CameraMarginals
 from lfgraph.engine.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
@@ -18,6 +18,7 @@ from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.factors.selfcal_graph import DesignSigmas
+from lfgraph.lenses import lens_model
 from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 
 # after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.engine.schur`'s
@@ -85,7 +86,7 @@ def zoom_to_prior(calib: Calibration, points: np.ndarray, design: Intrinsics) ->
     Through a wide lens (fisheye, unified) there is no such valley (its angles pin the focal length): returned
     unchanged.
     """
-    if design.lens != RADTAN:
+    if lens_model(design.lens).wide:  # its angles pin the focal length
         return calib, points
     f = np.array([[i.fx, i.fy] for i in calib.intrinsics])
     scale = float(np.sum(design.fx * f[:, 0] + design.fy * f[:, 1]) / np.sum(f**2))
