@@ -18,3 +18,6 @@ class Verdict(StrEnum):
     REFERENCE = "REFERENCE"  # the reference view: the gauge, never judged
     MISMATCH = "MISMATCH"  # the calibration does not fit this camera (other intrinsics explain the tracks far better)
     ERROR = "ERROR"  # the work failed (a fleet row, with the error)
+
+    def __repr__(self) -> str:  # a dict of counts prints as {'OK': 3, ...}, as it did when verdicts were strings
+        return repr(self.value)
