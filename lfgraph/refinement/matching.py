@@ -3,6 +3,8 @@ view along the paper's chain, the duplicate filter, and fundamental-matrix RANSA
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -40,6 +42,10 @@ class MatchSettings:
             texture: 250 of 1007 tracks of a pair and 654 of 659 of a 3x1 line were wrong).
         unique_radius_px: how far the repeated-texture filter looks: the periods that locked KLT's 3-level
             pyramid in the sweep were 30-60 px, in any direction (knocked views are not rectified).
+        deep_klt_levels: when the chain follows fewer than `DEEP_RETRY_SHARE` of the detected features through
+            the grid, the frame is tracked again with this many pyramid levels and the run that follows more is kept
+            (a knock larger than the pyramid's reach: a 4 deg knock of paper-5x5's cameras in a 3x3 kept 1 % with
+            3 levels, 34 % with 5; None: never).
     """
 
     max_features: int = 2000
@@ -55,6 +61,10 @@ class MatchSettings:
     anchor_px: float | None = 1.0
     unique_margin: float | None = 0.02
     unique_radius_px: int = 64
+    deep_klt_levels: int | None = 5
+
+
+DEEP_RETRY_SHARE = 0.05  # as the refinement's warning (`schedule.CHAIN_WARN`): below it the tracker has lost the grid
 
 
 @dataclass(frozen=True)
@@ -333,8 +343,24 @@ class ChainTracker:
                             f"{type(self.settings).__name__}")
 
     def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks:
-        """`track_chain` of one frame's (V, H, W) uint8 views with this tracker's settings."""
-        return track_chain(images, grid, self.settings)
+        """`track_chain` of one frame's (V, H, W) uint8 views with this tracker's settings; where the chain loses
+        the grid (fewer than `DEEP_RETRY_SHARE` of the features followed through it), again with
+        ``settings.deep_klt_levels`` pyramid levels, keeping the run that follows more features."""
+        tracks = track_chain(images, grid, self.settings)
+        s = self.settings
+        if s.deep_klt_levels is None or s.deep_klt_levels <= s.klt_levels or _chained(tracks) >= DEEP_RETRY_SHARE:
+            return tracks
+        deep = track_chain(images, grid, dataclasses.replace(s, klt_levels=s.deep_klt_levels))
+        logging.getLogger("lfgraph").info(
+            "the chain followed %.0f %% of the features through the grid with %d pyramid levels (a large knock or "
+            "disparity); with %d: %.0f %%", 100 * _chained(tracks), s.klt_levels, s.deep_klt_levels,
+            100 * _chained(deep))
+        return deep if _chained(deep) > _chained(tracks) else tracks
+
+
+def _chained(tracks: Tracks) -> float:
+    """The share of detected features the chain followed through the grid."""
+    return tracks.counts.get("chain", 0) / max(tracks.counts.get("detected", 0), 1)
 
 
 def as_tracker(tracker: object, what: str) -> Tracker:
