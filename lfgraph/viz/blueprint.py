@@ -11,6 +11,12 @@ import rerun.blueprint as rrb
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.grid import ViewGrid
+from lfgraph.viz.framing import (  # noqa: F401  (FRUSTUM_*, smallest_baseline_m: re-exported)
+    FRUSTUM_BASELINE_SHARE,
+    FRUSTUM_DEPTH_M,
+    rig_eye,
+    smallest_baseline_m,
+)
 
 RESIDUAL_ARROW_SCALE = 50.0  # residual arrows are drawn this many times longer than they are (sub-pixel otherwise)
 RESIDUAL_COLOUR_MAX_PX = 1.0  # residual colour map saturates here
@@ -18,11 +24,10 @@ CHANGE_ARROW_BASELINE_SHARE = 0.5  # the longest input -> refined arrow is drawn
 GUIDE_SPACING_PX = 40
 JPEG_QUALITY = 80  # per-frame images are stored as JPEG (a recording of every frame stays small)
 POINT_RADIUS_UI = 2.0  # observed points, in screen points (negative radii in rerun), whatever the zoom
-FRUSTUM_BASELINE_SHARE = 0.4  # each camera's frustum is drawn this share of the smallest baseline deep
-FRUSTUM_DEPTH_M = 0.02  # frustum depth of a single view (no baseline)
-RIG_EYE_BASELINES = (-0.3, -0.45, -1.7)  # the default 3-D eye: a little left of, above and behind the rig centre, in
-# rig sizes: nearly along the views, so that the grid spreads over the picture (from further up and to the side a
-# 5x5's rows fell onto each other, labels and all)
+VIEWS_COLUMN_SHARES = [1.0, 1.15]  # the 3-D view and charts : the 2-D views
+MAX_FULL_TITLE_COLUMNS = 4  # a wider grid titles its 2-D views r0c4 (for r00_c04): a 5x5's r00_c0… told none apart
+MAX_LEGEND_VIEWS = 6  # the per-frame RMS chart has a legend up to this many views
+MAX_LINE_COLUMNS = 4  # a line of views (1xN) is laid out in rows of this many 2-D views (a 1x8 in one row: slivers)
 OUTLIER_COLOUR = (255, 40, 40)
 OBSERVED_COLOUR = (80, 160, 255)
 REPROJECTED_COLOUR = (255, 255, 255)
@@ -30,6 +35,7 @@ GUIDE_COLOUR = (0, 255, 255)
 CHANGE_COLOUR = (255, 0, 255)
 ERROR_COLOUR = (31, 119, 180)
 RMS_COLOUR = (255, 127, 14)
+STAGE_COLOURS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194))
 RIG_COLOURS = {"input": (160, 160, 160), "refined": (0, 200, 80), "calibrated": (0, 200, 80), "rig": (0, 200, 80)}
 APP_ID = "lfgraph"
 KINDS = ("calibrate", "refine", "rectify", "study")  # one default blueprint per command
@@ -60,29 +66,39 @@ def rms_of(values_px: np.ndarray) -> float:
     return float(np.sqrt(np.mean(values_px**2))) if values_px.size else float("nan")
 
 
-def _view_grid(grid: ViewGrid, space: str) -> rrb.Grid:
-    # the views' residual arrows are exaggerated: the titles say by how much
-    note = f" (residual arrows x{RESIDUAL_ARROW_SCALE:g})" if space == "views" else ""
-    views = [rrb.Spatial2DView(origin=f"{space}/{grid.name(v)}", name=grid.name(v) + note)
-             for v in range(grid.num_views)]
-    return rrb.Grid(*views, grid_columns=grid.cols, name=space)
+def _title(grid: ViewGrid, v: int) -> str:
+    """A 2-D view's title: its name (``r00_c04``), or ``r0c4`` in a grid too wide for names."""
+    if grid.cols <= MAX_FULL_TITLE_COLUMNS:
+        return grid.name(v)
+    r, c = grid.position(v)
+    return f"r{r}c{c}"
+
+
+def _view_grid(grid: ViewGrid, space: str) -> rrb.Tabs:
+    """The 2-D views laid out like the grid (a line wraps after `MAX_LINE_COLUMNS`), each titled with its name
+    only (`_title`: a 5x5's titles have room for no more), under one tab saying what they show."""
+    views = [rrb.Spatial2DView(origin=f"{space}/{grid.name(v)}", name=_title(grid, v)) for v in range(grid.num_views)]
+    columns = grid.cols if grid.rows > 1 else min(grid.cols, MAX_LINE_COLUMNS)
+    title = (f"views on the frame timeline: observed (blue), reprojected (white), residual arrows x"
+             f"{RESIDUAL_ARROW_SCALE:g} (coloured by size), outliers (red)" if space == "views"
+             else f"rectified views, guide lines every {GUIDE_SPACING_PX} px")
+    return rrb.Tabs(rrb.Grid(*views, grid_columns=columns, name=title), name=space)
 
 
 def _optimiser_views() -> list:
-    return [rrb.BarChartView(origin="optimizer_summary/error_log10",
-                             name="log10 graph error per LM iteration (a gap between stages)"),
-            rrb.BarChartView(origin="optimizer_summary/rms_px",
-                             name="RMS (px) per LM iteration (a gap between stages)")]
+    # one bar chart per stage name under each (`lfgraph.viz.optimiser_log`): the legend names the stages
+    return [rrb.BarChartView(origin="optimizer_summary/error_decades", name="LM: error fall (decades)"),
+            rrb.BarChartView(origin="optimizer_summary/rms_px", name="LM: RMS (px)")]
 
 
-def rig_eye(calib: Calibration) -> rrb.EyeControls3D:
-    """A 3-D eye on the rig: left of, above and behind its centre by `RIG_EYE_BASELINES` of its smallest baseline,
-    looking at the centre, image-down (-y) up, so that the views (not landmarks metres away) fill the picture."""
-    centres = calib.ref_T_view[:, :3, 3]
-    centre = centres.mean(axis=0)
-    scale = max(smallest_baseline_m(calib), float(np.max(np.linalg.norm(centres - centre, axis=1))))
-    return rrb.EyeControls3D(position=centre + scale * np.asarray(RIG_EYE_BASELINES), look_target=centre,
-                             eye_up=(0.0, -1.0, 0.0))
+def _text_view(kind: str) -> rrb.TextLogView:
+    """refine: where each stage starts; calibrate: the progress lines and warnings (the text only, full width)."""
+    hide = ["EntityPath", "LogLevel"] if kind == "refine" else ["EntityPath"]
+    columns = rrb.TextLogColumns(text_log_columns=[rrb.components.TextLogColumn(k, visible=k not in hide)
+                                                   for k in ("EntityPath", "LogLevel", "Body")])
+    if kind == "refine":
+        return rrb.TextLogView(origin="optimizer/stages", name="stages", columns=columns)
+    return rrb.TextLogView(origin="log", name="log", columns=columns)
 
 
 def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate",
@@ -90,11 +106,12 @@ def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate",
     """The layout a recording opens with: one per command, each showing everything that command logs.
 
     Args:
-        grid: the array (lays out the 2-D views); None for a study.
-        kind: ``calibrate`` (3-D calibrated rig and boards, per-frame views, per-frame RMS, optimiser),
+        grid: the array (lays out the 2-D views; a line of views wraps after `MAX_LINE_COLUMNS`); None for a study.
+        kind: ``calibrate`` (3-D calibrated rig and boards, per-frame views, per-frame RMS, optimiser, log),
             ``refine`` (input and refined rig, landmarks, per-frame views, per-frame RMS, optimiser, stages),
             ``rectify`` (3-D rig, rectified views with guide lines) or ``study`` (the study's curves per level).
-        calib: the array, when known: the 3-D view's eye is then on the rig (`rig_eye`).
+        calib: the array, when known: the 3-D view's eye is then on the rig (`lfgraph.viz.framing.rig_eye`: the rig
+            fills the view, landmarks and boards further out do not set the framing).
     """
     eye = None if calib is None else rig_eye(calib)
     if kind not in KINDS:
@@ -106,31 +123,22 @@ def default_blueprint(grid: ViewGrid | None, kind: str = "calibrate",
         return rrb.Blueprint(
             rrb.Horizontal(rrb.Spatial3DView(origin="world", name="rig (calibration)", eye_controls=eye),
                            _view_grid(grid, "rectified"),
-                           column_shares=[1, 2]),
+                           column_shares=[1, 1]),
             collapse_panels=True)
     # the 2-D views are cameras of the 3-D scene too (their images in the frustums, one entity in both views)
-    three_d = rrb.Spatial3DView(origin="world", name="input (grey) and refined (green) rig, landmarks"
-                                if kind == "refine" else "calibrated rig and board poses", eye_controls=eye,
-                                contents=["$origin/**", "+ /views/**"])
-    side = [three_d, rrb.TimeSeriesView(origin="rms", name="RMS reprojection error per frame (px)"),
-            *_optimiser_views()]
-    if kind == "refine":
-        side.append(rrb.TextLogView(origin="optimizer/stages", name="stages"))
+    three_d = rrb.Spatial3DView(origin="world", name="input (grey) and refined (green) rig, change (magenta), "
+                                "landmarks" if kind == "refine" else "calibrated rig and board poses",
+                                eye_controls=eye, contents=["$origin/**", "+ /views/**"])
+    # a legend of 25 views hides the curves: hover names them
+    rms = rrb.TimeSeriesView(origin="rms", name="RMS per frame (px)",
+                             plot_legend=rrb.PlotLegend(visible=grid.num_views <= MAX_LEGEND_VIEWS))
+    side = rrb.Vertical(three_d, rrb.Horizontal(*_optimiser_views()), rrb.Horizontal(rms, _text_view(kind)),
+                        row_shares=[3, 1.3, 1])
     return rrb.Blueprint(
-        rrb.Horizontal(rrb.Vertical(*side, row_shares=[3] + [1] * (len(side) - 1)), _view_grid(grid, "views"),
-                       column_shares=[1, 2]),
+        rrb.Horizontal(side, _view_grid(grid, "views"), column_shares=VIEWS_COLUMN_SHARES),
         rrb.TimePanel(timeline="frame", state="collapsed"),
         collapse_panels=True,
     )
-
-
-def smallest_baseline_m(calib: Calibration) -> float:
-    """The smallest distance between two view centres (m); `FRUSTUM_DEPTH_M` for a single view."""
-    centres = calib.ref_T_view[:, :3, 3]
-    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-    d = d[~np.eye(len(centres), dtype=bool)]
-    d = d[d > 0]
-    return float(d.min()) if d.size else FRUSTUM_DEPTH_M
 
 
 def nice_factor(value: float) -> float:

@@ -3,24 +3,34 @@
 Coordinates: ``world`` is declared `rr.ViewCoordinates.RDF` (the OpenCV camera convention: x right, y down,
 z forward = depth), so the rig stands upright in the 3-D view with depth pointing into the scene.
 
-Entity tree (every command sends its own default blueprint, see `default_blueprint`):
+Layout: the recording carries the default blueprint (`default_blueprint`) of what it records — the ``kind`` given,
+else the first run it hears (``run_start``) or result it logs — with the 3-D eye on the first rig it logs. A file
+recording gets it once, when it is closed; a live one at once and again, made active, when the run's kind or rig
+becomes known.
+
+Entity tree:
 
 - ``world/input_rig/rRR_cCC`` and ``world/refined_rig/rRR_cCC`` (refine), ``world/calibrated_rig/rRR_cCC``
   (calibrate), ``world/rig/rRR_cCC`` (rectify): `Transform3D` (the view's pose in the reference frame) + `Pinhole`
   (K, image size), each rig in its own colour (`RIG_COLOURS`); ``world/<rig>/centres`` labels the view centres;
 - ``world/change``: per view an arrow from the input to the refined centre, drawn longer than
-  the change (a round factor, in the label), labelled with the rotation (deg) and translation (mm) change;
+  the change (a round factor), each labelled with the rotation (deg) and translation (mm) change (shown on hover);
+  ``world/change/labels`` shows what fits side by side in the default eye's picture: a caption with the factor
+  below the rig, then the labels of the changed views, largest change first;
 - ``world/boards/frame_FFF``: each board pose (`Transform3D`) with its corners (`Points3D`, board frame);
 - ``world/landmarks``: refinement landmarks (`Points3D`, coloured by mean reprojection error), on the ``frame``
   timeline;
 - ``views/rRR_cCC``: 2-D space of a view, on the ``frame`` timeline: ``image`` (that frame's image, JPEG),
   ``observed`` and ``reprojected`` (`Points2D`), ``residuals`` (`Arrows2D` scaled by `RESIDUAL_ARROW_SCALE`,
-  coloured by magnitude) and ``outliers`` (`Points2D`, red) of that frame only (entities are re-logged, empty where
-  there is nothing, on every frame so that nothing of an earlier frame lingers);
+  coloured by magnitude) and ``outliers`` (`Points2D`, red) of that frame only, and only what lies inside the image
+  as shown (entities are re-logged, empty where there is nothing, on every frame — a refinement empties them with
+  the frame's images — so that nothing of an earlier frame lingers);
 - ``rms/rRR_cCC``: `Scalars`, the view's RMS reprojection error (px) per frame on the ``frame`` timeline;
 - ``optimizer/error`` and ``optimizer/rms_px``: `Scalars` on the ``iteration`` timeline while the optimiser runs
-  (live), and at the end ``optimizer_summary/error_log10`` and ``optimizer_summary/rms_px`` as `BarChart` per
-  iteration (time-independent, so they show whichever timeline is selected); ``optimizer/stages`` (`TextLog`);
+  (live), and at the end ``optimizer_summary/error_decades/<stage>`` (decades the error fell since its stage began)
+  and ``optimizer_summary/rms_px/<stage>`` as `BarChart` per iteration, one per stage name (time-independent, so they
+  show whichever timeline is selected);
+  ``optimizer/stages`` (`TextLog`); ``log`` (`TextLog`): the progress lines;
 - ``rectified/rRR_cCC``: rectified views (``image``) with horizontal guide lines (``guides``) every
   `GUIDE_SPACING_PX`;
 - ``study/<stages>_<robust>/<metric>``: study results on the ``level`` timeline.
@@ -30,7 +40,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -52,7 +62,26 @@ from lfgraph.viz.blueprint import (
     check_save_path,
     default_blueprint,
 )
-from lfgraph.viz.rerun_scene import SceneLog, jpeg_image
+from lfgraph.viz.optimiser_log import OptimiserLog
+from lfgraph.viz.rerun_scene import FrameSource, SceneLog, jpeg_image
+
+
+def _check_kind(kind: str | None) -> None:
+    if kind is not None and kind not in KINDS:
+        raise ValueError(f"unknown blueprint kind {kind!r}; one of {', '.join(KINDS)}")
+
+
+def _first_layout(grid: ViewGrid | None, kind: str | None, calib: Calibration | None = None):
+    """The default blueprint of ``kind`` (a study's without a grid), or None while the kind is not known."""
+    if kind is None or (grid is None and kind != "study"):
+        return None
+    return default_blueprint(grid, kind, calib)
+
+
+def _loader(frames: FrameSource | None) -> Callable[[int], np.ndarray] | Sequence[np.ndarray] | None:
+    """A capture's ``load_frame``, or ``frames`` itself (a loader or a sequence)."""
+    load = getattr(frames, "load_frame", None)
+    return load if callable(load) else frames
 
 
 class StdoutClosed(OSError):
@@ -97,80 +126,92 @@ class _StdoutPump:
         return self.broken
 
 
-class RerunLogger(SceneLog, BaseObserver):
+class RerunLogger(SceneLog, OptimiserLog, BaseObserver):
     """Logs lfgraph's data to one explicit `rr.RecordingStream` (never the global one); an `lfgraph.Observer`.
 
     Make one with `to_file` (written atomically when closed), `from_stream` (your own stream), `serve`, `connect`
     or `stdout`; use it as a context manager (closed at the end; a failure discards a file recording) and pass it
-    as ``observer=`` to `lfgraph.calibrate` / `lfgraph.refine`. After `lfgraph.refine` call `refinement_result`
-    (the refined rig is its return value), after `lfgraph.calibrate` `calibration_result`.
+    as ``observer=`` to `lfgraph.calibrate` / `lfgraph.refine`: the run logs its own result (the rigs, the change,
+    every frame's points, the optimiser summary) and the recording opens in that command's layout, the 3-D view
+    on the rig. `calibration_result` and `refinement_result` are for results you did not run with the logger.
+
+    A calibration's images come from ``frames`` (a capture, a loader ``f -> (V, H, W)`` or a sequence), else from
+    the files the observations were detected in (`lfgraph.detect_capture` records them); a refinement's from the
+    frames it is given.
     """
 
     def __init__(self, rec: rr.RecordingStream, grid: ViewGrid | None = None, final_path: Path | None = None,
-                 tmp_path: Path | None = None, kind: str | None = None) -> None:
+                 tmp_path: Path | None = None, kind: str | None = None, frames: FrameSource | None = None,
+                 live: bool = True) -> None:
+        _check_kind(kind)
         self.rec = rec
         self.grid = grid
-        self._kind = kind  # the default blueprint's kind: re-sent with the 3-D eye on the rig once it is known
-        # where `run_end` of a calibration finds each frame's images (``f -> (V, H, W)``, e.g. a capture's
-        # ``load_frame``); None: the 2-D views show the corners without images
-        self.frames_source: Callable[[int], np.ndarray] | None = None
-        self._eye_set = False
+        self._kind = kind  # the default blueprint's kind (None: the first run or result logged decides)
+        self._live = live  # a viewer may watch: layouts are sent as they become known (else once, at `close`)
+        self._eye_calib: Calibration | None = None  # the rig the 3-D eye frames (the first one logged)
+        # where a calibration's images come from (``f -> (V, H, W)``); None: the observations' files
+        self.frames_source = _loader(frames)
         self._final, self._tmp = final_path, tmp_path
-        self.iteration_count = 0
-        self._errors: list[float] = []  # graph error after every optimiser iteration
-        self._rms_px: list[float] = []
-        self._n_measurements = 0
-        self._sigma_px = 1.0  # the pixel sigma of the running stage (graph errors are in its units)
-        self._stage_first: list[int] = []  # the first iteration of every stage (a gap in the summary charts)
+        self._reset_optimiser()
         self._frame = 0  # the frame refinement is on
         self._track_frame: dict[bytes, int] = {}  # refinement track (its pixel bytes) -> the frame it came from
         self._outliers: dict[int, list[np.ndarray]] = {}  # frame -> (V, K, 2) outlying observations, NaN elsewhere
         self._last: StageEnd | None = None
         self._shown_lenses: tuple = ()  # each view's lens, from the rig placing the 2-D views (`SceneLog._shown_px`)
+        self._shown_sizes: tuple = ()  # ... and its image size (points outside it are not drawn)
         self._pinhole_maps: dict = {}  # (view, lens, w, h) -> remap tables of a wide view's pinhole image
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         self.rec.log("optimizer/error", rr.SeriesLines(names="graph error", colors=ERROR_COLOUR), static=True)
         self.rec.log("optimizer/rms_px", rr.SeriesLines(names="RMS (px)", colors=RMS_COLOUR), static=True)
 
     @classmethod
-    def to_file(cls, path: str | os.PathLike, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
+    def to_file(cls, path: str | os.PathLike, grid: ViewGrid | None = None, kind: str | None = None,
+                frames: FrameSource | None = None) -> RerunLogger:
         """Record to ``path`` (.rrd): written next to it and renamed on a successful `close`, so a failed run leaves
-        no half-written file. ``kind`` chooses the default blueprint (`default_blueprint`).
+        no half-written file. ``kind`` chooses the default blueprint (`default_blueprint`; None: the kind of the
+        first run the logger hears, or of the first result logged); ``frames`` a calibration's images (a capture
+        such as `lfgraph.open_capture`'s, a loader ``f -> (V, H, W)`` or a sequence; by default the files the
+        observations were detected in).
 
         Raises:
             ValueError: the path is a folder, its folder does not exist or is not writable.
         """
         final = Path(path)
         check_save_path(final)
+        _check_kind(kind)
         tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
         rec = rr.RecordingStream(APP_ID)
-        rec.save(str(tmp), default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid, final, tmp, kind=kind)
+        rec.save(str(tmp))  # the layout is added once what is recorded is known (`close`)
+        return cls(rec, grid, final, tmp, kind=kind, frames=frames, live=False)
 
     @classmethod
-    def from_stream(cls, rec: rr.RecordingStream, grid: ViewGrid | None = None, kind: str = "calibrate"
-                    ) -> RerunLogger:
-        """Log to a stream you opened (and whose sink you chose); ``grid`` sends the default blueprint."""
-        if grid is not None:
-            rec.send_blueprint(default_blueprint(grid, kind))
-        return cls(rec, grid, kind=kind)
+    def from_stream(cls, rec: rr.RecordingStream, grid: ViewGrid | None = None, kind: str | None = None,
+                    frames: FrameSource | None = None) -> RerunLogger:
+        """Log to a stream you opened (and whose sink you chose); ``grid`` and ``kind`` send the default blueprint
+        at once (else once a run starts)."""
+        if grid is not None and kind is not None:
+            rec.send_blueprint(default_blueprint(grid, kind), make_active=False, make_default=True)
+        return cls(rec, grid, kind=kind, frames=frames)
 
     @classmethod
-    def serve(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
+    def serve(cls, grid: ViewGrid | None = None, kind: str | None = None,
+              frames: FrameSource | None = None) -> RerunLogger:
         """Host a gRPC server and web viewer for the recording."""
         rec = rr.RecordingStream(APP_ID)
-        rec.serve_grpc(default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid, kind=kind)
+        rec.serve_grpc(default_blueprint=_first_layout(grid, kind))
+        return cls(rec, grid, kind=kind, frames=frames)
 
     @classmethod
-    def connect(cls, url: str | None = None, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
+    def connect(cls, url: str | None = None, grid: ViewGrid | None = None, kind: str | None = None,
+                frames: FrameSource | None = None) -> RerunLogger:
         """Stream to a running viewer (rerun's default address unless ``url``)."""
         rec = rr.RecordingStream(APP_ID)
-        rec.connect_grpc(url, default_blueprint=default_blueprint(grid, kind))
-        return cls(rec, grid, kind=kind)
+        rec.connect_grpc(url, default_blueprint=_first_layout(grid, kind))
+        return cls(rec, grid, kind=kind, frames=frames)
 
     @classmethod
-    def stdout(cls, grid: ViewGrid | None = None, kind: str = "calibrate") -> RerunLogger:
+    def stdout(cls, grid: ViewGrid | None = None, kind: str | None = None,
+               frames: FrameSource | None = None) -> RerunLogger:
         """Write the recording to standard output (pipe it into ``rerun -``); print nothing else there.
 
         rerun writes into a pipe of ours that a thread copies to the real standard output: when the reader goes away
@@ -178,8 +219,8 @@ class RerunLogger(SceneLog, BaseObserver):
         killed it and left every later log call blocked on it); `close` then raises `StdoutClosed`."""
         pump = _StdoutPump()
         rec = rr.RecordingStream(APP_ID)
-        rec.stdout(default_blueprint=default_blueprint(grid, kind))
-        logger = cls(rec, grid, kind=kind)
+        rec.stdout(default_blueprint=_first_layout(grid, kind))
+        logger = cls(rec, grid, kind=kind, frames=frames)
         logger._pump = pump
         return logger
 
@@ -204,20 +245,30 @@ class RerunLogger(SceneLog, BaseObserver):
 
     def run_start(self, kind: str, calib: Calibration | None) -> None:
         """A run starts: its layout (`default_blueprint` of ``kind``, the 3-D eye on ``calib`` when given) becomes
-        the recording's default, and for ``refine`` the input rig is shown."""
+        the recording's, and for ``refine`` the input rig is shown."""
         grid = self.grid or (None if calib is None else calib.grid)
-        if kind in KINDS and grid is not None and (kind != self._kind or (calib is not None and not self._eye_set)):
+        if kind in KINDS and grid is not None:
             self.grid = grid
-            self._send_layout(kind, calib)
+            if kind != self._kind or (calib is not None and self._eye_calib is None):
+                self._send_layout(kind, calib if self._eye_calib is None else self._eye_calib)
         if kind == "refine" and calib is not None:
             self.rig(calib, name="input_rig")
 
     def _send_layout(self, kind: str, calib: Calibration | None) -> None:
-        """``kind``'s `default_blueprint` made the recording's default (not forced on a viewer already open), its
-        3-D eye on ``calib``'s rig when given."""
+        """``kind``'s `default_blueprint`, its 3-D eye on ``calib``'s rig when given, becomes the recording's layout:
+        sent now, and made active, to a live viewer (at most twice a run: when the kind and when the rig becomes
+        known); a file gets the last one when it is closed."""
         self._kind = kind
-        self.rec.send_blueprint(default_blueprint(self.grid, kind, calib), make_active=False, make_default=True)
-        self._eye_set = calib is not None
+        if calib is not None:
+            self._eye_calib = calib
+        if self._live and self.grid is not None:
+            self.rec.send_blueprint(default_blueprint(self.grid, kind, self._eye_calib), make_active=True,
+                                    make_default=True)
+
+    def _adopt_kind(self, kind: str) -> None:
+        """A result of ``kind`` is logged: the layout is that command's unless a kind was chosen."""
+        if self._kind is None and self.grid is not None:
+            self._send_layout(kind, self._eye_calib)
 
     def run_end(self, kind: str, before: Calibration | None, after: Calibration, report: Any,
                 data: Any = None) -> None:
@@ -234,19 +285,18 @@ class RerunLogger(SceneLog, BaseObserver):
         self.on_iteration(iteration, error_before, error_after)
 
     def frame(self, index: int, images: np.ndarray) -> None:
-        """Refinement starts on frame ``index``: its images go on the ``frame`` timeline."""
+        """Refinement starts on frame ``index``: its images go on the ``frame`` timeline, with the views' points
+        emptied until its first stage ends (so that the frame's images never show the last frame's tracks)."""
         self._frame = int(index)
         self.rec.set_time("frame", sequence=self._frame)
         self._log_images(images)
-
-    def measurement_sigma(self, sigma_px: float) -> None:
-        """The running stage's pixel sigma: its RMS is plotted in pixels, not in units of the sigma."""
-        self._sigma_px = float(sigma_px)
+        if self._frame > 0 and self.grid is not None:
+            self._clear_points(len(images))
 
     def stage_start(self, name: str, measurements: int) -> None:
         """A stage starts: a line on ``optimizer/stages`` at its first iteration, and ``measurements`` set for the RMS
         (`set_measurements`)."""
-        self._stage_first.append(self.iteration_count + 1)
+        self._stage_starts(name)
         self.rec.set_time("iteration", sequence=self.iteration_count + 1)
         self.rec.log("optimizer/stages", rr.TextLog(f"frame {self._frame}: stage {name} starts", level="INFO"))
         self.set_measurements(measurements)
@@ -280,7 +330,7 @@ class RerunLogger(SceneLog, BaseObserver):
             self._outliers.setdefault(int(g), []).append(px[:, frames == g])
             self.rec.set_time("frame", sequence=int(g))
             for v in range(px.shape[0]):
-                shown = self._shown_px(v, self._outlier_pixels(int(g), px.shape[0])[v])
+                shown = self._shown_outliers(v, self._outlier_pixels(int(g), px.shape[0])[v])
                 self.rec.log(f"views/{self._name(v)}/outliers",
                              rr.Points2D(shown, radii=-1.5 * POINT_RADIUS_UI, colors=OUTLIER_COLOUR))
         self.rec.set_time("frame", sequence=self._frame)
@@ -316,46 +366,15 @@ class RerunLogger(SceneLog, BaseObserver):
         for v, image in enumerate(encoded):
             self.rec.log(f"views/{self._name(v)}/image", image)
 
-    # ------------------------------------------------------------------------------------------- optimiser
-    def set_measurements(self, n: int) -> None:
-        """Number of 2-D measurements of the graph being optimised (turns the error into an RMS in pixels)."""
-        self._n_measurements = int(n)
-
-    def on_iteration(self, _iteration: int, _before: float, after: float) -> None:
-        """`lfgraph.engine.optimize` callback: one step on the ``iteration`` timeline per optimiser iteration."""
-        self.iteration_count += 1
-        self.rec.set_time("iteration", sequence=self.iteration_count)
-        self.rec.log("optimizer/error", rr.Scalars(after))
-        self._errors.append(float(after))
-        if self._n_measurements:
-            # graph error = 0.5 sum |r / sigma|^2 (priors are negligible): RMS per point = sigma sqrt(2 e / N)
-            rms = self._sigma_px * float(np.sqrt(2.0 * after / self._n_measurements))
-            self.rec.log("optimizer/rms_px", rr.Scalars(rms))
-            self._rms_px.append(rms)
-        else:
-            self._rms_px.append(float("nan"))
-
-    def optimiser_summary(self) -> None:
-        """The whole optimiser history as bar charts (one bar per LM iteration), readable on any timeline."""
-        if not self._errors:
-            return
-        # one empty slot before every stage after the first: the bars of one stage stand together
-        starts = sorted({s for s in self._stage_first if 1 < s <= len(self._errors)})
-        iterations = np.arange(1, len(self._errors) + 1, dtype=np.float64)
-        iterations += np.searchsorted(np.asarray(starts, dtype=np.float64), iterations, side="right")
-        err = np.log10(np.maximum(np.asarray(self._errors), np.finfo(float).tiny))
-        self.rec.log("optimizer_summary/error_log10", rr.BarChart(err, abscissa=iterations, color=ERROR_COLOUR),
-                     static=True)
-        rms = np.asarray(self._rms_px)
-        if np.isfinite(rms).any():
-            self.rec.log("optimizer_summary/rms_px", rr.BarChart(np.nan_to_num(rms), abscissa=iterations,
-                                                                 color=RMS_COLOUR), static=True)
-
     def close(self, success: bool = True) -> None:
         """Flush and finish; a file recording appears only now, and only when ``success``.
 
         Raises:
             StdoutClosed: a `stdout` recording whose reader stopped reading (the recording is incomplete)."""
+        if not self._live and success:
+            layout = _first_layout(self.grid, self._kind, self._eye_calib)
+            if layout is not None:  # the file's one layout: what it records, the 3-D eye on its rig
+                self.rec.send_blueprint(layout, make_active=True, make_default=True)
         self.rec.flush(timeout_sec=60.0)
         self.rec.disconnect()
         pump = getattr(self, "_pump", None)

@@ -5,7 +5,8 @@ images (the `SceneLog` mix-in; the logger itself, its sinks and the observer cal
 A view's `Pinhole` is its K alone; rerun knows no lens model. A radtan view is shown as captured (its small
 distortion is ignored in 3-D). A wide view (fisheye, unified) is shown undistorted to the pinhole of its own K: its
 image, points, residuals and outliers in that pinhole's pixels, so the 3-D scene places them on the right rays; what
-lies outside that pinhole's field (a fisheye's periphery) is not shown."""
+lies outside that pinhole's field (a fisheye's periphery) is not shown: points are drawn only inside the image as
+shown."""
 
 from __future__ import annotations
 
@@ -22,7 +23,6 @@ from lfgraph.core.camera import RADTAN, Intrinsics, pinhole_to_view_px, view_to_
 from lfgraph.viz.blueprint import (
     CHANGE_ARROW_BASELINE_SHARE,
     CHANGE_COLOUR,
-    FRUSTUM_BASELINE_SHARE,
     GUIDE_COLOUR,
     GUIDE_SPACING_PX,
     JPEG_QUALITY,
@@ -36,11 +36,14 @@ from lfgraph.viz.blueprint import (
     colour_by,
     nice_factor,
     rms_of,
-    smallest_baseline_m,
 )
+from lfgraph.viz.framing import frustum_depth_m, rig_frame, smallest_baseline_m, spaced_labels
+from lfgraph.viz.sources import frames_from_sources
 
 CAMERA_RIGS = ("input_rig", "calibrated_rig", "refined_rig")  # rigs whose poses place the 2-D views in 3-D
 FRAMES_AHEAD = 2  # a calibration's frames are read and encoded this many ahead of the one being logged
+# a calibration's images: a capture (its ``load_frame``), a loader ``f -> (V, H, W)`` or a sequence of frames
+FrameSource = Callable[[int], np.ndarray] | Sequence[np.ndarray] | object
 
 
 def jpeg_image(image: np.ndarray) -> rr.EncodedImage | rr.Image:
@@ -66,7 +69,8 @@ class SceneLog:
         0, optional) go to the 2-D views on the ``frame`` timeline."""
         colour = RIG_COLOURS.get(name.removesuffix("_rig"), RIG_COLOURS["rig"])
         base = f"world/{name}"
-        depth_m = FRUSTUM_BASELINE_SHARE * smallest_baseline_m(calib)
+        self.grid = self.grid or calib.grid
+        depth_m = frustum_depth_m(calib)
         for v in range(calib.num_views):
             self._camera(f"{base}/{calib.grid.name(v)}", calib, v, depth_m, colour)
         self.rec.log(f"{base}/centres", rr.Points3D(calib.ref_T_view[:, :3, 3], colors=colour,
@@ -79,9 +83,12 @@ class SceneLog:
         if images is not None:
             self.rec.set_time("frame", sequence=0)
             self._log_images(images)
-        if self._kind is not None and self.grid is not None and not self._eye_set:
-            # the default eye frames everything (landmarks metres away, a rig a few pixels wide): look at the rig
-            self._send_layout(self._kind, calib)
+        if self._eye_calib is None:
+            # rerun's own eye frames everything (landmarks metres away, a rig a few pixels wide): look at the rig
+            if self._kind is not None:
+                self._send_layout(self._kind, calib)
+            else:
+                self._eye_calib = calib
 
     def _view_cameras(self, calib: Calibration, depth_m: float) -> None:
         """Each 2-D view (``views/rRR_cCC``: its images, tracks and residuals) made a camera of the 3-D scene at the
@@ -90,6 +97,7 @@ class SceneLog:
         for v in range(calib.num_views):
             self._camera(f"views/{calib.grid.name(v)}", calib, v, depth_m)
         self._shown_lenses = tuple(calib.intrinsics)
+        self._shown_sizes = tuple(calib.image_sizes)
 
     def _shown_px(self, v: int, px: np.ndarray, intr: Intrinsics | None = None) -> np.ndarray:
         """(N, 2) pixels of view ``v`` where its 2-D view shows them (module docstring: a wide view's pinhole)."""
@@ -97,6 +105,33 @@ class SceneLog:
         if intr is None or intr.lens == RADTAN or len(px) == 0:
             return px
         return view_to_pinhole_px(px, intr.K, np.eye(3), intr)
+
+    def _inside(self, v: int, *pixels: np.ndarray) -> np.ndarray:
+        """(N,) which of the (N, 2) shown pixels (`_shown_px`; several arrays: all of them) lie inside view ``v``'s
+        image as shown (a fisheye's periphery maps far outside its pinhole image)."""
+        ok = np.ones(len(pixels[0]), dtype=bool)
+        size = self._shown_sizes[v] if v < len(self._shown_sizes) else None
+        for px in pixels:
+            ok &= np.all(np.isfinite(px), axis=1)
+            if size is not None:
+                with np.errstate(invalid="ignore"):
+                    ok &= (px[:, 0] >= -0.5) & (px[:, 0] <= size[0] - 0.5) & (px[:, 1] >= -0.5) & \
+                        (px[:, 1] <= size[1] - 0.5)
+        return ok
+
+    def _shown_outliers(self, v: int, px: np.ndarray, intr: Intrinsics | None = None) -> np.ndarray:
+        """View ``v``'s outlying observations where its 2-D view shows them, those inside its image."""
+        shown = self._shown_px(v, px, intr)
+        return shown[self._inside(v, shown)]
+
+    def _clear_points(self, n_views: int) -> None:
+        """Every view's points, arrows and outliers emptied at the current time."""
+        empty = np.zeros((0, 2))
+        for v in range(n_views):
+            base = f"views/{self.grid.name(v)}"
+            for part in ("observed", "reprojected", "outliers"):
+                self.rec.log(f"{base}/{part}", rr.Points2D(empty))
+            self.rec.log(f"{base}/residuals", rr.Arrows2D(origins=empty, vectors=empty))
 
     def _shown_image(self, v: int, image: np.ndarray) -> np.ndarray:
         """View ``v``'s image as its 2-D view shows it: a wide view's resampled into the pinhole of its K."""
@@ -120,11 +155,13 @@ class SceneLog:
         self.rec.log(path, rr.Pinhole(image_from_camera=calib.intrinsics[v].K, resolution=list(calib.image_size(v)),
                                       image_plane_distance=depth_m, color=colour), static=True)
 
-    def rig_change(self, before: Calibration, after: Calibration) -> None:
+    def rig_change(self, before: Calibration, after: Calibration, report=None) -> None:
         """Arrows from each view's input centre to its refined centre, exaggerated by a round factor so that the
-        longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, labelled with the change of
-        rotation (deg), position (mm) and focal length (px, where it changed); the reference view's label gives the
-        factor."""
+        longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, each labelled with the change of
+        rotation (deg), position (mm) and focal length (px, where it changed), the reference view's with the factor
+        (``world/change``: the labels show on hover). ``world/change/labels`` shows what fits side by side in the
+        default eye's picture (`spaced_labels`): a caption with the factor below the rig, then the labels of the
+        changed views (with ``report``: the views not judged OK), largest change first."""
         from lfgraph.core.geometry import rotation_angle_deg
 
         rot_deg = np.array([rotation_angle_deg(a[:3, :3] @ b[:3, :3].T)
@@ -137,14 +174,28 @@ class SceneLog:
         longest_m = float(np.max(np.linalg.norm(move, axis=1)))
         scale = nice_factor(CHANGE_ARROW_BASELINE_SHARE * smallest_baseline_m(before) / longest_m) \
             if longest_m > 0 else 1.0
-        # one short label per view (a 5x5's 25 long labels overlapped): the focal change only where there is one,
-        # the arrows' exaggeration once, on the reference view (which does not move)
+        # one short label per view: the focal change only where there is one, the arrows' exaggeration once, on the
+        # reference view (which does not move)
+        ref = after.grid.reference
         focal = [f" f {focal_px[v]:.2f} px" if focal_px[v] >= 0.005 else "" for v in range(after.num_views)]
         labels = [f"{after.grid.name(v)} {rot_deg[v]:.2f}° {pos_mm[v]:.1f} mm{focal[v]}"
-                  if v != after.grid.reference else f"{after.grid.name(v)}: reference (arrows x{scale:g})"
+                  if v != ref else f"{after.grid.name(v)}: reference (arrows x{scale:g})"
                   for v in range(after.num_views)]
+        radius = 0.02 * smallest_baseline_m(before)
         self.rec.log("world/change", rr.Arrows3D(origins=start, vectors=move * scale, colors=CHANGE_COLOUR,
-                                                 labels=labels, radii=0.02 * smallest_baseline_m(before)),
+                                                 labels=labels, radii=radius, show_labels=False), static=True)
+        verdicts = {vd.view: vd.verdict for vd in getattr(report, "verdicts", ())}
+        changed = [v for v in range(after.num_views) if v != ref and verdicts.get(v) != "OK"
+                   and (rot_deg[v] > 0 or pos_mm[v] > 0)]
+        # the caption (the arrows' factor) centred below the rig, then the changed views, largest change first
+        frame = rig_frame(self._eye_calib or before)
+        anchors = np.vstack([frame.caption_anchor(), start + 0.45 * move * scale])  # rerun: 0.45 along an arrow
+        texts = [f"change arrows x{scale:g} (reference {after.grid.name(ref)})", *labels]
+        order = [0, *(1 + v for v in sorted(changed, key=lambda v: (-rot_deg[v], -pos_mm[v])))]
+        shown = spaced_labels(frame, anchors, texts, order)
+        radii = [0.0 if i == 0 else radius for i in shown]  # the caption's anchor is no point of the scene
+        self.rec.log("world/change/labels", rr.Points3D(anchors[shown], labels=[texts[i] for i in shown],
+                                                        colors=CHANGE_COLOUR, radii=radii, show_labels=True),
                      static=True)
 
     def boards(self, ref_T_board: np.ndarray, object_points_m: np.ndarray) -> None:  # noqa: N803
@@ -177,6 +228,8 @@ class SceneLog:
             m = valid[v] & np.all(np.isfinite(observed[v]), axis=-1) & np.all(np.isfinite(projected[v]), axis=-1)
             intr = calib.intrinsics[v]
             obs, proj = self._shown_px(v, observed[v][m], intr), self._shown_px(v, projected[v][m], intr)
+            inside = self._inside(v, obs, proj)
+            obs, proj = obs[inside], proj[inside]
             res = obs - proj
             mag = np.linalg.norm(res, axis=1)
             self.rec.log(f"{base}/observed", rr.Points2D(obs, radii=-POINT_RADIUS_UI, colors=OBSERVED_COLOUR))
@@ -184,7 +237,7 @@ class SceneLog:
                                                             colors=REPROJECTED_COLOUR))
             self.rec.log(f"{base}/residuals", rr.Arrows2D(origins=proj, vectors=res * RESIDUAL_ARROW_SCALE,
                                                           colors=colour_by(mag, RESIDUAL_COLOUR_MAX_PX)))
-            out = np.zeros((0, 2)) if outliers is None else self._shown_px(v, outliers[v], intr)
+            out = np.zeros((0, 2)) if outliers is None else self._shown_outliers(v, outliers[v], intr)
             self.rec.log(f"{base}/outliers", rr.Points2D(out, radii=-1.5 * POINT_RADIUS_UI, colors=OUTLIER_COLOUR))
             if mag.size:
                 self.rec.log(f"rms/{name}", rr.Scalars(rms_of(mag)))
@@ -197,11 +250,16 @@ class SceneLog:
 
         Args:
             calib: the calibration; obs: its `lfgraph.detect.detections.Observations`; report: its `CalibrationReport`.
-            frames: per-frame images (optional: without them the 2-D views show the points only).
+            frames: per-frame images; by default the files ``obs`` was detected in (`frames_from_sources`), and
+                without those the 2-D views show the points only.
         """
         from lfgraph.core.geometry import invert_T
 
+        self.grid = self.grid or calib.grid
+        self._adopt_kind("calibrate")
         self.rig(calib, name="calibrated_rig")
+        if frames is None:
+            frames = frames_from_sources(obs)
         if report.board_T_ref is not None:
             ref_T_board = np.stack([invert_T(T) if np.all(np.isfinite(T)) else np.full((4, 4), np.nan)  # noqa: N806
                                     for T in report.board_T_ref])
@@ -230,8 +288,10 @@ class SceneLog:
             yield from ((f, None) for f in range(n))
             return
 
-        def encode(load) -> list:
+        def encode(load) -> list | None:
             images = load.result()
+            if images is None:  # a frame the source could not read (`frames_from_sources`)
+                return None
             return [jpeg_image(self._shown_image(v, images[v])) for v in range(len(images))]
 
         with ThreadPoolExecutor(1) as reader, ThreadPoolExecutor(1) as encoder:
@@ -243,10 +303,13 @@ class SceneLog:
 
     def refinement_result(self, before: Calibration, after: Calibration, report=None) -> None:
         """After `lfgraph.refine`: the input and the refined rig side by side, the change per view, the optimiser
-        summary. ``after`` is `refine`'s return value (the input itself when the refinement was not accepted)."""
+        summary. ``after`` is `refine`'s return value (the input itself when the refinement was not accepted);
+        ``report`` its report (its verdicts choose which views' changes are labelled)."""
+        self.grid = self.grid or before.grid
+        self._adopt_kind("refine")
         self.rig(before, name="input_rig")
         self.rig(after, name="refined_rig")
-        self.rig_change(before, after)
+        self.rig_change(before, after, report)
         self.optimiser_summary()
         if report is not None and not getattr(report, "accepted", True):
             self.rec.log("log", rr.TextLog("refinement not accepted: the refined rig is the input", level="WARN"))

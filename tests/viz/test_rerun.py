@@ -22,10 +22,13 @@ STDOUT_CLOSED_S = 120  # seconds: the command must end by itself once its reader
 CORNERS = 7 * 5
 RDF = [3, 2, 5]  # rerun's ViewDir codes of Right, Down, Forward (OpenCV camera axes)
 FRAMES = 10
-EYE_RIG_SIZES = 10  # the default 3-D eye is closer than this many rig sizes to the rig's centre
+RERUN_FOV_Y_DEG = 55.0  # the vertical field of view of rerun's 3-D eye (its default; a blueprint does not set it)
+VIEW_ASPECT = 1.5  # width / height of the default layouts' 3-D view (measured on the screenshots, 1400x860 window)
+RIG_MIN_WIDTH_SHARE = 1 / 3  # the rig spans at least this share of the 3-D view's width (issue 40: ~1/20)
 RMS_CHART_REL = 0.1  # the RMS chart (graph error, priors included) against the stage's own RMS of the tracks
 JPEG_CORNER_TOLERANCE_PX = 0.5  # median gap of OpenCV's corners (no sub-pixel step) on the JPEG to the logged ones
 
+MAX_DECADES = 3  # the LM error chart's bars: decades fallen since the stage began, up to this many
 CHANGE_LABEL_CHARS = 40  # a view's change label in the 3-D view stays about this short (readable on a 5x5)
 
 
@@ -42,16 +45,15 @@ def read_rrd(path, index):
 
 
 def read_blueprint(path, eye: list | None = None):
-    """The default blueprint of a recording — the last one sent: a logger re-sends it with the 3-D eye on the rig
-    once the rig is known — as [(view class, origin, name)] and the time panel's timeline; ``eye`` (a list) gets
-    the 3-D eye's (position, look target) when there is one."""
+    """The layout of a file recording — it holds exactly one: the logger sends it when it closes, knowing what was
+    recorded and the rig (a second blueprint sent without being made active is one the viewer never shows) — as
+    [(view class, origin, name)] and the time panel's timeline; ``eye`` (a list) gets the 3-D eye's (position,
+    look target, up) when there is one."""
     reader = RrdReader(path)
     stores = reader.blueprints()
-    with_eye = [s for s in stores if any("EyeControls3D:position" in c.to_record_batch().schema.names
-                                         for c in reader.stream(store=s))]
-    store = (with_eye or stores)[-1]
+    assert len(stores) == 1, f"{path}: {len(stores)} blueprints"
     views, timeline = [], None
-    for chunk in reader.stream(store=store):
+    for chunk in reader.stream(store=stores[0]):
         batch = chunk.to_record_batch()
         names = batch.schema.names
         if "ViewBlueprint:class_identifier" in names:
@@ -61,9 +63,41 @@ def read_blueprint(path, eye: list | None = None):
         if "TimePanelBlueprint:timeline" in names:
             timeline = batch.column("TimePanelBlueprint:timeline").to_pylist()[0][0]
         if eye is not None and "EyeControls3D:position" in names:
-            eye.append((np.array(batch.column("EyeControls3D:position").to_pylist()[0][0]),
-                        np.array(batch.column("EyeControls3D:look_target").to_pylist()[0][0])))
+            eye.append(tuple(np.array(batch.column(f"EyeControls3D:{c}").to_pylist()[0][0])
+                             for c in ("position", "look_target", "eye_up")))
     return views, timeline
+
+
+def view_share(eye, points):
+    """(share of the 3-D view's width, of its height) that ``points`` span as rerun's eye ``eye`` (position, look
+    target, up) draws them in a view of `VIEW_ASPECT` (1 = edge to edge), and how far the furthest of them lies from
+    the centre (1 = on an edge, more: outside the view)."""
+    position, target, up = eye
+    forward = (target - position) / np.linalg.norm(target - position)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    rel = np.asarray(points) - position
+    depth = rel @ forward
+    assert np.all(depth > 0), "rig points behind the eye"
+    tan_v = np.tan(np.radians(RERUN_FOV_Y_DEG) / 2)
+    x = rel @ right / depth / (tan_v * VIEW_ASPECT)  # -1 .. 1 across the view
+    y = rel @ up / depth / tan_v
+    return (x.max() - x.min()) / 2, (y.max() - y.min()) / 2, max(np.abs(x).max(), np.abs(y).max())
+
+
+def stream_rows(path, entity: str, column: str):
+    """[(frame, value)] of one entity's column in the order it was logged (rerun's row ids), every row kept."""
+    rows = []
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        meta = batch.schema.metadata or {}
+        if meta.get(b"rerun:entity_path", b"").decode() != entity or column not in batch.schema.names:
+            continue
+        ids = batch.column("rerun.controls.RowId").to_pylist()
+        frames = batch.column("frame").to_pylist() if "frame" in batch.schema.names else [None] * len(ids)
+        rows += zip(ids, frames, batch.column(column).to_pylist(), strict=True)
+    return [(f, v) for _, f, v in sorted(rows, key=lambda r: r[0])]
 
 
 def last_per_frame(rows, column):
@@ -131,22 +165,26 @@ def test_calibrate_recording(calibrated):
     # optimiser: error and RMS are separate, named series and bar charts with one bar per iteration
     assert static["/optimizer/error:SeriesLines:names"][0] != static["/optimizer/rms_px:SeriesLines:names"][0]
     assert static["/optimizer/error:SeriesLines:colors"][0] != static["/optimizer/rms_px:SeriesLines:colors"][0]
-    assert len(static["/optimizer_summary/rms_px:BarChart:abscissa"][0][0]["buffer"]) == calib.metrics["iterations"] > 0
+    # one chart per stage: a calibration's one optimisation is named after the command
+    charts = [c for c in columns if c.startswith("/optimizer_summary/rms_px/") and c.endswith(":BarChart:values")]
+    assert charts == ["/optimizer_summary/rms_px/calibrate:BarChart:values"]
+    bars = static["/optimizer_summary/rms_px/calibrate:BarChart:abscissa"][0][0]["buffer"]
+    assert len(bars) == calib.metrics["iterations"] > 0
     _, _, by_iteration = read_rrd(rrd, "iteration")
     steps = [x for x in by_iteration["/optimizer/error:Scalars:scalars"] if x is not None]
     assert len(steps) == calib.metrics["iterations"]
 
 
-def test_each_frame_shows_its_own_corners_on_its_own_image(calibrated):
+def assert_corners_on_own_images(rrd, calib) -> None:
     """The corners logged on a frame are where OpenCV finds the board in the image logged on that frame."""
     import cv2
 
-    rrd, calib = calibrated
     _, _, rows = read_rrd(rrd, "frame")
     checked = 0
     for v in range(calib.num_views):
         name = calib.grid.name(v)
         images = last_per_frame(rows, f"/views/{name}/image:EncodedImage:blob")
+        assert sorted(images) == list(range(FRAMES)), name  # every frame has its images
         observed = last_per_frame(rows, f"/views/{name}/observed:Points2D:positions")
         for f, blob in images.items():
             image = cv2.imdecode(np.asarray(blob[0], dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
@@ -158,6 +196,31 @@ def test_each_frame_shows_its_own_corners_on_its_own_image(calibrated):
             assert np.median(gap_px) < JPEG_CORNER_TOLERANCE_PX, (name, f)  # another frame's board: tens of px
             checked += 1
     assert checked >= FRAMES  # most view-frames show a whole board
+
+
+def test_each_frame_shows_its_own_corners_on_its_own_image(calibrated):
+    assert_corners_on_own_images(*calibrated)
+
+
+@pytest.mark.slow
+def test_api_calibration_records_its_images_and_layout(board_capture, tmp_path):
+    """Issue 40: ``lf.calibrate(obs, observer=rec)`` recorded no image. The logger, given neither grid, kind nor
+    frames, finds the images in the files the corners were detected in, each frame's own, and the recording opens
+    in calibrate's layout with the eye on the calibrated rig."""
+    import lfgraph as lf
+    from lfgraph.viz import RerunLogger
+
+    capture = lf.open_capture(board_capture, lf.ViewGrid(2, 2, 0))
+    obs, _ = lf.detect_capture(capture, lf.BoardSpec.parse("7x5", 15.0), jobs=1, progress=False)
+    rrd = tmp_path / "api.rrd"
+    with RerunLogger.to_file(rrd) as rec:
+        calib, _ = lf.calibrate(obs, observer=rec)
+    assert_corners_on_own_images(rrd, calib)
+    eye = []
+    views, timeline = read_blueprint(rrd, eye)
+    assert timeline == "frame" and ("TextLog", "log") in {(k, o) for k, o, _ in views}
+    width, _, reach = view_share(eye[0], calib.ref_T_view[:, :3, 3])
+    assert width >= RIG_MIN_WIDTH_SHARE and reach <= 1, (width, reach)
 
 
 def test_calibrate_blueprint(calibrated):
@@ -243,17 +306,47 @@ def test_refine_recording(scene, tmp_path):
     # the measurement sigma (~0.05 px, which plotted 4.30 for 0.215 px)
     rms = [x[0] for x in by_iteration["/optimizer/rms_px:Scalars:scalars"] if x is not None]
     assert rms[-1] == pytest.approx(m["stages"][-1]["rms_after_px"], rel=RMS_CHART_REL)
+    # the error chart: one chart per stage name (the legend names them), a bar per iteration, 0..3 decades
+    stages = {c.split("/")[3].split(":")[0] for c in columns if c.startswith("/optimizer_summary/error_decades/")}
+    assert stages == {st["name"] for st in m["stages"]}, stages
+    decades = np.concatenate([static[f"/optimizer_summary/error_decades/{name}:BarChart:values"][0][0]["buffer"]
+                              for name in stages])
+    assert len(decades) == m["total_iterations"] and decades.min() >= 0 and decades.max() <= MAX_DECADES
     eye = []
     views, timeline = read_blueprint(rrd, eye)
     assert timeline == "frame"
     assert ("TextLog", "optimizer/stages") in {(k, o) for k, o, _ in views}
-    # the 3-D view opens on the rig (not on landmarks metres away): it looks at the rig's centre from a few rig sizes
-    (position, target), = eye
-    centres = original.ref_T_view[:, :3, 3]  # the first rig logged: the input
-    np.testing.assert_allclose(target, centres.mean(axis=0), atol=1e-6)
-    size = np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1))
-    assert np.linalg.norm(position - target) < EYE_RIG_SIZES * size
+    # the 3-D view opens on the rig (not on landmarks metres away): the input rig (the first logged) fills the view
+    width, _, reach = view_share(eye[0], original.ref_T_view[:, :3, 3])
+    assert width >= RIG_MIN_WIDTH_SHARE and reach <= 1, (width, reach)
+    assert np.linalg.norm(eye[0][1] - eye[0][0]) < np.linalg.norm(landmarks[-1], axis=1).min()
     assert_every_view_has_data(views, columns)
+
+
+@pytest.mark.slow
+def test_api_refinement_opens_in_refine_layout_and_never_pairs_frames(scene, tmp_path):
+    """Issue 40: the README's ``RerunLogger.to_file(path, grid)`` around ``lf.refine`` opened calibrate's layout
+    (no stages panel). The layout follows the run. And while a recording loads, a frame's images never show the
+    last frame's tracks: the points are emptied with the images, before the frame's first stage ends."""
+    import lfgraph as lf
+    from lfgraph.viz import RerunLogger
+
+    calib = lf.Calibration.load(scene / "original.json")
+    capture = lf.open_capture(scene, calib.grid)
+    rrd = tmp_path / "api.rrd"
+    with RerunLogger.to_file(rrd, calib.grid) as rec:
+        lf.refine(calib, capture.frames(), observer=rec)
+    eye = []
+    views, _ = read_blueprint(rrd, eye)
+    assert ("TextLog", "optimizer/stages") in {(k, o) for k, o, _ in views}
+    width, _, reach = view_share(eye[0], calib.ref_T_view[:, :3, 3])
+    assert width >= RIG_MIN_WIDTH_SHARE and reach <= 1, (width, reach)
+    observed = stream_rows(rrd, "/views/r01_c01/observed", "Points2D:positions")
+    first_at = {}
+    for f, points in observed:
+        first_at.setdefault(f, points)
+    assert sorted(first_at) == [0, 1] and first_at[1] == []  # frame 1 starts empty...
+    assert len([p for f, p in observed if f == 1][-1]) > 0  # ... and ends with its own tracks
 
 
 def test_rectify_recording(scene, tmp_path):
@@ -305,6 +398,15 @@ def test_blueprint_kinds_are_checked():
 
     with pytest.raises(ValueError, match="unknown blueprint"):
         default_blueprint(ViewGrid(2, 2, 0), "plot")
+
+
+def test_a_logger_of_an_unknown_kind_fails_at_once_and_leaves_nothing(tmp_path):
+    from lfgraph.core.grid import ViewGrid
+    from lfgraph.viz import RerunLogger
+
+    with pytest.raises(ValueError, match="unknown blueprint"):
+        RerunLogger.to_file(tmp_path / "x.rrd", ViewGrid(2, 2, 0), "plot")
+    assert not list(tmp_path.iterdir())
 
 
 
