@@ -146,3 +146,75 @@ def test_a_killed_run_releases_a_caller_that_reads_its_pipes(command, data, tmp_
         assert _wait_session_gone(proc.pid) == []
     finally:
         _end_session(proc)
+
+
+# ------------------------------------------------------------------------------------------------ Ctrl-C
+@pytest.mark.slow
+@pytest.mark.parametrize(("command", "when"), [("calibrate", "server"), ("calibrate", "workers"), ("calibrate", 1.0),
+                                               ("rectify", "workers"), ("synth", "workers")])
+def test_ctrl_c_is_a_clean_stop_at_any_instant(command, when, data, tmp_path):
+    """SIGINT to the process group, as a terminal sends it, as the fork server starts (it was loading its modules and
+    printed a traceback; the run said "internal error"), as the workers start (one unpickling its task printed a
+    traceback), or while they work: exit 130 and one line, nothing new on disk, no process left. ``synth`` replaces
+    an earlier set (``--overwrite``), which must be left as it was."""
+    args = _argv(command, data)
+    if command == "synth":
+        done = _lfgraph([*args[:-2], "--frames", "2", "--jobs", "1", "--quiet"], tmp_path)
+        assert done.returncode == 0, done.stderr
+        args = [*args, "--overwrite"]
+    before = _listing(tmp_path)
+    proc = _start(args, tmp_path)
+    try:
+        if isinstance(when, str):
+            _wait_for(proc, when)
+        else:
+            time.sleep(when)
+        assert proc.poll() is None, "the run ended before Ctrl-C"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=RUN_S)
+        text = err.decode()
+        assert proc.returncode == EXIT_INTERRUPTED and "Traceback" not in text, text
+        assert text.strip().splitlines()[-1] == "lfgraph: interrupted"
+        assert _listing(tmp_path) == before  # nothing half-written, the earlier synthetic set untouched
+        assert _wait_session_gone(proc.pid) == []
+    finally:
+        _end_session(proc)
+
+
+# ------------------------------------------------------------------------------------------------ standard streams
+def _closed(*fds: int):
+    def close() -> None:
+        for fd in fds:
+            os.close(fd)
+    return close
+
+
+@pytest.mark.slow
+def test_closed_standard_streams_are_not_an_error(data, tmp_path):
+    """``2>&-`` and ``>&- 2>&-`` (some service managers run programs so): the work is done, exit 0 (was: exit 4
+    "internal error": the progress bar wrote to a stream Python had set to None)."""
+    runs = [(["calibrate", data / "cb", *BOARD, "--jobs", "2", "-o", "o.json"], (2,), "o.json"),
+            (["synth", "checkerboard", "s", "--scene", "small-2x2", "--frames", "2", "--jobs", "2"], (1, 2),
+             "s/truth.json")]
+    for args, fds, output in runs:
+        proc = _start(args, tmp_path, stdout=None, stderr=None, preexec_fn=_closed(*fds))
+        try:
+            assert proc.wait(RUN_S) == 0, args
+        finally:
+            _end_session(proc)
+        assert (tmp_path / output).is_file()
+
+
+@pytest.mark.slow
+def test_a_reader_that_goes_away_ends_the_run_with_141_and_no_outputs(data, tmp_path):
+    """``lfgraph -v calibrate ... 2>&1 | head -c 50``: exit 141 (128 + SIGPIPE, as a program a closed pipe ends),
+    nothing more written, and none of the run's outputs (was: exit 1 with no message)."""
+    proc = _start(["-v", *_argv("calibrate", data)], tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        head = proc.stdout.read(50)
+        proc.stdout.close()  # the reader goes away
+        assert len(head) == 50 and proc.wait(RUN_S) == EXIT_READER_GONE
+    finally:
+        _end_session(proc)
+    assert _listing(tmp_path) == set()
+    assert _wait_session_gone(proc.pid) == []
