@@ -6,13 +6,14 @@ import hashlib
 import json
 import logging
 import os
+import stat
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from lfgraph.core.files import atomic_path
+from lfgraph.core.files import OutputError, atomic_path
 from lfgraph.core.grid import ViewGrid
 from lfgraph.core.parallel import run_tasks
 from lfgraph.detect.board import BoardSpec
@@ -266,9 +267,30 @@ def _cache_key(capture: CaptureSet, board: BoardSpec) -> str:
     return hashlib.sha256(json.dumps(spec).encode()).hexdigest()
 
 
-def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray | None:
+def _open_cache(path: Path) -> int | None:
+    """A read-only descriptor of the cache ``path`` when it is a regular file (or a link to one), else None with a
+    warning. Anything else is never opened (a FIFO put in its place blocked ``calibrate`` forever, a device would be
+    read without end); the check is made again on the open file, which is opened without blocking."""
     try:
-        with np.load(path) as data:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK) if stat.S_ISREG(os.stat(path).st_mode) else None
+    except OSError as exc:
+        logging.getLogger("lfgraph").warning(f"{path}: unreadable detection cache ({exc.strerror}); detecting again")
+        return None
+    if fd is not None and stat.S_ISREG(os.fstat(fd).st_mode):
+        return fd
+    if fd is not None:
+        os.close(fd)
+    logging.getLogger("lfgraph").warning(f"{path}: the detection cache is not a regular file (a FIFO, device or "
+                                         f"socket); ignored: detecting again, without replacing it")
+    return None
+
+
+def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray | None:
+    fd = _open_cache(path)
+    if fd is None:
+        return None
+    try:
+        with os.fdopen(fd, "rb") as fh, np.load(fh) as data:
             if str(data["key"]) != key or data["corners_px"].shape != shape:
                 return None
             return np.array(data["corners_px"])
@@ -277,6 +299,16 @@ def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray | No
         logging.getLogger("lfgraph").warning(f"{path}: unreadable detection cache ({type(exc).__name__}: {exc}); "
                                              f"detecting again")
         return None
+
+
+def _write_cache(path: Path, key: str, corners: np.ndarray) -> None:
+    """Write the cache atomically; never over anything but a regular file (`atomic_path`), and a folder that cannot
+    be written only costs the next run a re-detection."""
+    try:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, key=np.array(key), corners_px=corners)
+    except (OSError, OutputError):
+        pass
 
 
 def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = None, progress: bool = True,
@@ -304,7 +336,7 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
     shape = (capture.grid.num_views, len(capture), board.num_corners, 2)
     cache_path = capture.root / CACHE_NAME
     key = _cache_key(capture, board) if cache else ""
-    corners = _read_cache(cache_path, key, shape) if cache and cache_path.exists() else None
+    corners = _read_cache(cache_path, key, shape) if cache and os.path.lexists(cache_path) else None
     from_cache = corners is not None
     if corners is None:
         check_board_size(capture, board)
@@ -314,11 +346,7 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
         if board.kind != "charuco":  # wide (fisheye) views: boards the first pass missed, looked for again
             corners = _wide_pass(capture, board, corners, jobs, progress)
         if cache:
-            try:
-                with atomic_path(cache_path) as tmp, open(tmp, "wb") as fh:
-                    np.savez_compressed(fh, key=np.array(key), corners_px=corners)
-            except OSError:
-                pass  # a read-only input folder only costs the next run a re-detection
+            _write_cache(cache_path, key, corners)
     valid = np.all(np.isfinite(corners), axis=-1)
     sources = tuple(tuple("(missing)" if p is None else str(p) for p in files) for files in capture.files)
     obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources,

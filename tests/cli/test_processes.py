@@ -218,3 +218,20 @@ def test_a_reader_that_goes_away_ends_the_run_with_141_and_no_outputs(data, tmp_
         _end_session(proc)
     assert _listing(tmp_path) == set()
     assert _wait_session_gone(proc.pid) == []
+
+
+# ------------------------------------------------------------------------------------------------ FIFOs
+@pytest.mark.slow
+def test_a_fifo_in_place_of_the_detection_cache_is_never_read(data, tmp_path):
+    """A FIFO as ``INPUT/.lfgraph-detections.npz`` blocked ``calibrate`` for good (nobody writes it): it is ignored
+    with a warning, and neither read nor replaced."""
+    capture = tmp_path / "cb"
+    capture.mkdir()
+    for frame in sorted((data / "cb").iterdir())[:8]:
+        if frame.is_dir():
+            (capture / frame.name).symlink_to(frame)
+    cache = capture / ".lfgraph-detections.npz"
+    os.mkfifo(cache)
+    done = _lfgraph(["calibrate", capture, *BOARD, "--jobs", "1", "--quiet", "-o", tmp_path / "o.json"], tmp_path)
+    assert done.returncode == 0 and "not a regular file" in done.stderr, done.stderr
+    assert cache.is_fifo() and (tmp_path / "o.json").is_file()
