@@ -45,6 +45,7 @@ def _board_and_config(args: argparse.Namespace):
     from lfgraph.core.grid import ViewGrid
     from lfgraph.detect.board import BoardSpec
     from lfgraph.pattern import CalibrateConfig
+    from lfgraph.pattern.design_check import order_permutation
     from lfgraph.pattern.lenses import resolve_lenses
 
     try:
@@ -70,8 +71,10 @@ def _board_and_config(args: argparse.Namespace):
         grid = ViewGrid(args.grid[0], args.grid[1], args.reference)
         config = CalibrateConfig(method=args.method, init=args.init, focal_px=args.focal_px, pitch_mm=args.pitch_mm,
                                  robust=args.robust, tangential=args.tangential, board_sigma_mm=args.board_sigma_mm,
-                                 lens=args.lens, screen=not args.no_screen)
+                                 lens=args.lens, screen=not args.no_screen, check_grid=not args.no_grid_check)
         resolve_lenses(config.lens, grid)  # a bad --lens is refused before detection
+        if args.view_order:  # ... and a bad --view-order
+            order_permutation(grid, args.view_order.split(","))
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return board, grid, config
@@ -100,6 +103,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     from lfgraph.cli.tables import calibration_report_text
     from lfgraph.pattern import calibrate
+    from lfgraph.pattern.design_check import order_permutation, view_order
 
     board, grid, config = _board_and_config(args)
     check_output_file(args.output)
@@ -140,10 +144,16 @@ def _calibrate(args: argparse.Namespace) -> int:
             shown = ", ".join(str(p) for p in missed[:MAX_MISSED_LISTED])
             print(f"board not found in: {shown}" + (f" and {len(missed) - MAX_MISSED_LISTED} more"
                                                     if len(missed) > MAX_MISSED_LISTED else ""))
+    frames = capture.load_frame if capture is not None else None
+    if args.view_order:  # the streams re-labelled: the grid's view i is the stream captured as names[i]
+        names = args.view_order.split(",")
+        obs, perm = view_order(obs, names), order_permutation(grid, names)
+        print(f"view order: {', '.join(f'{grid.name(i)} <- {n}' for i, n in enumerate(names) if grid.name(i) != n)}")
+        frames = None if frames is None else (lambda f, load=frames: [load(f)[p] for p in perm])
     with rerun_session(args, grid, logging, "calibrate") as logger:
         if logger is not None:
             logger.set_measurements(obs.num_observations)
-            logger.frames_source = capture.load_frame if capture is not None else None
+            logger.frames_source = frames
         # the recording hears the result through the observer (run_end): rig, boards, every frame's corners
         calib, report = calibrate(obs, config, cli_observer(logger))
         calib.save(args.output)
@@ -221,6 +231,12 @@ def add_parsers(sub: Any) -> None:
     cal.add_argument("--no-screen", action="store_true",
                      help="fit every observation by least squares (by default a robust Cauchy fit first drops the "
                           "view-frames the rig cannot explain, naming them)")
+    cal.add_argument("--view-order", metavar="NAME,NAME,...",
+                     help="the true order of swapped streams: for each view of the grid, row-major, the name its "
+                          "images were captured under, e.g. r00_c01,r00_c00,r01_c00,r01_c01 (cables 1 and 2 swapped)")
+    cal.add_argument("--no-grid-check", action="store_true",
+                     help="accept a result that contradicts the grid (views off the grid, at one place, swapped): "
+                          "for a rig that is deliberately no grid; mirrored views are refused regardless")
     cal.add_argument("--lens", default="auto", metavar="MODEL[,VIEW=MODEL...]",
                      help="lens model: auto (default: per view, the model that predicts held-out frames best), "
                           "radtan, fisheye or unified (fitted only when named); per view e.g. auto,r00_c02=fisheye")

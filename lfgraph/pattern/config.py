@@ -50,6 +50,9 @@ class CalibrateConfig:
         lens: each view's lens model: ``"auto"`` (default: per view, the model that predicts held-out frames best),
             ``"radtan"`` or ``"fisheye"`` for every view, or per view: ``"auto,r00_c02=fisheye"`` or a mapping
             ``{"r00_c02": "fisheye"}`` (views by name or index; the others auto).
+        check_grid: hold the result against its grid (`lfgraph.pattern.design_check`): a mirrored view, two views
+            at one place (a duplicated stream), views each at the other's place (swapped cables) or off the grid are
+            refused by name; False for a rig that is deliberately no grid (it still may not be mirrored).
     """
 
     method: Method | str = Method.JOINT
@@ -65,6 +68,7 @@ class CalibrateConfig:
     graph_hooks: tuple[Callable, ...] = ()
     lens: str | Mapping[str | int, str] = "auto"
     screen: bool = True
+    check_grid: bool = True
 
     def __post_init__(self) -> None:
         for name, kind in (("method", Method), ("init", Init)):

@@ -17,7 +17,9 @@ from lfgraph.detect.detections import BoardObservations
 from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
+from lfgraph.pattern.design_check import grid_problems, mirrored_views
 from lfgraph.pattern.initial import (
+    CalibrationInputError,
     check_observations,
     design_initial,
     drop_view_frames,
@@ -227,6 +229,19 @@ def _result(obs: BoardObservations, method, init, paper, joint, intrinsics, ref_
     return calib, report
 
 
+def _held_against_the_grid(obs: BoardObservations, ref_T_view: np.ndarray, config: CalibrateConfig,  # noqa: N803
+                           say: Observer) -> list[str]:
+    """Refuse a calibration that contradicts its grid (`grid_problems`, unless ``config.check_grid`` is off);
+    returns its notes as warnings."""
+    errors, notes = grid_problems(obs.grid, ref_T_view)
+    if errors and config.check_grid:
+        raise CalibrationInputError("; ".join(errors) + " (a rig that is deliberately no grid: check_grid=False, "
+                                    "--no-grid-check)")
+    for note in notes:
+        say.log(note)
+    return errors + notes
+
+
 def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
               observer: Observer | None = None) -> tuple[Calibration, CalibrationReport]:
     """Calibrate the array from board observations.
@@ -268,6 +283,9 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         obs, paper, dropped = _paper_route(obs, lenses, say, keep=method != Method.PAPER and _screens(config))
         seconds["paper"] = time.perf_counter() - t0
         warnings += dropped + list(paper.warnings)
+        mirrored = mirrored_views(obs, paper.view_T_board, lenses)
+        if mirrored:
+            raise CalibrationInputError("; ".join(mirrored))
         say.log(f"paper route: E_mono {paper.e_mono_px:.4f} px, E_PnP "
             f"{'-' if paper.e_pnp_px is None else f'{paper.e_pnp_px:.4f}'} px ({seconds['paper']:.1f} s)")
     joint = None
@@ -290,6 +308,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
         warnings += _weak_view_warnings(obs, joint)
         res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
         boards = joint.board_T_ref
+    warnings += _held_against_the_grid(obs, ref_T_view, config, say)
     calib, report = _result(obs, method, init, paper, joint, intrinsics, ref_T_view, boards, res, warnings, seconds,
                             choice)
     tell(say, "run_end", "calibrate", None, calib, report, obs)  # e.g. a rerun recording shows the result
