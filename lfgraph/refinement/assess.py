@@ -14,11 +14,15 @@ The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`
    views, predicts its left-out tracks better than the input (``min_improvement``) and not far worse than the fit
    predicts its own (``HELDOUT_CONSISTENCY``); a fit that leaves more than ``MAX_TRACK_SIGMA_PX`` has fitted
    mismatches and changes nothing.
+
+Every gate judges by the noise model the fit ran with: under a robust kernel the measurement sigma is the residuals'
+robust scale (`lfgraph.refinement.fit.fit_sigma`), the held-out test and the another-camera test compare the
+kernel's cost (`gate_rms`; the latter on the same tracks), and a refusal names wrong matches when the residuals'
+tail says so (`outlier_evidence`). Under the Gaussian model each is least squares, as it always was.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +30,7 @@ import numpy as np
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import SilentObserver
 from lfgraph.refinement.config import RefineConfig
-from lfgraph.refinement.fit import fit_auto, fit_tracks
+from lfgraph.refinement.fit import fit_auto, gate_rms, has_kernel, informative
 from lfgraph.refinement.posterior import (
     GROUPS,
     ROTATION,
@@ -40,13 +44,16 @@ from lfgraph.refinement.posterior import (
     restricted,
 )
 from lfgraph.refinement.priors import input_sigmas, view_priors
-from lfgraph.refinement.triangulate import finite_rms, reprojection_errors, triangulate_dlt
+from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.verdicts import (
     MAX_TRACK_SIGMA_PX,
     MIN_TRACK_RMS_PX,
     Decision,
+    OutlierEvidence,
     ViewVerdict,
     data_needs,
+    intrinsics_mismatch,
+    refusal_cause,
     verdict_of,
     view_sigmas,
 )
@@ -57,11 +64,7 @@ HELDOUT_CONSISTENCY = 10.0  # held-out RMS of the candidate at most this x the f
 # legitimate thin fits predicted held-out tracks at up to ~5x (one frame of a 3x3 rig: 0.40 px vs 0.08 px); fits of
 # mismatches at 17-39x (keyboard textures in benchmarks/sweep.py)
 # ... floored at MIN_TRACK_RMS_PX; a refit leaving more than MAX_TRACK_SIGMA_PX has fitted mismatches (verdicts)
-INTRINSICS_CHECK_SIGMA_PX = 0.2  # px per coordinate: a poses-only fit about to change views that leaves more than
-# this is compared with a fit whose intrinsics are free too (rendered knocks leave 0.03-0.1 px; another unit's
-# calibration of the same model 0.33 px)
-INTRINSICS_MISMATCH_RATIO = 0.5  # ... other intrinsics explain the tracks when that fit's RMS is below this share of
-# the poses-only fit's: another unit 0.27-0.29; the own unit knocked (small-2x2, sweep seeds 3, 16, 17, 59) 1.2-2.7
+
 
 
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
@@ -117,9 +120,12 @@ class Assessment:
     """The accepted calibration and how it was decided.
 
     ``heldout_before_px`` / ``heldout_after_px``: RMS reprojection of the held-out folds' tracks with the input and
-    with the refits that did not see them (NaN when no change was tested); ``significant``: views whose change was
-    significant; ``fit``: the full MAP fit (`lfgraph.refinement.fit.FitResult`); ``intrinsics_mismatch``: (RMS with
-    the poses alone, with the intrinsics free too) px when other intrinsics explained the tracks far better."""
+    with the refits that did not see them (NaN when no change was tested; under a robust kernel the kernel's cost as
+    an RMS, `gate_rms`); ``significant``: views whose change was significant; ``fit``: the full MAP fit
+    (`lfgraph.refinement.fit.FitResult`); ``intrinsics_mismatch``: (RMS with the poses alone, with the intrinsics
+    free too) px when other intrinsics explained the tracks far better; ``outliers``: the evidence of wrong matches
+    in the fit's residuals when nothing changed; ``blocked``: whether significant changes were kept out by a
+    mismatch gate (another camera, wrong matches, tracks no rig fits) rather than by the held-out test."""
 
     calib: Calibration
     verdicts: tuple[ViewVerdict, ...]
@@ -130,6 +136,8 @@ class Assessment:
     fit: object
     posterior: Posterior | None
     intrinsics_mismatch: tuple[float, float] | None = None
+    outliers: OutlierEvidence | None = None
+    blocked: bool = False
 
 
 def _change_vector(before: Calibration, after: Calibration, v: int) -> np.ndarray:
@@ -222,7 +230,9 @@ def heldout_test(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, sig_vi
                  obs) -> tuple[Calibration, bool, bool, float, float, float]:
     """The candidate (the input with the views ``sig_views`` from the full fit) and its held-out test, which
     scores what is written: each fold's refit, applied to the same views, on its left-out tracks. Returns
-    (candidate, accepted, inconsistent, held-out RMS of the input, of the candidate, the fit's own RMS) (px)."""
+    (candidate, accepted, inconsistent, held-out RMS of the input, of the candidate, the fit's own RMS) (px): RMS
+    under the Gaussian model, the kernel's cost as an RMS (`gate_rms`) under a robust one, where a candidate must
+    also be strictly better (a bounded kernel scores two far-off calibrations alike)."""
     if not sig_views:
         return calib, False, False, float("nan"), float("nan"), float("nan")
     candidate = combine(calib, fit.calib, sig_views)
@@ -231,16 +241,17 @@ def heldout_test(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, sig_vi
                for fc, t in zip(fold_calibs, fold_tests, strict=True)]
     if not e_before:
         return candidate, True, False, float("nan"), float("nan"), float("nan")
-    before = finite_rms(np.concatenate(e_before, axis=1))
-    after = finite_rms(np.concatenate(e_after, axis=1))
-    accepted = bool(after > 0 and before / after >= config.min_improvement)
+    robust = has_kernel(fit.noise)
+    before = gate_rms(np.concatenate(e_before, axis=1), fit.noise, fit.sigma_px)
+    after = gate_rms(np.concatenate(e_after, axis=1), fit.noise, fit.sigma_px)
+    accepted = bool(after > 0 and before / after >= config.min_improvement and (after < before or not robust))
     # the candidate must predict tracks it did not see about as well as it fits its own: far worse means the folds
     # disagree (mismatches on a repeated pattern, too few tracks), whatever the input scores
-    fit_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
+    fit_rms = gate_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid), fit.noise, fit.sigma_px)
     inconsistent = bool(after > HELDOUT_CONSISTENCY * max(fit_rms, MIN_TRACK_RMS_PX))
     accepted &= not inconsistent
-    obs.log(f"held-out tracks ({len(e_before)} folds): RMS {before:.4f} px with the input, {after:.4f} px with the "
-            f"candidate refitted without them (its own tracks {fit_rms:.4f} px): "
+    obs.log(f"held-out tracks ({len(e_before)} folds): {'robust ' * robust}RMS {before:.4f} px with the input, "
+            f"{after:.4f} px with the candidate refitted without them (its own tracks {fit_rms:.4f} px): "
             + ("accepted" if accepted else "rejected"))
     return candidate, accepted, inconsistent, before, after, fit_rms
 
@@ -268,23 +279,6 @@ def undetermined_changes(calib: Calibration, post: Posterior | None, sig_views: 
     return unsure
 
 
-def intrinsics_mismatch(calib: Calibration, px: np.ndarray, ok: np.ndarray, fit, config: RefineConfig,
-                        observer) -> tuple[float, float] | None:
-    """(RMS of the poses-only fit, RMS with the intrinsics free too) (px) when other intrinsics explain the tracks far
-    better than any poses (`INTRINSICS_MISMATCH_RATIO`): the calibration is probably another unit's, and the poses
-    would absorb its intrinsics (issue 27's trial: rotations 0.61 -> 1.17 deg, positions 0.35 -> 7.7 mm, "DRIFTED").
-    None when it does not, or when the fit freed intrinsics or left at most `INTRINSICS_CHECK_SIGMA_PX`, or for a
-    stereo pair: there the second view's pan is held (the hidden rotation gauge), so a real pan knock only a
-    principal point can absorb looks the same (sweep #101, #187: pairs knocked 1.4-1.8 deg)."""
-    if fit.last_stage.frees_intrinsics or not fit.sigma_px > INTRINSICS_CHECK_SIGMA_PX or calib.num_views < 3:
-        return None
-    free = fit_tracks(calib, px, ok, dataclasses.replace(config, stages="points,all"), SilentObserver())
-    poses_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
-    free_rms = finite_rms(reprojection_errors(free.calib, free.points, free.pixels, free.valid))
-    observer.log(f"poses alone fit the tracks to {poses_rms:.4f} px; with the intrinsics free too, {free_rms:.4f} px")
-    return (poses_rms, free_rms) if free_rms < INTRINSICS_MISMATCH_RATIO * poses_rms else None
-
-
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
            coverage: float, frames: int, frame_of: np.ndarray | None = None,
            sigma_estimate: float | None = None) -> Assessment:
@@ -293,7 +287,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
 
     fit = fit_auto(calib, pixels, valid, config, observer, sigma_estimate=sigma_estimate)
-    post = posterior(calib, fit, config)
+    post = posterior(calib, informative(fit), config)
     n, ref = calib.num_views, calib.grid.reference
     rays = infinity_rays(calib)
     px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
@@ -335,9 +329,10 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         unsure_mismatch, sig_views = unsure_mismatch | sig_views, set()
     candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms = heldout_test(
         calib, fit, px, ok, sig_views, fold_calibs, fold_tests, config, observer)
+    foreign, outliers = refusal_cause(fit, foreign, accepted, observer)
     out = candidate if accepted else calib
     dec = Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
-                    accepted, inconsistent, heldout_before, heldout_after, fit_rms, foreign)
+                    accepted, inconsistent, heldout_before, heldout_after, fit_rms, foreign, outliers)
     written_size = change_size_px(calib, out, significant)
     own = input_sigmas(calib)
     gauge_sigma = view_priors(calib, config.drift).pose_sigmas
@@ -355,6 +350,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),
                                     1e3 * d[3:], dk, change_px, s_rot, s_pos, s_int, float(pred),
                                     int(fit.valid[v].sum()), applied, reason, needs))
-    return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post, foreign)
+    return Assessment(out, tuple(verdicts), accepted, heldout_before, heldout_after, fit.sigma_px, fit, post, foreign,
+                      outliers, bool(unsure_mismatch))
 
 

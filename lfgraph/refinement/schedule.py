@@ -254,16 +254,19 @@ def refinement_warnings(coverage: float, counts: list[dict[str, int]], dropped: 
                         f"frames' (mismatches)")
     if not result.accepted:
         b, a = result.heldout_before_px, result.heldout_after_px
-        foreign = result.intrinsics_mismatch
+        foreign, outliers = result.intrinsics_mismatch, result.outliers
         why = (f"other intrinsics explain the tracks far better than any poses ({foreign[0]:.4f} px RMS with the poses "
                f"alone, {foreign[1]:.4f} px with the intrinsics free)" if foreign is not None else
+               outliers.text() if outliers is not None and result.blocked else
                "no change was significant against its posterior sigma" if np.isnan(b) else
                f"refits did not predict held-out tracks better ({b:.4f} px input vs {a:.4f} px refined)"
                if not a < b else
                f"refits predict held-out tracks better than the input ({b:.4f} -> {a:.4f} px) but far worse than "
                f"they fit their own ({result.fit.sigma_px:.4f} px per coordinate): the frames disagree")
+        if outliers is not None and outliers.text() not in why:
+            why += f"; and {outliers.text()}"
         warnings.append(f"no view changed: {why}; the input calibration is kept")
-        if before > FOREIGN_RMS_PX:
+        if before > FOREIGN_RMS_PX and outliers is None:  # wrong matches were named: no other camera is implied
             warnings.append(f"the tracks fit the input calibration at {before:.2f} px RMS and no refit of the views' "
                             f"poses explains them consistently: is this calibration for this camera (focal length, "
                             f"principal point, lens, image size, view order)? Re-calibrate rather than refine (or, "

@@ -1,17 +1,23 @@
 """A view's verdict after a refinement (OK, DRIFTED, UNCERTAIN, REFERENCE): the decision `assess` took, the
-view's posterior sigmas and what it would need to be judged (`data_needs`); `ViewVerdict` is what a report lists."""
+view's posterior sigmas and what it would need to be judged (`data_needs`); `ViewVerdict` is what a report lists.
+And the causes a refusal names: another camera's intrinsics (`intrinsics_mismatch`) or wrong matches
+(`outlier_evidence`, `refusal_cause`), each judged under the noise model the fit ran with."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
+from lfgraph.core.observer import SilentObserver
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.refinement.config import RefineConfig
+from lfgraph.refinement.fit import fit_tracks, has_kernel, same_track_costs
 from lfgraph.refinement.posterior import Posterior, predicted_transfer_px
 from lfgraph.refinement.report import DRIFTED, OK, REFERENCE, UNCERTAIN
+from lfgraph.refinement.triangulate import RAYLEIGH_MEDIAN, finite_rms, reprojection_errors, tail_ratio
 
 MIN_TRACK_RMS_PX = 0.05  # KLT tracks are not better than this (px): the floor of a fit's own RMS
 MAX_TRACK_SIGMA_PX = 1.0  # px per coordinate: KLT tracks fit a right rig to ~0.05-0.3 px (rendered and real sets);
@@ -19,6 +25,49 @@ MAX_TRACK_SIGMA_PX = 1.0  # px per coordinate: KLT tracks fit a right rig to ~0.
 NARROW_DEPTH_RATIO = 1.5  # 90th / 10th percentile of landmark depths below this: no depth range
 COVERAGE_HINT = 0.5  # kept tracks in fewer than half of the 8x8 cells: poor coverage
 FEW_OBSERVATIONS = 100  # a view with fewer observations than this wants more texture or frames
+OUTLIER_TAIL_RATIO = 3.0  # a fit's residuals hold wrong matches when their RMS is more than this x what their median
+# implies for Gaussian noise (`tail_ratio`): a right rig's KLT tracks 1.3-1.6, another unit's calibration 1.1 (issue
+# 27's trial), 5 % wrong matches of 2-8 px on a knocked 3x3 7.7-12.6 (issue 40)
+OUTLIER_SIGMAS = 5.0  # ... and the share of residuals beyond this many robust sigmas is reported (Gaussian: 4e-6)
+INTRINSICS_CHECK_SIGMA_PX = 0.2  # px per coordinate: a poses-only fit about to change views that leaves more than
+# this is compared with a fit whose intrinsics are free too (rendered knocks leave 0.03-0.1 px; another unit's
+# calibration of the same model 0.33 px)
+INTRINSICS_MISMATCH_RATIO = 0.5  # ... other intrinsics explain the tracks when that fit's RMS is below this share of
+# the poses-only fit's: another unit 0.27-0.29; the own unit knocked (small-2x2, sweep seeds 3, 16, 17, 59) 1.2-2.7
+
+
+@dataclass(frozen=True)
+class OutlierEvidence:
+    """Why a fit's residuals are wrong matches rather than other intrinsics: their RMS, their robust sigma per
+    coordinate (median / sqrt(2 ln 2)), the RMS over what that sigma implies, and the share beyond `OUTLIER_SIGMAS`
+    robust sigmas; ``robust``: whether the fit used a robust kernel."""
+
+    rms_px: float
+    sigma_px: float
+    tail: float
+    share: float
+    robust: bool
+
+    def text(self) -> str:
+        """One line naming the cause, with the numbers and what to do."""
+        advice = ("the kernel did not keep them from the fit: a kernel that ignores far residuals (cauchy, tukey) or "
+                  "the clean stage" if self.robust else
+                  "a least-squares fit is pulled by them: a robust kernel (--robust huber, cauchy, tukey) or the clean "
+                  "stage")
+        return (f"wrong matches: {100 * self.share:.1f} % of the observations lie beyond {OUTLIER_SIGMAS:g} robust "
+                f"sigmas ({OUTLIER_SIGMAS * self.sigma_px:.2f} px) of the fit, whose RMS {self.rms_px:.3f} px is "
+                f"{self.tail:.1f}x what its median residual implies; {advice}")
+
+
+def outlier_evidence(errors: np.ndarray, robust: bool) -> OutlierEvidence | None:
+    """`OutlierEvidence` of a fit's (V, N) residuals when their tail says wrong matches (`OUTLIER_TAIL_RATIO`), else
+    None (Gaussian-like residuals, and the smooth misfit of other intrinsics)."""
+    tail = tail_ratio(errors)
+    if not tail > OUTLIER_TAIL_RATIO:
+        return None
+    e = errors[np.isfinite(errors)]
+    sigma = float(np.median(e) / RAYLEIGH_MEDIAN)
+    return OutlierEvidence(finite_rms(errors), sigma, tail, float(np.mean(e > OUTLIER_SIGMAS * sigma)), robust)
 
 
 @dataclass(frozen=True)
@@ -118,6 +167,7 @@ class Decision:
     heldout_after: float
     fit_rms: float
     foreign: tuple[float, float] | None = None  # (poses-only RMS, RMS with the intrinsics free) px: another unit's?
+    outliers: OutlierEvidence | None = None  # wrong matches named as the cause of a refusal
 
     @property
     def disagreement(self) -> float:
@@ -169,6 +219,8 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
                            f"far better than any poses ({dec.foreign[0]:.3f} px RMS with the poses alone, "
                            f"{dec.foreign[1]:.3f} px with the intrinsics free): this calibration is probably another "
                            f"camera's (re-calibrate): kept"), ()
+    if v in dec.unsure_mismatch and dec.outliers is not None:
+        return UNCERTAIN, f"a {z:.1f}-sigma change of {change_px:.2f} px, but {dec.outliers.text()}: kept", ()
     if v in dec.unsure_mismatch:
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the tracks fit no rig better than "
                            f"{fit.sigma_px:.2f} px per coordinate (> {MAX_TRACK_SIGMA_PX:g} px: mismatches on a "
@@ -192,3 +244,51 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
         return UNCERTAIN, (f"no significant change ({z:.1f} sigma) but the data leave {pred:.2f} px (1 sigma) at "
                            f"infinity undetermined: kept"), ask
     return OK, f"no significant change ({z:.1f} sigma; 1 sigma = {pred:.3f} px at infinity)", None
+
+
+def intrinsics_mismatch(calib: Calibration, px: np.ndarray, ok: np.ndarray, fit, config: RefineConfig,
+                        observer) -> tuple[float, float] | None:
+    """(RMS of the poses-only fit, RMS with the intrinsics free too) (px) when other intrinsics explain the tracks far
+    better than any poses (`INTRINSICS_MISMATCH_RATIO`): the calibration is probably another unit's, and the poses
+    would absorb its intrinsics (issue 27's trial: rotations 0.61 -> 1.17 deg, positions 0.35 -> 7.7 mm, "DRIFTED").
+    None when it does not, or when the fit freed intrinsics or left at most `INTRINSICS_CHECK_SIGMA_PX`, or for a
+    stereo pair: there the second view's pan is held (the hidden rotation gauge), so a real pan knock only a
+    principal point can absorb looks the same (sweep #101, #187: pairs knocked 1.4-1.8 deg).
+
+    Under a robust kernel both fits are scored on the same tracks (``px``, ``ok``) with the kernel's cost
+    (`same_track_costs`), the free fit run at the fit's sigma: wrong matches that a kernel weighs down are no
+    evidence of other intrinsics (issue 40: the poses-only fit scored on its tracks before the mismatch rule, the free
+    fit on those after it, 0.83 vs 0.08 px, "another camera"; on the same tracks 0.101 vs 0.085 px). Under the
+    Gaussian model the test is as it was."""
+    if fit.last_stage.frees_intrinsics or not fit.sigma_px > INTRINSICS_CHECK_SIGMA_PX or calib.num_views < 3:
+        return None
+    free_config = dataclasses.replace(config, stages="points,all")
+    if has_kernel(fit.noise):
+        free = fit_tracks(calib, px, ok, free_config, SilentObserver(), sigma_px=fit.sigma_px)
+        poses_rms, free_rms = same_track_costs([fit.calib, free.calib], px, ok, fit.noise, fit.sigma_px,
+                                               config.max_iterations)
+    else:
+        free = fit_tracks(calib, px, ok, free_config, SilentObserver())
+        poses_rms = finite_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid))
+        free_rms = finite_rms(reprojection_errors(free.calib, free.points, free.pixels, free.valid))
+    observer.log(f"poses alone fit the tracks to {poses_rms:.4f} px; with the intrinsics free too, {free_rms:.4f} px"
+                 + " (the kernel's cost as an RMS, on the same tracks)" * has_kernel(fit.noise))
+    return (poses_rms, free_rms) if free_rms < INTRINSICS_MISMATCH_RATIO * poses_rms else None
+
+
+def refusal_cause(fit, foreign: tuple[float, float] | None, accepted: bool,
+                  observer) -> tuple[tuple[float, float] | None, OutlierEvidence | None]:
+    """(another camera's evidence, wrong matches' evidence) of a refusal: the fit's own residuals are judged when
+    nothing is changed; when their tail says wrong matches (`outlier_evidence`) and the another-camera test was the
+    least-squares one (RMS of the poses-only fit's tracks before the mismatch rule against the free fit's after it,
+    which the wrong matches alone can fail: issue 40), the wrong matches are named instead. The decision is the same:
+    nothing the poses-only fit suggests is applied."""
+    if accepted:
+        return foreign, None
+    evidence = outlier_evidence(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid),
+                                has_kernel(fit.noise))
+    if evidence is not None:
+        observer.log(f"the fit's residuals: {evidence.text()}")
+        if foreign is not None and not evidence.robust:
+            return None, evidence
+    return foreign, evidence
