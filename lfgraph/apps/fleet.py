@@ -4,8 +4,8 @@ A manifest CSV names each recording (columns ``camera``, ``calibration``, ``capt
 manifest; optional ``layout``, ``max_frames``, ``max_px``, ``tolerance_px``). For each camera the drift check
 runs first; when it finds drift, the refinement runs and, when that improves the calibration, the refined
 calibration is written next to the input as a new version (``NAME.v2.json``, ``NAME.v3.json``, ...; never over
-the input, atomically). One row per camera goes into the results CSV (sorted, rewritten atomically after every
-camera; a re-run skips cameras already in it), with a verdict:
+the input, atomically, through a hidden temporary removed at once). One row per camera goes into the results CSV
+(sorted, rewritten atomically after every camera; a re-run skips cameras already in it), with a verdict:
 
 - ``OK``: the drift check finds no view DRIFTED (a change both significant and above ``tolerance_px`` at infinity,
   default 0.1 px: the rule of `lfgraph refine` and `lfgraph check`) and the reprojection RMS is <= ``max_px``;
@@ -16,9 +16,11 @@ camera; a re-run skips cameras already in it), with a verdict:
 - ``ERROR``: the recording or calibration could not be used (the message is in the row); other cameras go on.
 
 A refined version stores what it was made from (``metrics["fleet_source"]``: the input calibration's SHA-256, the
-capture, the options): a run interrupted between writing a version and writing its row is resumed by reusing that
-version, never by writing another. One run at a time writes a results file (an exclusive lock beside it,
-``.NAME.lock``); a second is refused with a message.
+capture, the options): a run killed between writing a version and writing its row is resumed by reusing that
+version, never by writing another. A run that fails (a full disk, Ctrl-C) leaves nothing new: a results file it
+created is removed, and so is every version it wrote that no row of the remaining results names. One run at a time
+writes a results file (an exclusive lock beside it, ``.NAME.lock``, removed when the run ends); a second is refused
+with a message.
 
 Results do not depend on the executor or on the order in which cameras finish (every step is deterministic), except
 the ``seconds`` column. Paths in the results are relative to the manifest's folder.
@@ -26,10 +28,12 @@ the ``seconds`` column. Paths in the results are relative to the manifest's fold
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
 import os
+import tempfile
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -38,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from lfgraph.core.files import atomic_path
+from lfgraph.core.files import default_mode, deferred_interrupt, input_problem, process_alive
 
 MANIFEST_COLUMNS = ("camera", "calibration", "capture")
 RESULT_COLUMNS = ("camera", "verdict", "rms_before_px", "rms_after_px", "max_rotation_change_deg",
@@ -75,6 +79,9 @@ def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
         ManifestError: unreadable file, missing columns, an empty or repeated camera, a bad number (named by line).
     """
     path = Path(path)
+    problem = input_problem(path)
+    if problem is not None:  # a FIFO would block the read forever
+        raise ManifestError(f"{path}: {problem}")
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -120,10 +127,15 @@ def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
     return items
 
 
+def _version_base(calibration: Path) -> str:
+    """``NAME`` of ``NAME.json`` or ``NAME.vN.json``."""
+    stem = calibration.stem
+    return stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
+
+
 def _versions(calibration: Path) -> Iterator[Path]:
     """``NAME.v2.json``, ``NAME.v3.json``, ... beside ``calibration`` (whose own version suffix is dropped)."""
-    stem = calibration.stem
-    base = stem.rsplit(".v", 1)[0] if ".v" in stem and stem.rsplit(".v", 1)[1].isdigit() else stem
+    base = _version_base(calibration)
     for n in range(2, MAX_VERSIONS):
         yield calibration.with_name(f"{base}.v{n}{calibration.suffix}")
 
@@ -161,21 +173,33 @@ def existing_version(input_path: Path, key: dict[str, Any]) -> Path | None:
 
 def _save_new_version(calib: Any, input_path: Path, key: dict[str, Any] | None = None) -> Path:
     """Write ``calib`` as the next free version, atomically and without ever replacing an existing file; with
-    ``key`` (`source_key`) stored in its metrics, and an earlier version of the same source reused."""
+    ``key`` (`source_key`) stored in its metrics, and an earlier version of the same source reused.
+
+    The text goes to a hidden temporary beside it (``.NAME.vN.json.PID.XXXX.tmp``), hard-linked to the version's
+    name (which fails when another worker took it meanwhile) and then removed: on success only the version is left.
+    """
     if key is not None:
         found = existing_version(input_path, key)
         if found is not None:
             return found
         calib = calib.replace(metrics={**dict(calib.metrics or {}), "fleet_source": key})
+    text = calib.to_json()
     for _ in range(MAX_VERSIONS):
         target = next_version(input_path)
-        with atomic_path(target.with_name(f".{target.name}.partial")) as tmp:
-            tmp.write_text(calib.to_json(), encoding="utf-8")
+        with deferred_interrupt():  # created and in the charge of the ``try`` below, or not created
+            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.{os.getpid()}.", suffix=".tmp", dir=target.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                fh.write(text)
+            os.chmod(tmp, default_mode(0o666))  # mkstemp makes it 0600
             try:
-                os.link(tmp, target)  # fails when another worker took this version meanwhile
+                os.link(tmp, target)
             except FileExistsError:
                 continue
-        return target
+            return target
+        finally:
+            with deferred_interrupt():
+                os.unlink(tmp)
     raise OSError(f"could not write a new version of {input_path}")
 
 
@@ -242,6 +266,9 @@ def run_fleet(manifest: str | os.PathLike, results_csv: str | os.PathLike, execu
               jobs: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
     """Process every camera of ``manifest`` not yet in ``results_csv``; returns all result rows.
 
+    A run that fails (any exception, Ctrl-C) leaves nothing new (`_undo`): the results file if it created it, the
+    versions it wrote that no remaining row names, its temporaries; the lock is removed in any case.
+
     Args:
         manifest: the manifest CSV (see the module docstring).
         results_csv: the results CSV, created or resumed.
@@ -249,25 +276,95 @@ def run_fleet(manifest: str | os.PathLike, results_csv: str | os.PathLike, execu
         jobs: processes / Dask workers (default: all cores).
 
     Raises:
-        ManifestError: a bad manifest; ValueError: a results CSV of another kind.
+        ManifestError: a bad manifest; ValueError: a results CSV of another kind, or another run holding it.
     """
-    import fcntl
-
     from lfgraph.apps.study import run_study
 
     items = read_manifest(manifest)
-    lock_path = Path(results_csv).with_name(f".{Path(results_csv).name}.lock")
-    with open(lock_path, "a+") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ValueError(f"{results_csv}: another fleet run is writing these results (lock {lock_path}); wait "
-                             f"for it to finish, or give this run its own results file") from None
+    results_csv = Path(results_csv)
+    with _exclusive(results_csv):
+        existed = results_csv.exists()
+        before = {v for item in items for v in _existing_versions(item.calibration)}
         try:
             return run_study(items, process_camera, results_csv, RESULT_COLUMNS, _item_rows, _row_key, executor,
                              jobs, progress)
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+        except BaseException:
+            with deferred_interrupt():
+                _undo(items, results_csv, existed, before)
+            raise
+
+
+@contextlib.contextmanager
+def _exclusive(results_csv: Path) -> Iterator[None]:
+    """Hold the results file's lock (``.NAME.lock`` beside it) for the block; refuse when another run holds it. The
+    lock file is removed at the end, before it is unlocked: a run that opened it meanwhile and then gets the lock
+    sees that the name is gone (or is another file) and locks the current one instead, so two runs never both hold
+    "the" lock."""
+    import fcntl
+
+    lock_path = results_csv.with_name(f".{results_csv.name}.lock")
+    while True:
+        with deferred_interrupt():
+            lock = open(lock_path, "a+")  # noqa: SIM115  (closed below, after the block)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            raise ValueError(f"{results_csv}: another fleet run is writing these results (lock {lock_path}); wait "
+                             f"for it to finish, or give this run its own results file") from None
+        held = os.fstat(lock.fileno())
+        with contextlib.suppress(FileNotFoundError):
+            named = os.stat(lock_path)
+            if (named.st_ino, named.st_dev) == (held.st_ino, held.st_dev):
+                break
+        lock.close()
+    try:
+        yield
+    finally:
+        with deferred_interrupt():
+            with contextlib.suppress(OSError):
+                lock_path.unlink()
+            lock.close()
+
+
+def _existing_versions(calibration: Path) -> list[Path]:
+    """The versions beside ``calibration`` (``NAME.v2.json`` ... up to the first missing one)."""
+    out = []
+    for candidate in _versions(Path(calibration)):
+        if not candidate.exists():
+            return out
+        out.append(candidate)
+    return out
+
+
+def _undo(items: Sequence[FleetItem], results_csv: Path, existed: bool, before: set[Path]) -> None:
+    """After a failed run: remove the results file if this run created it, every version this run wrote (new since
+    the run began, made from this camera's source) that no row of the remaining results names, and the temporaries
+    of its workers (they are stopped by now: their process is gone)."""
+    from lfgraph.apps.study import read_rows
+
+    if not existed:
+        results_csv.unlink(missing_ok=True)
+    try:
+        rows = read_rows(results_csv, RESULT_COLUMNS) if results_csv.exists() else []
+    except (OSError, ValueError):
+        return  # results that cannot be read: keep every version rather than guess
+    root = items[0].root  # result paths are relative to the manifest's folder
+    named = {(root / r["refined_calibration"]).resolve() for r in rows if r.get("refined_calibration")}
+    for item in items:
+        with contextlib.suppress(OSError):
+            key = source_key(item)
+            for version in _existing_versions(item.calibration):
+                if version in before or version.resolve() in named:
+                    continue
+                stored = json.loads(version.read_text(encoding="utf-8")).get("metrics", {}).get("fleet_source")
+                if stored == key:
+                    version.unlink()
+        for tmp in Path(item.calibration).parent.glob(f".{_version_base(item.calibration)}.v*.tmp"):
+            pid = tmp.name[1:-len(".tmp")].rsplit(".", 2)[-2]  # .NAME.vN.json.PID.XXXX.tmp
+            if pid.isdigit() and tmp.is_file() and not process_alive(int(pid)):
+                with contextlib.suppress(OSError):
+                    tmp.unlink()
 
 
 def _item_rows(item: FleetItem) -> set[tuple]:

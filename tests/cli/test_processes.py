@@ -7,6 +7,7 @@ temporary file and a failed one nothing new, and rotations printed to 6 decimals
 Every run is a real process (``python -m lfgraph``, the program's own entry) in a session of its own, bounded by a
 timeout, and killed with its whole session if a regression makes it hang."""
 
+import errno
 import os
 import signal
 import subprocess
@@ -235,3 +236,50 @@ def test_a_fifo_in_place_of_the_detection_cache_is_never_read(data, tmp_path):
     done = _lfgraph(["calibrate", capture, *BOARD, "--jobs", "1", "--quiet", "-o", tmp_path / "o.json"], tmp_path)
     assert done.returncode == 0 and "not a regular file" in done.stderr, done.stderr
     assert cache.is_fifo() and (tmp_path / "o.json").is_file()
+
+
+# ------------------------------------------------------------------------------------------------ fleet
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fleet")
+    done = _lfgraph(["synth", "scene", "knocked", "--scene", "small-2x2", "--frames", "2", "--seed", "2",
+                     "--shake-rot-deg", "1.0", "--shake-trans-mm", "1", "--jobs", "2", "--quiet"], root)
+    assert done.returncode == 0, done.stderr
+    (root / "manifest.csv").write_text("camera,calibration,capture,max_frames\ncam,knocked/original.json,knocked,2\n")
+    return root
+
+
+@pytest.mark.slow
+def test_a_fifo_manifest_is_refused(tmp_path):
+    manifest = tmp_path / "manifest.csv"
+    os.mkfifo(manifest)
+    done = _lfgraph(["fleet", manifest, "-o", tmp_path / "res.csv", "--quiet"], tmp_path)
+    assert done.returncode == 1 and "not a regular file" in done.stderr and manifest.is_fifo()
+    assert _listing(tmp_path) == {"manifest.csv"}
+
+
+@pytest.mark.slow
+def test_a_fleet_run_leaves_no_temporary_and_a_failed_one_nothing_new(fleet, tmp_path, monkeypatch, capsys):
+    """A successful run with a shaken camera left ``.original.v2.json.partial`` (a second link of the new version)
+    and ``.res.csv.lock``; a run whose results could not be written (a full disk) left those and the version."""
+    import shutil
+
+    from lfgraph.cli import main
+
+    work = tmp_path / "ok"
+    shutil.copytree(fleet, work)
+    done = _lfgraph(["fleet", "manifest.csv", "-o", "res.csv", "--jobs", "2", "--quiet"], work)
+    assert done.returncode == 0, done.stderr
+    assert "DRIFTED" in (work / "res.csv").read_text() and (work / "knocked" / "original.v2.json").is_file()
+    assert _listing(work) - _listing(fleet) == {"res.csv", "knocked/original.v2.json"}
+
+    work = tmp_path / "full"
+    shutil.copytree(fleet, work)
+
+    def disk_full(*_args, **_kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr("lfgraph.apps.study.write_rows", disk_full)  # lfgraph's own writer, not a library
+    code = main(["fleet", str(work / "manifest.csv"), "-o", str(work / "res.csv"), "--jobs", "1", "--quiet"])
+    assert code == 1 and "No space left" in capsys.readouterr().err
+    assert _listing(work) == _listing(fleet)
