@@ -21,6 +21,9 @@ from lfgraph.core.grid import ViewGrid
 FORMAT_NAME = "lfgraph.calibration"  # the file format's name (not a module path: files written since 0.1 carry it)
 FORMAT_VERSION = 1
 REFERENCE_POSE_TOLERANCE = 1e-9  # the reference view's pose must be the identity to this (rad, m)
+# max |R^T R - I| entry of a rotation read from a file: one printed to 6 decimals (HALCON and many tools write them
+# so) is off by up to ~3e-6; anything within this is a rotation to the file's precision (re-orthonormalised on load)
+FILE_ROTATION_TOLERANCE = 1e-4
 DEFAULT_METRICS: dict[str, Any] = {"e_mono_px": None, "e_pnp_px": None, "rig_rms_px": None}
 
 
@@ -328,10 +331,19 @@ class _Reader:
             raise self.fail(f"{w}.distortion", str(exc)) from None
         own = self.size(view.get("image_size_px", list(size)), f"{w}.image_size_px")
         R = self.matrix(self.get(view, "R_view_from_ref", w), (3, 3), f"{w}.R_view_from_ref")  # noqa: N806
-        if not is_rotation(R):
-            raise self.fail(f"{w}.R_view_from_ref", "is not a rotation matrix (R^T R must be I and det R = +1)")
+        if not is_rotation(R, FILE_ROTATION_TOLERANCE):
+            raise self.fail(f"{w}.R_view_from_ref", f"is not a rotation matrix (R^T R must be I to "
+                                                    f"{FILE_ROTATION_TOLERANCE:g} and det R = +1)")
+        R = nearest_rotation(R)  # noqa: N806
         t = self.matrix(self.get(view, "t_view_from_ref_m", w), (3,), f"{w}.t_view_from_ref_m")
         return intrinsics, own, invert_T(make_T(R, t))
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:  # noqa: N803
+    """The rotation nearest to ``R`` (Frobenius norm; SVD: U V^T), for a matrix that is one to a file's printed
+    precision (checked before: orthonormal to `FILE_ROTATION_TOLERANCE`, determinant +1)."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))  # noqa: N806
+    return U @ Vt
 
 
 def _parse(data: Any, path: str | os.PathLike | None) -> Calibration:

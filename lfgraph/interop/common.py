@@ -23,7 +23,13 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
-from lfgraph.core.calibration import REFERENCE_POSE_TOLERANCE, Calibration, CalibrationFileError
+from lfgraph.core.calibration import (
+    FILE_ROTATION_TOLERANCE,
+    REFERENCE_POSE_TOLERANCE,
+    Calibration,
+    CalibrationFileError,
+    nearest_rotation,
+)
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.files import default_mode, input_problem
 from lfgraph.core.geometry import invert_T, is_rotation, make_T
@@ -186,18 +192,19 @@ def intrinsics(path: PathLike, key: str, K: np.ndarray, dist: Sequence[float] | 
 
 
 def rotation(R: np.ndarray, path: PathLike, key: str) -> np.ndarray:  # noqa: N803
-    """``R`` (3x3) checked to be a rotation matrix; a `CalibrationFileError` naming ``path`` and ``key`` otherwise."""
-    if not is_rotation(R):
-        raise fail(path, key, "is not a rotation matrix (R^T R must be I and det R = +1)")
-    return R
+    """``R`` (3x3) checked to be a rotation matrix to a file's printed precision (`FILE_ROTATION_TOLERANCE`) and
+    returned re-orthonormalised; a `CalibrationFileError` naming ``path`` and ``key`` otherwise."""
+    if not is_rotation(R, FILE_ROTATION_TOLERANCE):
+        raise fail(path, key, f"is not a rotation matrix (R^T R must be I to {FILE_ROTATION_TOLERANCE:g} and "
+                              f"det R = +1)")
+    return nearest_rotation(R)
 
 
 def transform(T: np.ndarray, path: PathLike, key: str) -> np.ndarray:  # noqa: N803
     """Check a (4, 4) rigid transform read from a file."""
     if np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) > HOMOGENEOUS_ROW_TOLERANCE:
         raise fail(path, key, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    rotation(T[:3, :3], path, key)
-    return make_T(T[:3, :3], T[:3, 3])
+    return make_T(rotation(T[:3, :3], path, key), T[:3, 3])
 
 
 def check_view_count(num_views: int, path: PathLike, key: str) -> None:

@@ -8,6 +8,7 @@ Every run is a real process (``python -m lfgraph``, the program's own entry) in 
 timeout, and killed with its whole session if a regression makes it hang."""
 
 import errno
+import json
 import os
 import signal
 import subprocess
@@ -15,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 LFG = [sys.executable, "-m", "lfgraph"]
@@ -283,3 +285,29 @@ def test_a_fleet_run_leaves_no_temporary_and_a_failed_one_nothing_new(fleet, tmp
     code = main(["fleet", str(work / "manifest.csv"), "-o", str(work / "res.csv"), "--jobs", "1", "--quiet"])
     assert code == 1 and "No space left" in capsys.readouterr().err
     assert _listing(work) == _listing(fleet)
+
+
+# ------------------------------------------------------------------------------------------------ rotations
+def test_rotations_printed_to_six_decimals_load_and_others_are_refused(tmp_path):
+    """A 12-camera calibration whose rotations were printed to 6 decimals was refused ("views[5].R_view_from_ref: is
+    not a rotation matrix") for an orthonormality error of 1.5e-6: accepted to 1e-4 and re-orthonormalised."""
+    from lfgraph.core.calibration import Calibration, CalibrationFileError
+    from lfgraph.datasets.rig import RigConfig, make_rig
+    from lfgraph.interop.common import rotation
+
+    printed = np.array(R_6_DECIMALS)
+    assert np.max(np.abs(printed.T @ printed - np.eye(3))) > 1e-6  # the case: more than the old tolerance
+    data = make_rig(RigConfig(rows=3, cols=4), np.random.default_rng(0)).to_dict()
+    data["views"][5]["R_view_from_ref"] = R_6_DECIMALS
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(data))
+    loaded = Calibration.load(path).ref_T_view[5, :3, :3].T  # R_view_from_ref
+    assert np.max(np.abs(loaded.T @ loaded - np.eye(3))) < ORTHONORMAL_EXACT
+    assert np.max(np.abs(loaded - printed)) < PRINTED_PRECISION
+    imported = rotation(printed, path, "R_1")
+    assert np.max(np.abs(imported.T @ imported - np.eye(3))) < ORTHONORMAL_EXACT
+    for bad in (printed + 1e-3 * np.eye(3), -printed):  # not a rotation; a reflection (det -1)
+        data["views"][5]["R_view_from_ref"] = bad.tolist()
+        path.write_text(json.dumps(data))
+        with pytest.raises(CalibrationFileError, match=r"views\[5\]\.R_view_from_ref: is not a rotation"):
+            Calibration.load(path)
