@@ -5,6 +5,10 @@ rig knocked, and its rendered frames — for scripts and studies that want (orig
     refined, report = lf.refine(cap.original, cap.frames)
     print(lf.evaluate(refined, cap.truth).summary()["rms_transfer_px"])
 
+Wrong matches are the tracker's, not the images': ``scene_capture(..., outliers="0.05:2-8")`` gives the capture a
+``tracker`` (an `OutlierTracker` around the chain tracker) that moves 5 % of the non-reference observations by 2-8 px;
+refine with ``lf.RefineConfig(tracker=cap.tracker, ...)`` (``lfgraph refine --outliers 0.05:2-8`` on a written set).
+
 Frame f's scene is drawn from the generator seeded (seed, f) and view v's sensor noise from (seed, f, v), the rig
 from seed and its knock from (seed, 1): the same numbers as the command line's, so a script and a capture written by
 ``lfgraph synth scene --seed S`` hold the same images (tested).
@@ -21,8 +25,9 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import SCENES, NamedScene, get_scene
+from lfgraph.refinement.tracks import OutlierTracker
 
-__all__ = ["SCENES", "SceneCapture", "knocked_rig", "render_frame", "scene_capture", "scene_config"]
+__all__ = ["SCENES", "OutlierTracker", "SceneCapture", "knocked_rig", "render_frame", "scene_capture", "scene_config"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +40,8 @@ class SceneCapture:
         frames: one (V, H, W) uint8 grayscale array per frame, views in the grid's row-major order.
         scene: the scene settings the frames were rendered with.
         seed: the seed of everything random.
+        tracker: None (the default tracker), or the `OutlierTracker` of ``scene_capture(outliers=...)``: give it as
+            ``RefineConfig(tracker=...)``.
     """
 
     original: Calibration
@@ -42,6 +49,7 @@ class SceneCapture:
     frames: list[np.ndarray]
     scene: SceneConfig
     seed: int
+    tracker: OutlierTracker | None = None
 
     @property
     def knocked(self) -> bool:
@@ -92,7 +100,7 @@ def render_frame(truth: Calibration, scene: SceneConfig, seed: int, frame: int) 
 
 def scene_capture(name: str | NamedScene = "paper-5x5", frames: int | None = None, *, shake_rot_deg: float = 0.0,
                   shake_trans_mm: float = 0.0, shake_axis: str = "any", keyboard: bool = False, seed: int = 0,
-                  **rig_changes) -> SceneCapture:
+                  outliers: str | OutlierTracker | None = None, **rig_changes) -> SceneCapture:
     """Render a named scene's capture in memory: what ``lfgraph synth scene NAME --frames N --shake-rot-deg R
     --shake-trans-mm T --shake-axis A [--keyboard] --seed S`` writes, as arrays.
 
@@ -101,7 +109,9 @@ def scene_capture(name: str | NamedScene = "paper-5x5", frames: int | None = Non
         frames: how many (default: the scene's own number).
         shake_rot_deg, shake_trans_mm, shake_axis: the knock (`knocked_rig`); none by default.
         keyboard: repetitive texture instead of natural texture.
-        seed: the seed of the rig, the knock, the scenes and the noise.
+        seed: the seed of the rig, the knock, the scenes and the noise (and of the wrong matches).
+        outliers: wrong matches, ``"SHARE:MIN-MAX"`` (``"0.05:2-8"``: 5 % of the non-reference observations moved
+            by 2-8 px) or an `OutlierTracker`: the capture's ``tracker``; None: none.
         rig_changes: `RigConfig` fields to override.
     """
     named = _named(name)
@@ -110,4 +120,7 @@ def scene_capture(name: str | NamedScene = "paper-5x5", frames: int | None = Non
         raise ValueError(f"frames must be a whole number >= 1, got {n!r}")
     original, truth = knocked_rig(named, shake_rot_deg, shake_trans_mm, shake_axis, seed, **rig_changes)
     scene = scene_config(named, keyboard)
-    return SceneCapture(original, truth, [render_frame(truth, scene, seed, f) for f in range(int(n))], scene, seed)
+    if outliers is not None and not isinstance(outliers, OutlierTracker):
+        outliers = OutlierTracker.parse(outliers, seed=seed)
+    return SceneCapture(original, truth, [render_frame(truth, scene, seed, f) for f in range(int(n))], scene, seed,
+                        outliers)

@@ -42,12 +42,14 @@ def _refine(args: argparse.Namespace) -> int:
     from lfgraph.rectification.checks import check_compatible
     from lfgraph.refinement import RefineConfig, refine, with_reference
     from lfgraph.refinement.config import DriftModel, schedule_name
+    from lfgraph.refinement.tracks import OutlierTracker
 
     try:
+        tracker = None if args.outliers is None else OutlierTracker.parse(args.outliers, seed=args.outliers_seed)
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
                               target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter,
                               drift=DriftModel.parse(args.drift), priors=not args.free, folds=args.folds,
-                              significance_sigma=args.significance, tolerance_px=args.tolerance_px)
+                              significance_sigma=args.significance, tolerance_px=args.tolerance_px, tracker=tracker)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     check_output_file(args.output, overwritable=[args.calibration], overwrite=args.overwrite)
@@ -67,6 +69,9 @@ def _refine(args: argparse.Namespace) -> int:
     if not args.json:
         print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "
               f"triangulation filter {config.triangulation_filter}, robust {describe_noise(config.noise)}")
+        if tracker is not None:
+            print(f"note: wrong matches injected (a study): {100 * tracker.share:g} % of the non-reference "
+                  f"observations moved by {tracker.min_px:g}-{tracker.max_px:g} px (seed {tracker.seed})")
     frames = (capture.load_frame(f) for f in range(n))
     bar = tqdm(frames, total=n, desc="refining", unit="frame", disable=args.quiet)
     with rerun_session(args, calib.grid, logging, "refine") as logger, logging_redirect_tqdm():
@@ -115,6 +120,10 @@ def add_parsers(sub: Any) -> None:
     rf.add_argument("--tolerance-px", type=non_negative, default=0.1,
                     help="a view is DRIFTED (and changed) only when its change is significant and moves its transfer "
                          "at infinity by more than this (px, default 0.1; 0: apply every significant change)")
+    rf.add_argument("--outliers", metavar="SHARE:MIN-MAX",
+                    help="a study: make SHARE of the non-reference track observations wrong matches, moved by MIN-MAX "
+                         "px in random directions (e.g. 0.05:2-8), to see the robust kernels at work")
+    rf.add_argument("--outliers-seed", type=int, default=0, help="seed of --outliers (default 0)")
     rf.add_argument("--json", action="store_true", help="print the report (verdicts, sigmas) as JSON")
     rf.add_argument("--reference", type=int, help="re-express the calibration relative to this view first")
     rf.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")

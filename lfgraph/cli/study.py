@@ -112,7 +112,7 @@ def _study_shake(args: argparse.Namespace) -> int:
     _study_common(args)
     try:
         get_scene(args.scene)
-        stages = [s.strip() for s in args.stages.split(",")]
+        stages = [s.strip().replace("+", ",") for s in args.stages.split(",")]  # points+poses: one schedule
         for name in stages:
             parse_stages(name)
         robust = [r.strip() for r in args.robust.split(",")]
@@ -120,33 +120,57 @@ def _study_shake(args: argparse.Namespace) -> int:
             RobustKernel.parse(r)
         trials = make_shake_trials(args.scene, args.rot_deg, args.trans_mm, args.trials, args.frames, stages,
                                    robust, args.seed)
+        if args.outliers is not None:
+            trials = _with_outliers(trials, args.outliers)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     logging = check_rerun(args)
     print(f"shake study on {args.scene}: {len(trials)} trials ({len(trials) // args.trials} levels x {args.trials} "
-          f"seeds), {len(stages) * len(robust)} configurations each, executor {args.executor}")
+          f"seeds), {len(trials[0].configs) if trials else 0} configurations each, executor {args.executor}")
     with rerun_session(args, None, logging, "study") as logger:
         rows = run_study(trials, run_shake_trial, args.output, SHAKE_COLUMNS, shake_trial_rows, shake_row_key,
                          args.executor, args.jobs, progress=not args.quiet,
                          on_rows=None if logger is None else logger.study_rows)
     plots = shake_plots(rows, args.output)
-    print(_shake_summary(rows))
+    print(_shake_summary(rows, by_config=args.outliers is not None))
     print(f"wrote {args.output} and {', '.join(str(p) for p in plots)}")
     return EXIT_OK
 
 
-def _shake_summary(rows) -> str:
+def _with_outliers(trials: list, spec: str) -> list:
+    """The trials with every configuration repeated for each share of wrong matches in ``spec`` (``0.05:2-8`` or a
+    comma list ``0:2-8,0.05:2-8``; share 0 keeps the plain tracker), labelled ``STAGES / ROBUST / outliers SPEC``.
+
+    Raises:
+        ValueError: a spec `OutlierTracker.parse` refuses.
+    """
+    import dataclasses
+
+    from lfgraph.refinement.tracks import OutlierTracker
+
+    outliers = [OutlierTracker.parse(s.strip()) for s in spec.split(",") if s.strip()]
+    if not outliers:
+        raise ValueError("--outliers needs at least one SHARE:MIN-MAX")
+    configs = tuple((f"{label} / outliers {o}", dataclasses.replace(config, tracker=dataclasses.replace(
+        o, inner=config.tracker))) for label, config in trials[0].configs for o in outliers) if trials else ()
+    return [dataclasses.replace(t, configs=configs) for t in trials]
+
+
+def _shake_summary(rows, by_config: bool = False) -> str:
+    """The mean over seeds per schedule and kernel (``by_config``: per configuration label, which then names the
+    wrong matches too) and shake level."""
     from lfgraph.apps.study import summarise
     from lfgraph.cli.tables import format_table
 
     metrics = ["transfer_before_px", "transfer_px", "rot_err_deg", "rms_after_px"]
-    summary = summarise(rows, ("stages", "robust"), "rot_deg", metrics)
+    group = ("config",) if by_config else ("stages", "robust")
+    summary = summarise(rows, group, "rot_deg", metrics)
     table = []
-    for (stages, robust), d in sorted(summary.items()):
+    for key, d in sorted(summary.items()):
         for i, x in enumerate(d["rot_deg"]):
-            table.append([stages, robust, f"{x:g}", *(f"{d[m][i]:.4f}" for m in metrics)])
-    return "mean over seeds:\n" + format_table(["stages", "robust", "rot_shake_deg", "transfer_before_px",
-                                                 "transfer_after_px", "rot_err_deg", "rms_after_px"], table)
+            table.append([*key, f"{x:g}", *(f"{d[m][i]:.4f}" for m in metrics)])
+    return "mean over seeds:\n" + format_table([*group, "rot_shake_deg", "transfer_before_px", "transfer_after_px",
+                                                 "rot_err_deg", "rms_after_px"], table)
 
 
 def cmd_study_calibration(args: argparse.Namespace) -> int:
@@ -229,9 +253,14 @@ def add_parsers(sub: Any) -> None:
     ss.add_argument("--trans-mm", type=floats, default=[0.0, 1.0, 2.0, 5.0],
                     help="translation shake levels paired with --rot-deg, mm per axis (default 0,1,2,5)")
     ss.add_argument("--frames", type=positive_int, default=1, help="scene frames per trial (default 1)")
-    ss.add_argument("--stages", default="paper,default", help="schedules to compare (default paper,default)")
+    ss.add_argument("--stages", default="paper,default",
+                    help="schedules to compare (default paper,default); a schedule of its own joins its stages with "
+                         "+, e.g. default,points+poses")
     ss.add_argument("--robust", default="none",
                     help="robust kernels to compare (thresholds in px, or Ksigma), e.g. none,huber,cauchy:0.2")
+    ss.add_argument("--outliers", metavar="SHARE:MIN-MAX[,...]",
+                    help="wrong matches as a study variable: every configuration with SHARE of the non-reference "
+                         "observations moved by MIN-MAX px, e.g. 0:2-8,0.05:2-8 (share 0: none)")
     add_rerun_args(ss)
     ss.set_defaults(func=cmd_study_shake)
 

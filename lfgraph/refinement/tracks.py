@@ -1,12 +1,17 @@
-"""Per-frame track selection for the refinement: the triangulation filter, cheirality, coverage."""
+"""Per-frame track selection for the refinement: the triangulation filter, cheirality, coverage; and
+`OutlierTracker`, which makes a share of any tracker's matches wrong (a study variable)."""
 
 from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
+from lfgraph.core.grid import ViewGrid
 from lfgraph.refinement.config import TriangulationFilter
-from lfgraph.refinement.matching import Tracks
+from lfgraph.refinement.matching import ChainTracker, Tracker, Tracks, as_tracker
 from lfgraph.refinement.triangulate import (
     OUTLIER_FACTOR,
     OUTLIER_FLOOR_PX,
@@ -92,3 +97,67 @@ def pooled_filter(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
             keep &= frame_of != f
             dropped.append(int(f))
     return keep, dropped
+
+
+@dataclass(frozen=True)
+class OutlierTracker:
+    """Wrong matches as a study variable: the tracks of ``inner`` (any `Tracker`; the paper's chain KLT by default)
+    with ``share`` of the non-reference observations moved by ``min_px`` to ``max_px`` (uniform) in uniformly random
+    directions, as a tracker that locks onto the wrong place would (the reference view's detections stay). Give it
+    as ``RefineConfig(tracker=...)`` (or ``check``'s, ``SelfCalConfig``'s): every wing sees the same wrong matches.
+
+    The moves of a frame are drawn from ``seed`` and a checksum of the frame's images: the same frame gets the same
+    wrong matches in every run, process and wing, different frames (and trials) different ones. Picklable.
+
+    ``OutlierTracker.parse("0.05:2-8")``: 5 % of the observations, 2-8 px.
+    """
+
+    inner: Tracker = field(default_factory=ChainTracker)
+    share: float = 0.05
+    min_px: float = 2.0
+    max_px: float = 8.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "inner", as_tracker(self.inner, "OutlierTracker.inner"))
+        if not 0.0 <= self.share <= 1.0:
+            raise ValueError(f"the share of wrong matches must be from 0 to 1, got {self.share!r}")
+        if not (np.isfinite(self.max_px) and 0.0 <= self.min_px <= self.max_px):
+            raise ValueError(f"wrong matches need 0 <= min_px <= max_px (finite), got {self.min_px!r}-{self.max_px!r}")
+
+    @classmethod
+    def parse(cls, spec: str, inner: Tracker | None = None, seed: int = 0) -> OutlierTracker:
+        """``SHARE:MIN-MAX`` (``0.05:2-8``: 5 % of the observations, 2-8 px), ``SHARE:PX`` (all moved by PX) or
+        ``SHARE`` (2-8 px) around ``inner`` (None: the chain tracker).
+
+        Raises:
+            ValueError: a spec of another form, or values out of range (named).
+        """
+        share, _, size = str(spec).strip().partition(":")
+        lo, _, hi = size.partition("-")
+        try:
+            values = float(share), float(lo) if lo else 2.0, float(hi) if hi else float(lo) if lo else 8.0
+        except ValueError:
+            raise ValueError(f"wrong matches are SHARE:MIN-MAX (e.g. 0.05:2-8: 5 % moved by 2-8 px), got "
+                             f"{spec!r}") from None
+        return cls(ChainTracker() if inner is None else inner, *values, seed=seed)
+
+    def __str__(self) -> str:
+        return f"{self.share:g}:{self.min_px:g}-{self.max_px:g}"
+
+    def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks:
+        """``inner``'s tracks of this frame with ``share`` of the non-reference observations moved."""
+        tracks = self.inner.track(images, grid)
+        seen = tracks.valid.copy()
+        seen[grid.reference] = False
+        where = np.argwhere(seen)
+        rng = np.random.default_rng([self.seed, zlib.crc32(np.ascontiguousarray(images).tobytes())])
+        n = int(round(self.share * len(where)))
+        if n == 0:
+            return tracks
+        moved = where[rng.choice(len(where), n, replace=False)]
+        size = rng.uniform(self.min_px, self.max_px, n)
+        angle = rng.uniform(0.0, 2.0 * np.pi, n)
+        points = tracks.points_px.copy()
+        points[moved[:, 0], moved[:, 1]] += np.column_stack([size * np.cos(angle), size * np.sin(angle)])
+        return Tracks(points, tracks.valid, dict(tracks.counts))
