@@ -11,6 +11,7 @@ normalised image coordinates ``(x, y) = (X/Z, Y/Z)`` in the camera frame. Pixels
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass
 
 import gtsam
@@ -35,7 +36,10 @@ def _float_fields(obj: object) -> None:
     for field in dataclasses.fields(obj):
         if field.name == "lens":
             continue
-        value = float(getattr(obj, field.name))
+        raw = getattr(obj, field.name)
+        if isinstance(raw, bool | np.bool_) or not isinstance(raw, numbers.Real):
+            raise TypeError(f"Intrinsics.{field.name} must be a number, got {raw!r}")
+        value = float(raw)
         if not np.isfinite(value):
             raise ValueError(f"Intrinsics.{field.name} must be finite, got {value}")
         object.__setattr__(obj, field.name, value)

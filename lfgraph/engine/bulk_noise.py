@@ -141,10 +141,31 @@ def vectorised_estimator(weight: Callable[[np.ndarray], np.ndarray], loss: Calla
     schemes = {"block": _M.Base.ReweightScheme.Block, "scalar": _M.Base.ReweightScheme.Scalar}
     if scheme not in schemes:
         raise ValueError(f"scheme must be 'block' or 'scalar', got {scheme!r}")
+    _check_kernel(weight, loss)
     estimator = _M.Custom.Create(lambda d: float(weight(np.float64(d))), lambda d: float(loss(np.float64(d))),
                                  reweight=schemes[scheme])
     _VECTORISED[estimator] = (weight, loss)
     return estimator
+
+
+KERNEL_PROBE = np.array([0.0, 0.5, 1.0, 2.0, 5.0, 50.0])  # whitened distances a user's kernel is tried at
+
+
+def _check_kernel(weight: Callable, loss: Callable) -> None:
+    """A user's kernel, refused at its door unless w(d) and rho(d) are callables giving finite values >= 0 at single
+    distances (`KERNEL_PROBE`, one at a time, as GTSAM calls them; whether they also take arrays is found out when
+    the bulk solver first uses them)."""
+    for name, fn in (("weight", weight), ("loss", loss)):
+        if not callable(fn):
+            raise TypeError(f"vectorised_estimator: {name} must be a function of the distance, got "
+                            f"{type(fn).__name__}")
+        try:
+            values = np.array([float(fn(np.float64(d))) for d in KERNEL_PROBE])
+        except Exception as exc:  # noqa: BLE001  (the user's function: say what it did)
+            raise ValueError(f"vectorised_estimator: {name}(d) failed on a distance: {exc}") from None
+        if not np.all(np.isfinite(values)) or np.any(values < 0):
+            raise ValueError(f"vectorised_estimator: {name}(d) must be finite and >= 0; at d = "
+                             f"{KERNEL_PROBE.tolist()} it gave {values.tolist()}")
 
 
 _TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # estimator -> its tables, or None

@@ -10,6 +10,7 @@ import numpy as np
 
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
+from lfgraph.lenses import lens_model, lens_names
 
 
 class Method(StrEnum):
@@ -24,6 +25,43 @@ class Init(StrEnum):
 
     PAPER = "paper"  # the paper route's result
     DESIGN = "design"  # design values: focal length, centred principal point, no distortion, ideal grid or PnP
+
+
+AUTO_LENS = "auto"  # a view's lens chosen by held-out frames (`lfgraph.pattern.lenses.choose_lenses`)
+
+
+def parse_lens_spec(spec: str | Mapping[str | int, str]) -> tuple[str, dict[str | int, str]]:
+    """(default model, {view name or index: model}) of a lens choice: ``"auto"``, one model name, a mapping of views
+    to models, or the CLI's ``"auto,r00_c02=fisheye"`` (one default, then per-view ones). ValueError naming what is
+    wrong: an unknown model, two defaults, a view given twice (views are checked against a grid later)."""
+    choices = (AUTO_LENS, *lens_names())
+    default, per_view, given = AUTO_LENS, {}, []
+    if isinstance(spec, str):
+        defaults = []
+        for token in (t.strip() for t in spec.split(",") if t.strip()):
+            name, eq, lens = token.partition("=")
+            if eq:
+                given.append(name.strip())
+                per_view[name.strip()] = lens.strip()
+            else:
+                defaults.append(token)
+        if len(defaults) > 1:
+            raise ValueError(f"lens: one default model, then VIEW=MODEL pairs; got {', '.join(defaults)}")
+        default = defaults[0] if defaults else AUTO_LENS
+    elif isinstance(spec, Mapping):
+        per_view = dict(spec)
+        given = list(per_view)
+    else:
+        raise TypeError(f"lens must be a model name or a mapping of views to models, got {type(spec).__name__}")
+    twice = sorted({str(k) for k in given if given.count(k) > 1})
+    if twice:
+        raise ValueError(f"lens: view {', '.join(twice)} given more than once")
+    if default not in choices:
+        raise ValueError(f"unknown lens {default!r}; choose from {', '.join(choices)}")
+    for key, lens in per_view.items():
+        if lens not in choices:
+            raise ValueError(f"lens for {key}: unknown model {lens!r}; choose from {', '.join(choices)}")
+    return default, per_view
 
 
 @dataclass(frozen=True)
@@ -78,9 +116,11 @@ class CalibrateConfig:
                 raise ValueError(f"unknown {name} {getattr(self, name)!r}; choose from {', '.join(kind)}") from None
         object.__setattr__(self, "robust", as_noise(self.robust))
         object.__setattr__(self, "graph_hooks", as_hooks(self.graph_hooks, "CalibrateConfig.graph_hooks"))
-        if not isinstance(self.lens, str | Mapping):
-            raise TypeError(f"lens must be a model name or a mapping of views to models, got "
-                            f"{type(self.lens).__name__}")
+        default, per_view = parse_lens_spec(self.lens)
+        named = {default, *per_view.values()} - {AUTO_LENS}
+        if self.tangential and named and AUTO_LENS not in {default, *per_view.values()} and \
+                not any(lens_model(m).tangential for m in named):
+            raise ValueError(f"tangential: a {' or '.join(sorted(named))} lens has no tangential distortion (p1, p2)")
         for name, largest in (("board_sigma_mm", 100.0), ("focal_px", 1e6), ("pitch_mm", 1e6)):
             value = getattr(self, name)
             if value is not None and not (np.isfinite(value) and 0 < value <= largest):

@@ -12,15 +12,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lfgraph.core.camera import FISHEYE, LENSES, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
 from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
 from lfgraph.core.grid import ViewGrid
 from lfgraph.detect.detections import BoardObservations
-from lfgraph.pattern.config import CalibrateConfig
+from lfgraph.lenses import lens_names
+from lfgraph.pattern.config import AUTO_LENS, CalibrateConfig, parse_lens_spec
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.pose_fit import board_pose
 
-AUTO = "auto"
+AUTO = AUTO_LENS
 FIT_LENSES = (RADTAN, FISHEYE)  # the candidates of --lens auto; unified is fitted when named (a board determines its
 # xi only weakly: `lfgraph.factors.board_graph.UNIFIED_XI_SIGMA`; on OpenCV's eight wide real views its held-out error
 # was at best 0.2 % below fisheye's, 64 % above on one, in ~10x the time: README, "Lens models")
@@ -45,24 +46,18 @@ class LensSpecError(ValueError):
 def resolve_lenses(spec: str | Mapping[str | int, str], grid: ViewGrid) -> tuple[str, ...]:
     """Each view's requested model (`LENSES` or ``auto``) from ``"auto"``, one model name, a mapping of view names
     (``r00_c01``) or indices to models, or the CLI's ``"auto,r00_c02=fisheye"`` (a default, then per-view ones)."""
-    default, per_view = AUTO, {}
-    if isinstance(spec, str):
-        for token in (t.strip() for t in spec.split(",") if t.strip()):
-            if "=" in token:
-                name, _, lens = token.partition("=")
-                per_view[name.strip()] = lens.strip()
-            else:
-                default = token
-    elif isinstance(spec, Mapping):
-        per_view = dict(spec)
-    else:
-        raise LensSpecError(f"lens must be a model name or a mapping of views to models, got {type(spec).__name__}")
-    choices = (AUTO, *LENSES)
-    if default not in choices:
-        raise LensSpecError(f"unknown lens {default!r}; choose from {', '.join(choices)}")
+    try:
+        default, per_view = parse_lens_spec(spec)
+    except (TypeError, ValueError) as exc:
+        raise LensSpecError(str(exc)) from None
+    choices = (AUTO, *lens_names())
     out = [default] * grid.num_views
+    seen: dict[int, str | int] = {}
     for key, lens in per_view.items():
         v = grid.find(key, "lens", LensSpecError)
+        if v in seen:  # the same view by name and by index
+            raise LensSpecError(f"lens: view {grid.name(v)} given more than once ({seen[v]!r} and {key!r})")
+        seen[v] = key
         if lens not in choices:
             raise LensSpecError(f"lens for {key}: unknown model {lens!r}; choose from {', '.join(choices)}")
         out[v] = lens

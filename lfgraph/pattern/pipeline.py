@@ -16,6 +16,7 @@ from lfgraph.detect.board_order import order_symmetric_boards
 from lfgraph.detect.detections import BoardObservations
 from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIGMA_REL, WEAK_RADIAL_SIGMA
 from lfgraph.factors.noise import RobustKernel
+from lfgraph.lenses import lens_model
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
 from lfgraph.pattern.design_check import grid_problems, mirrored_views
 from lfgraph.pattern.initial import (
@@ -277,6 +278,9 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
     choice = _lens_choice(obs, config, say)
     lenses = choice.lenses
     seconds["lens_choice"] = time.perf_counter() - t0
+    if config.tangential and not any(lens_model(lens).tangential for lens in lenses):
+        warnings.append(f"tangential distortion asked for, but every view's lens ({', '.join(sorted(set(lenses)))}) "
+                        f"has none: it changes nothing")
     paper = None
     if method == Method.PAPER or init == Init.PAPER:
         t0 = time.perf_counter()

@@ -98,3 +98,11 @@ def test_points_behind_camera_give_nan():
 def test_bad_input_is_rejected(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_a_flag_or_a_string_is_no_focal_length():
+    """Issue 42: ``Intrinsics(True, 300, 160, 120)`` was a camera with fx = 1."""
+    for bad in (True, "300", None):
+        with pytest.raises(TypeError, match="Intrinsics.fx must be a number"):
+            Intrinsics(bad, 300.0, 160.0, 120.0)
+    assert Intrinsics(np.float32(300), np.int64(300), 160, 120).fx == 300.0  # numpy numbers are numbers

@@ -135,6 +135,11 @@ def test_a_kernel_of_your_own_written_for_arrays_runs_on_arrays():
     assert constant.vectorised and constant.weights(np.array([1.0, 2.0])).tolist() == [1.0, 1.0]
     with pytest.raises(ValueError, match="scheme"):
         vectorised_estimator(np.ones_like, np.ones_like, scheme="rows")
+    # issue 42: refused at the door, not deep in a solve
+    with pytest.raises(TypeError, match="weight must be a function"):
+        vectorised_estimator(None, None)
+    with pytest.raises(ValueError, match=r"weight\(d\) must be finite and >= 0"):
+        vectorised_estimator(lambda d: -np.ones_like(d), lambda d: 0.5 * d * d)
 
 
 def counted(f, calls):

@@ -127,6 +127,18 @@ def test_lens_spec_per_view_and_its_errors():
     with pytest.raises(LensSpecError, match="unknown lens"):
         resolve_lenses("kb8", grid)
     assert resolve_lenses("unified", grid) == ("unified",) * 3
+    # issue 42: choices that were accepted and silently meant something else
+    with pytest.raises(LensSpecError, match="one default model"):
+        resolve_lenses("fisheye,radtan", grid)
+    with pytest.raises(LensSpecError, match="r00_c00 given more than once"):
+        resolve_lenses("fisheye,r00_c00=fisheye,r00_c00=radtan", grid)
+    with pytest.raises(LensSpecError, match="r00_c00 given more than once"):
+        resolve_lenses({"r00_c00": "fisheye", 0: "radtan"}, grid)
+    with pytest.raises(ValueError, match="unknown lens 'bogus'"):
+        CalibrateConfig(lens="bogus")
+    with pytest.raises(ValueError, match="fisheye lens has no tangential distortion"):
+        CalibrateConfig(lens="fisheye", tangential=True)
+    CalibrateConfig(lens="auto", tangential=True)  # a radtan view may still be chosen
 
 
 def _mixed() -> Calibration:
