@@ -98,7 +98,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         return _calibrate(args)
 
 
+def _printer(args: argparse.Namespace):
+    """``print``, or nothing under the global ``-q`` (errors and warnings still reach stderr through the log)."""
+    return (lambda *_args, **_kw: None) if getattr(args, "log_quiet", False) else print
+
+
 def _calibrate(args: argparse.Namespace) -> int:
+    from logging import getLogger
+
     import numpy as np
 
     from lfgraph.cli.tables import calibration_report_text
@@ -106,6 +113,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     from lfgraph.pattern.design_check import order_permutation, view_order
 
     board, grid, config = _board_and_config(args)
+    say = _printer(args)
     check_output_file(args.output)
     check_side_outputs(args, outputs=[args.output])
     logging = check_rerun(args)
@@ -118,10 +126,10 @@ def _calibrate(args: argparse.Namespace) -> int:
         check_output_file(args.output, inputs=sources)
         check_side_outputs(args, inputs=sources, outputs=[args.output])
         obs = load_detections(args.input, args.detections, grid, args.image_size, args.object_points)
-        print(f"{args.input}: {args.detections} detections, {obs.num_frames} frames x {grid.num_views} views of "
+        say(f"{args.input}: {args.detections} detections, {obs.num_frames} frames x {grid.num_views} views of "
               f"{obs.image_size_px[0]}x{obs.image_size_px[1]} px; target {obs.board}")
         seen = obs.seen
-        print(f"target seen in {seen.sum()} of {seen.size} view-frames ({obs.num_observations} points)")
+        say(f"target seen in {seen.sum()} of {seen.size} view-frames ({obs.num_observations} points)")
     else:
         from lfgraph.detect.detections import detect_capture
         from lfgraph.io.capture import open_capture
@@ -130,25 +138,25 @@ def _calibrate(args: argparse.Namespace) -> int:
         check_output_file(args.output, inputs=capture.all_paths())
         check_side_outputs(args, inputs=capture.all_paths(), outputs=[args.output])
         sizes = ", ".join(dict.fromkeys(f"{w}x{h}" for w, h in capture.sizes_px))
-        print(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of {sizes} px; "
+        say(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of {sizes} px; "
               f"board {board}")
         for note in capture.notes:
-            print(f"note: {note}")
+            say(f"note: {note}")
         obs, cached = detect_capture(capture, board, jobs=args.jobs, progress=not args.quiet, cache=not args.no_cache)
         seen = obs.seen
-        print(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} "
+        say(f"detections{' (from the cache)' if cached else ''}: board found in {seen.sum()} of {seen.size} "
               f"images ({time.perf_counter() - start:.1f} s)")
         missed = [_view_label(capture, int(f), int(v)) for f, v in zip(*np.nonzero(~seen.T), strict=True)]
         missed = [m for m in missed if m is not None]
         if missed:
             shown = ", ".join(str(p) for p in missed[:MAX_MISSED_LISTED])
-            print(f"board not found in: {shown}" + (f" and {len(missed) - MAX_MISSED_LISTED} more"
+            say(f"board not found in: {shown}" + (f" and {len(missed) - MAX_MISSED_LISTED} more"
                                                     if len(missed) > MAX_MISSED_LISTED else ""))
     frames = capture.load_frame if capture is not None else None
     if args.view_order:  # the streams re-labelled: the grid's view i is the stream captured as names[i]
         names = args.view_order.split(",")
         obs, perm = view_order(obs, names), order_permutation(grid, names)
-        print(f"view order: {', '.join(f'{grid.name(i)} <- {n}' for i, n in enumerate(names) if grid.name(i) != n)}")
+        say(f"view order: {', '.join(f'{grid.name(i)} <- {n}' for i, n in enumerate(names) if grid.name(i) != n)}")
         frames = None if frames is None else (lambda f, load=frames: [load(f)[p] for p in perm])
     with rerun_session(args, grid, logging, "calibrate") as logger:
         if logger is not None:
@@ -157,13 +165,16 @@ def _calibrate(args: argparse.Namespace) -> int:
         # the recording hears the result through the observer (run_end): rig, boards, every frame's corners
         calib, report = calibrate(obs, config, cli_observer(logger))
         calib.save(args.output)
-    print(calibration_report_text(calib, report))
+    say(calibration_report_text(calib, report))
+    if say is not print:  # -q: the report's warnings still reach the log (stderr)
+        for warning in report.warnings:
+            getLogger("lfgraph").warning(warning)
     if args.plots is not None:
         from lfgraph.viz.figures import calibration_report_figures
 
         for path in calibration_report_figures(calib, obs, report, args.plots):
-            print(f"figure: {path}")
-    print(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
+            say(f"figure: {path}")
+    say(f"wrote {args.output} ({time.perf_counter() - start:.1f} s in all)")
     return EXIT_OK
 
 

@@ -236,3 +236,14 @@ def test_one_bad_pair_is_dropped_by_name_and_the_baseline_kept(test_data, tmp_pa
     b_bad = np.linalg.norm(Calibration.load(bad).ref_T_view[1][:3, 3])
     assert abs(b_bad / b_good - 1) < BAD_PAIR_BASELINE_REL
     assert Calibration.load(bad).metrics["rig_rms_px"] < 2 * Calibration.load(good).metrics["rig_rms_px"]
+
+
+def test_log_quiet_prints_nothing_but_warnings(rendered, tmp_path, capsys):
+    """Issue 40: ``lfgraph -q calibrate`` printed the report's tables and the "wrote" line; quiet means nothing on
+    stdout, and the report's warnings (if any) on stderr."""
+    out_json = tmp_path / "q.json"
+    assert main(["-q", "calibrate", str(rendered), *SMALL_ARGS, "-o", str(out_json)]) == 0
+    text = capsys.readouterr()
+    assert text.out == "" and out_json.exists()
+    warnings = Calibration.load(out_json).metrics.get("warnings", [])
+    assert all(w in text.err for w in warnings)
