@@ -97,4 +97,5 @@ MODEL = LensModel(name="fisheye", gtsam_name="Cal3Fisheye", coefficients=("k1", 
                   tangent=("k1", "k2", "k3", "k4"), bulk_map=_map,
                   undistort=lambda target, intr: undo_fisheye(
                       target, np.array([[i.k1, i.k2, i.k3, i.k4] for i in intr])[:, :, None]),
-                  folded=_folded, wide=True, opencv="fisheye")
+                  folded=_folded, wide=True, opencv="fisheye",
+                  off_axis_deg=lambda r, xi: float(np.degrees(r)))  # equidistant: the angle is the radius

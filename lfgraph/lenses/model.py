@@ -45,6 +45,8 @@ class LensModel:
             a wide field of view).
         opencv: ``"pinhole"`` (``cv2``, distortion k1 k2 p1 p2 k3=0), ``"fisheye"`` (``cv2.fisheye``, k1..k4) or None.
         check: an `Intrinsics` -> a problem (text) or None, beyond the common checks.
+        off_axis_deg: (r, xi) -> the angle (deg) from the axis of the ray the model without distortion images at a
+            normalised radius r (NaN beyond its image): a nominal field of view.
     """
 
     name: str
@@ -58,6 +60,7 @@ class LensModel:
     wide: bool = False
     opencv: str | None = None
     check: Callable[[Intrinsics], str | None] | None = None
+    off_axis_deg: Callable[[float, float], float] = lambda r, xi: float(np.degrees(np.arctan(r)))
 
     @property
     def tangent_size(self) -> int:

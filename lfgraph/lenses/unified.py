@@ -66,6 +66,15 @@ def _folded(intr: Intrinsics, rays: np.ndarray, xy: np.ndarray, px: np.ndarray) 
         return ~(np.max(np.abs(back - xy), axis=1) <= ROUND_TRIP_TOLERANCE * np.maximum(1.0, np.abs(xy).max(1)))
 
 
+def _off_axis_deg(r: float, xi: float) -> float:
+    """Mei's plane radius r back to the unit sphere (`lift_unified`): the angle from the axis (NaN: no lift)."""
+    disc = 1.0 + (1.0 - xi**2) * r**2
+    if disc < 0:
+        return float("nan")
+    factor = (xi + np.sqrt(disc)) / (r**2 + 1.0)
+    return float(np.degrees(np.arctan2(factor * r, factor - xi)))
+
+
 def _check(intr: Intrinsics) -> str | None:
     return f"a unified lens needs xi >= 0, got xi={intr.xi}" if intr.xi < 0 else None
 
@@ -74,4 +83,4 @@ MODEL = LensModel(name="unified", gtsam_name="Cal3Unified", coefficients=("xi", 
                   tangent=("k1", "k2", "p1", "p2", "xi"), bulk_map=_map,
                   undistort=lambda target, intr: lift_unified(undo_radtan(target, radtan_rows(intr)),
                                                               np.array([i.xi for i in intr])[:, None]),
-                  folded=_folded, tangential=("p1", "p2"), wide=True, check=_check)
+                  folded=_folded, tangential=("p1", "p2"), wide=True, check=_check, off_axis_deg=_off_axis_deg)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.camera import FISHEYE, RADTAN, Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.core.grid import ViewGrid
 from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
@@ -97,17 +97,9 @@ class Design:
         object.__setattr__(self, "image_size_px", (w, h))
 
     def _field_of_view_deg(self, half: float) -> float:
-        """The angle across the image for a half width of ``half`` focal lengths (NaN: beyond a unified lens's
-        image)."""
-        if self.lens == RADTAN:
-            return float(np.degrees(2 * np.arctan(half)))
-        if self.lens == FISHEYE:  # equidistant: the angle is the radius / focal
-            return float(np.degrees(2 * half))
-        disc = 1.0 + (1.0 - self.xi ** 2) * half ** 2  # Mei back to the unit sphere (`lenses.unified.lift_unified`)
-        if disc < 0:
-            return float("nan")  # beyond the lens's image
-        factor = (self.xi + np.sqrt(disc)) / (half ** 2 + 1.0)
-        return float(np.degrees(2 * np.arctan2(factor * half, factor - self.xi)))
+        """The angle across the image for a half width of ``half`` focal lengths, through the design's lens without
+        distortion (NaN: beyond a unified lens's image)."""
+        return 2.0 * lens_model(self.lens).off_axis_deg(half, self.xi)
 
     @property
     def grid(self) -> ViewGrid:
