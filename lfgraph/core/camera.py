@@ -106,8 +106,8 @@ class Intrinsics:
 
     def as_vector(self) -> np.ndarray:
         """(8,) ``[fx, fy, cx, cy, k1, k2, p1, p2]`` of a radtan lens (the fast solvers' layout)."""
-        if self.lens != RADTAN:
-            raise ValueError(f"as_vector is the radtan layout; this lens is {self.lens}")
+        if self.lens != DEFAULT_LENS:
+            raise ValueError(f"as_vector is the {DEFAULT_LENS} layout; this lens is {self.lens}")
         return np.array([self.fx, self.fy, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2])
 
     @classmethod
@@ -145,7 +145,7 @@ class Intrinsics:
         return cls(**model.from_gtsam(cal), lens=model.name)
 
     @classmethod
-    def from_opencv(cls, K: np.ndarray, dist: np.ndarray | None = None, lens: str = RADTAN) -> Intrinsics:  # noqa: N803
+    def from_opencv(cls, K: np.ndarray, dist: np.ndarray | None = None, lens: str = DEFAULT_LENS) -> Intrinsics:  # noqa: N803
         """From an OpenCV camera matrix and distortion vector: radtan (4, 5 or more coefficients; those beyond
         k1 k2 p1 p2 must be 0) or fisheye (``cv2.fisheye``'s 4 coefficients k1..k4).
 
@@ -156,18 +156,8 @@ class Intrinsics:
         if K.shape != (3, 3) or abs(K[0, 1]) > 1e-12 or np.any(np.abs(K[2] - [0, 0, 1]) > 1e-12) or K[1, 0] != 0:
             raise ValueError(f"K must be a skew-free 3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K.tolist()}")
         d = np.zeros(4) if dist is None else np.asarray(dist, dtype=np.float64).ravel()
-        if lens == FISHEYE:
-            if d.size != 4:
-                raise ValueError(f"a fisheye distortion has 4 coefficients (k1 k2 k3 k4), got {d.size}")
-            return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], d[0], d[1], k3=d[2], k4=d[3], lens=FISHEYE)
-        if lens != RADTAN:
-            raise ValueError(f"OpenCV has no {lens} lens in its main modules; choose radtan or fisheye")
-        if d.size < 4:
-            raise ValueError(f"distortion needs at least 4 coefficients (k1 k2 p1 p2), got {d.size}")
-        if np.any(np.abs(d[4:]) > 0):
-            raise ValueError(f"distortion coefficients beyond k1 k2 p1 p2 must be 0 (k3 and higher are not modelled), "
-                             f"got {d[4:].tolist()}")
-        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d[:4].tolist())
+        model = lens_model(lens)
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], **model.from_opencv_distortion(d), lens=model.name)
 
     # ----------------------------------------------------------------------------------------- model
     def distort(self, xy: np.ndarray) -> np.ndarray:

@@ -101,3 +101,20 @@ class LensModel:
             return np.array([intr.k1, intr.k2, intr.p1, intr.p2, 0.0])
         raise ValueError(f"a {self.name} lens has no OpenCV distortion vector (OpenCV's main modules have no such "
                          "model); use Intrinsics.undistort / project")
+
+    def from_opencv_distortion(self, d: np.ndarray) -> dict[str, float]:
+        """The coefficients of OpenCV's distortion vector ``d`` for this model: ``cv2.fisheye``'s four k1..k4, or
+        ``cv2``'s k1 k2 p1 p2 (more coefficients must be 0: k3 and higher are not modelled); ValueError otherwise."""
+        d = np.asarray(d, dtype=np.float64).ravel()
+        if self.opencv == "fisheye":
+            if d.size != 4:
+                raise ValueError(f"a fisheye distortion has 4 coefficients (k1 k2 k3 k4), got {d.size}")
+            return dict(zip(("k1", "k2", "k3", "k4"), d.tolist(), strict=True))
+        if self.opencv != "pinhole":
+            raise ValueError(f"OpenCV has no {self.name} lens in its main modules; choose a pinhole or fisheye model")
+        if d.size < 4:
+            raise ValueError(f"distortion needs at least 4 coefficients (k1 k2 p1 p2), got {d.size}")
+        if np.any(np.abs(d[4:]) > 0):
+            raise ValueError(f"distortion coefficients beyond k1 k2 p1 p2 must be 0 (k3 and higher are not modelled), "
+                             f"got {d[4:].tolist()}")
+        return dict(zip(("k1", "k2", "p1", "p2"), d[:4].tolist(), strict=True))
