@@ -6,7 +6,8 @@ the views, so that a grid spreads over the picture) and from the distance at whi
 its frustum's image plane — fills `RIG_FILL` of rerun's field of view in a view of the default layouts' shape
 (`VIEW_ASPECT`); the landmarks metres away and the boards do not move it. A 5x5, a 1x20 line and a fisheye 1x3 are
 framed alike. Labels in a 3-D view are drawn at a fixed size in screen pixels whatever the zoom, so on a large rig
-only some fit: `spaced_labels` picks them, most important first, so that no two overlap in the picture that eye sees.
+only some fit: `spaced_labels` picks them, most important first, so that no two overlap in the picture that eye sees
+(a caption goes above the rig, `RigFrame.caption_anchor`).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ LABEL_PAD_PX = (12.0, 8.0)  # a label's box is its text plus this much (width, h
 LABEL_TEXT_HEIGHT_PX = 16.0
 LABEL_OFFSET_PX = 5.0  # ... starting this far below it
 LABEL_GAP_PX = 4.0  # the least gap between two labels' boxes
-CAPTION_HEIGHT_SHARE = 0.78  # a caption's anchor: this share of the half-height below the centre (the rig fills 0.75)
+CAPTION_HEIGHT_SHARE = 0.95  # a caption's anchor: this share of the half-height above the centre (the rig: 0.75)
 
 
 def smallest_baseline_m(calib: Calibration) -> float:
@@ -90,12 +91,12 @@ class RigFrame:
         return np.column_stack([width_px / 2 * (1 + x / (tan_v * VIEW_ASPECT)), height_px / 2 * (1 - y / tan_v)])
 
     def caption_anchor(self) -> np.ndarray:
-        """(3,) a point in the target's plane that the eye sees centred below the rig (in the bottom margin that
-        `RIG_FILL` leaves): where a caption of the scene goes."""
+        """(3,) a point in the target's plane that the eye sees centred above the rig, at the top of the margin
+        that `RIG_FILL` leaves (labels hang below their anchors: the views' never reach up there): where a caption
+        of the scene goes."""
         tan_v = np.tan(np.radians(VIEW_FOV_Y_DEG) / 2)
         distance = float(np.linalg.norm(self.target - self.position))
-        below = CAPTION_HEIGHT_SHARE * tan_v * distance  # image-down is -up
-        return self.target - below * self.up
+        return self.target + CAPTION_HEIGHT_SHARE * tan_v * distance * self.up
 
 
 def rig_frame(calib: Calibration) -> RigFrame:

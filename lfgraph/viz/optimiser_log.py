@@ -46,9 +46,17 @@ class OptimiserLog:
         """The running stage's pixel sigma: its RMS is plotted in pixels, not in units of the sigma."""
         self._sigma_px = float(sigma_px)
 
-    def _stage_starts(self, name: str) -> None:
-        """A stage named ``name`` starts with the next iteration."""
+    def _stage_starts(self, name: str) -> tuple[int, int, int]:
+        """A stage named ``name`` starts with the next iteration; its colour in the charts (`stage_colour`)."""
         self._stages.append((self.iteration_count + 1, str(name)))
+        return self.stage_colour(str(name))
+
+    def stage_colour(self, name: str) -> tuple[int, int, int]:
+        """The colour of a stage name's bars (and of the lines saying where it starts): one per name, in the order
+        the names first appear."""
+        names = list(dict.fromkeys(n for _, n in self._stages))
+        k = names.index(name) if name in names else len(names)
+        return STAGE_COLOURS[k % len(STAGE_COLOURS)]
 
     def on_iteration(self, _iteration: int, _before: float, after: float) -> None:
         """`lfgraph.engine.optimize` callback: one step on the ``iteration`` timeline per optimiser iteration."""
@@ -90,9 +98,9 @@ class OptimiserLog:
             fallen = np.log10(np.asarray(self._start_errors) / np.asarray(self._errors))
         fallen = np.clip(np.nan_to_num(fallen, nan=0.0, posinf=MAX_DECADES), 0.0, MAX_DECADES)
         rms = np.asarray(self._rms_px)
-        for k, name in enumerate(dict.fromkeys(names)):
+        for name in dict.fromkeys(names):
             sel = np.array([s == name for s in names])
-            colour = STAGE_COLOURS[k % len(STAGE_COLOURS)]
+            colour = self.stage_colour(name)
             part = _entity_part(name)
             self.rec.log(f"optimizer_summary/error_decades/{part}",
                          rr.BarChart(fallen[sel], abscissa=iterations[sel], color=colour), static=True)

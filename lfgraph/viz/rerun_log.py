@@ -16,7 +16,7 @@ Entity tree:
 - ``world/change``: per view an arrow from the input to the refined centre, drawn longer than
   the change (a round factor), each labelled with the rotation (deg) and translation (mm) change (shown on hover);
   ``world/change/labels`` shows what fits side by side in the default eye's picture: a caption with the factor
-  below the rig, then the labels of the changed views, largest change first;
+  above the rig, then the labels of the changed views, largest change first;
 - ``world/boards/frame_FFF``: each board pose (`Transform3D`) with its corners (`Points3D`, board frame);
 - ``world/landmarks``: refinement landmarks (`Points3D`, coloured by mean reprojection error), on the ``frame``
   timeline;
@@ -294,11 +294,12 @@ class RerunLogger(SceneLog, OptimiserLog, BaseObserver):
             self._clear_points(len(images))
 
     def stage_start(self, name: str, measurements: int) -> None:
-        """A stage starts: a line on ``optimizer/stages`` at its first iteration, and ``measurements`` set for the RMS
-        (`set_measurements`)."""
-        self._stage_starts(name)
+        """A stage starts: a line on ``optimizer/stages`` at its first iteration, in the colour of its bars in the
+        optimiser charts, and ``measurements`` set for the RMS (`set_measurements`)."""
+        colour = self._stage_starts(name)
         self.rec.set_time("iteration", sequence=self.iteration_count + 1)
-        self.rec.log("optimizer/stages", rr.TextLog(f"frame {self._frame}: stage {name} starts", level="INFO"))
+        self.rec.log("optimizer/stages", rr.TextLog(f"frame {self._frame}: stage {name} starts", level="INFO",
+                                                    color=colour))
         self.set_measurements(measurements)
 
     def stage_end(self, event: StageEnd) -> None:

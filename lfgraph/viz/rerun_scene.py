@@ -160,7 +160,7 @@ class SceneLog:
         longest is about `CHANGE_ARROW_BASELINE_SHARE` of the smallest baseline, each labelled with the change of
         rotation (deg), position (mm) and focal length (px, where it changed), the reference view's with the factor
         (``world/change``: the labels show on hover). ``world/change/labels`` shows what fits side by side in the
-        default eye's picture (`spaced_labels`): a caption with the factor below the rig, then the labels of the
+        default eye's picture (`spaced_labels`): a caption with the factor above the rig, then the labels of the
         changed views (with ``report``: the views not judged OK), largest change first."""
         from lfgraph.core.geometry import rotation_angle_deg
 
@@ -187,7 +187,7 @@ class SceneLog:
         verdicts = {vd.view: vd.verdict for vd in getattr(report, "verdicts", ())}
         changed = [v for v in range(after.num_views) if v != ref and verdicts.get(v) != "OK"
                    and (rot_deg[v] > 0 or pos_mm[v] > 0)]
-        # the caption (the arrows' factor) centred below the rig, then the changed views, largest change first
+        # the caption (the arrows' factor) centred above the rig, then the changed views, largest change first
         frame = rig_frame(self._eye_calib or before)
         anchors = np.vstack([frame.caption_anchor(), start + 0.45 * move * scale])  # rerun: 0.45 along an arrow
         texts = [f"change arrows x{scale:g} (reference {after.grid.name(ref)})", *labels]

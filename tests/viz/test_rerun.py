@@ -312,6 +312,13 @@ def test_refine_recording(scene, tmp_path):
     decades = np.concatenate([static[f"/optimizer_summary/error_decades/{name}:BarChart:values"][0][0]["buffer"]
                               for name in stages])
     assert len(decades) == m["total_iterations"] and decades.min() >= 0 and decades.max() <= MAX_DECADES
+    # ... each stage's bars in one colour of its own, the colour of the lines saying where it starts
+    colours = {name: static[f"/optimizer_summary/error_decades/{name}:BarChart:color"][0] for name in stages}
+    assert len({str(c) for c in colours.values()}) == len(stages)
+    lines = by_iteration["/optimizer/stages:TextLog:text"], by_iteration["/optimizer/stages:TextLog:color"]
+    for text, colour in zip(*lines, strict=True):
+        if text is not None:
+            assert colour == colours[text[0].split()[3]], text
     eye = []
     views, timeline = read_blueprint(rrd, eye)
     assert timeline == "frame"
