@@ -174,10 +174,13 @@ class RefineConfig:
             pixels —, ``"cauchy"`` — its usual constant, in measurement sigmas —, ``"huber:1.345sigma"``,
             ``"none"``), a `RobustKernel`, any ``gtsam.noiseModel.mEstimator`` object (wrapped around the isotropic
             ``measurement_sigma_px``: its threshold is then in sigmas), or a full ``gtsam`` noise model (used as it
-            is). Every one runs on the bulk solver (`lfgraph.engine.bulk_noise`).
+            is). Every one runs on the bulk solver (`lfgraph.engine.bulk_noise`). It governs the gates too: under a
+            kernel the estimated sigma is the residuals' robust scale, and the held-out and another-camera tests
+            compare the kernel's cost (`lfgraph.refinement.assess`).
         clean_robust: the ``clean`` stage's own noise model; None (default) uses ``robust``.
         measurement_sigma_px: the feature position noise per coordinate (px); None (default): estimated from the
-            residuals of a first fit (floored at ``MIN_MEASUREMENT_SIGMA_PX``), so the priors weigh what they should.
+            residuals of a first fit (their mean square; their median under a robust kernel; floored at
+            ``MIN_MEASUREMENT_SIGMA_PX``), so the priors weigh what they should.
         drift: the drift model (`DriftModel`): sigmas of the priors centred on the input calibration.
         priors: True (default): maximum a posteriori with the drift priors; False: the free fit of the paper (every
             freed parameter moves without a pull; scale by one range), still judged by the acceptance below.
@@ -217,6 +220,7 @@ class RefineConfig:
         match: the options of the default tracker (`ChainTracker`).
         tracker: what tracks features through the grid (`lfgraph.refinement.matching.Tracker`: an object with
             ``track(images, grid) -> Tracks``); None (default): ``ChainTracker(match)``, the paper's chain KLT.
+            ``lfgraph.refinement.tracks.OutlierTracker`` wraps one with a share of wrong matches (a study).
     """
 
     stages: tuple[Stage, ...] | str = "default"
