@@ -46,6 +46,8 @@ _EXPORTS = {
     "DriftModel": "lfgraph.refinement.config",
     "Tracker": "lfgraph.refinement.matching",
     "ChainTracker": "lfgraph.refinement.matching",
+    "SiftTracker": "lfgraph.refinement.unordered",
+    "tracker_by_name": "lfgraph.refinement.trackers",
     "MatchSettings": "lfgraph.refinement.matching",
     "Tracks": "lfgraph.refinement.matching",
     "RefinementReport": "lfgraph.refinement.report",
@@ -81,11 +83,12 @@ __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "Cal
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
            "CaptureSet", "ChainTracker", "Design", "DriftModel", "DriftReport", "GraphContext", "Init", "Intrinsics",
            "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
-           "RobustKernel", "SelfCalConfig", "SelfCalReport", "SilentObserver", "Stage", "StageEnd", "Tracker",
-           "Tracks", "TriangulationFilter", "ViewGrid", "calib_key", "calibrate", "calibrate_scene", "check",
-           "detect_capture", "evaluate", "export_calibration", "import_calibration", "landmark_key", "load_detections",
-           "open_capture", "pose_noise", "rectify", "refine", "vectorised_estimator", "view_pose_key", "viz",
-           "factors", "datasets", "pattern", "refinement", "synth", "study", "selfcal"]
+           "RobustKernel", "SelfCalConfig", "SelfCalReport", "SiftTracker", "SilentObserver", "Stage", "StageEnd",
+           "Tracker", "Tracks", "TriangulationFilter", "ViewGrid", "calib_key", "calibrate", "calibrate_scene",
+           "check", "detect_capture", "evaluate", "export_calibration", "import_calibration", "landmark_key",
+           "load_detections", "open_capture", "pose_noise", "rectify", "refine", "tracker_by_name",
+           "vectorised_estimator", "view_pose_key", "viz", "factors", "datasets", "pattern", "refinement", "synth",
+           "study", "selfcal"]
 
 
 def __getattr__(name: str) -> Any:
@@ -127,6 +130,8 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, Tracks
     from lfgraph.refinement.report import RefinementReport
     from lfgraph.refinement.schedule import refine
+    from lfgraph.refinement.trackers import tracker_by_name
+    from lfgraph.refinement.unordered import SiftTracker
     from lfgraph.selfcal.config import Design, SelfCalConfig
     from lfgraph.selfcal.pipeline import calibrate_scene
     from lfgraph.selfcal.report import SelfCalReport

@@ -95,12 +95,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     from lfgraph.judge.check import check
     from lfgraph.rectification.checks import check_compatible
     from lfgraph.refinement.config import DriftModel, RefineConfig
+    from lfgraph.refinement.trackers import DEFAULT_TRACKER, tracker_by_name
 
     try:
         depths = [float(x) for x in args.depths.split(",") if x.strip()] if args.depths else []
         if any(not d > 0 for d in depths):
             raise ValueError("depths must be positive")
-        config = RefineConfig(drift=DriftModel.parse(args.drift), tolerance_px=args.tolerance_px)
+        config = RefineConfig(drift=DriftModel.parse(args.drift), tolerance_px=args.tolerance_px,
+                              **({} if args.tracker == DEFAULT_TRACKER else {"tracker": tracker_by_name(args.tracker)}))
     except ValueError as exc:
         raise UsageError(f"{exc}") from None
     calib = Calibration.load(args.calibration)
@@ -166,6 +168,9 @@ def add_parsers(sub: Any) -> None:
     ck.add_argument("--drift", default="",
                     help="drift model sigmas, e.g. roll_deg=1,pan_tilt_deg=0.5,position_mm=5 (see RefineConfig)")
     ck.add_argument("--max-frames", type=positive_int, default=3, help="frames to use (default 3)")
+    ck.add_argument("--tracker", default="chain", metavar="NAME",
+                    help="what tracks features: chain (default: KLT along the grid) or sift (SIFT between grid "
+                         "neighbours, for steps too wide for KLT)")
     ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
     ck.add_argument("--json", action="store_true", help="print the figures and the verdict as JSON")
     ck.set_defaults(func=cmd_check)

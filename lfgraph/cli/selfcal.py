@@ -41,6 +41,7 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     from lfgraph.core.grid import ViewGrid
     from lfgraph.io.capture import open_capture
     from lfgraph.rectification.rectify import rectify
+    from lfgraph.refinement.trackers import DEFAULT_TRACKER, tracker_by_name
     from lfgraph.selfcal import Design, SelfCalConfig, calibrate_scene
 
     rows, cols = args.grid
@@ -52,7 +53,8 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
                                focal_tolerance=args.focal_tolerance_pct / 100.0,
                                principal_tolerance_px=args.principal_tolerance_px,
                                rotation_tolerance_deg=args.rotation_tolerance_deg,
-                               position_tolerance_mm=args.position_tolerance_mm)
+                               position_tolerance_mm=args.position_tolerance_mm,
+                               tracker=None if args.tracker == DEFAULT_TRACKER else tracker_by_name(args.tracker))
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     if (args.lens == "unified") != (args.xi is not None):
@@ -120,6 +122,9 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--reference", type=int, help="reference view (row-major index; default 0)")
     p.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
     p.add_argument("--max-frames", type=positive_int, help="use at most this many frames")
+    p.add_argument("--tracker", default="chain", metavar="NAME",
+                   help="what tracks features: chain (default: KLT along the grid) or sift (SIFT between grid "
+                        "neighbours, for steps too wide for KLT)")
     p.add_argument("--tracks-per-frame", type=positive_int, default=TRACKS_PER_FRAME,
                    help=f"tracks kept per frame, spread over the image (default {TRACKS_PER_FRAME})")
     p.add_argument("--focal-tolerance-pct", type=positive_float, default=100 * FOCAL_TOLERANCE,

@@ -1,6 +1,8 @@
 """Tracks for views that do not form a grid (a ring, a loose set): SIFT features matched between chosen view pairs,
 fundamental-matrix RANSAC per pair, tracks by union-find. The staged refinement then runs unchanged on them
-(`lfgraph.refinement.staged.refine_tracks` takes any (V, N, 2) tracks with a mask); nothing here assumes a grid.
+(`lfgraph.refinement.refine_tracks` takes any (V, N, 2) tracks with a mask); nothing here assumes a grid.
+`SiftTracker` is the same matcher as a `lfgraph.refinement.matching.Tracker` (``RefineConfig(tracker=...)``,
+``--tracker sift``): on a grid it matches every pair of grid neighbours.
 
 KLT along the grid chain needs small steps between neighbours; wide-baseline sets (22.5° between ring views) need
 descriptors.
@@ -9,10 +11,12 @@ descriptors.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from lfgraph.core.grid import ViewGrid
 from lfgraph.refinement.matching import Tracks
 
 RATIO_TEST = 0.75  # Lowe's ratio test
@@ -123,3 +127,28 @@ def match_unordered(images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int
     valid[view_of[sel], index[track_of[sel]]] = True
     return Tracks(pts, valid, {"detected": len(keypoints[0]) if keypoints else 0, "matches": n_matches,
                                "tracks": int(keep_track.sum())})
+
+
+@dataclass(frozen=True)
+class SiftTracker:
+    """SIFT features matched between neighbouring views (`match_unordered`), as a tracker: on a grid every pair of
+    grid neighbours (rows and columns), ``reach`` steps along them; tracks seen in at least ``min_views`` views (all
+    of a pair). For views too far apart for KLT's small steps (tens of degrees, a wide baseline)."""
+
+    max_features: int = 4000
+    min_views: int = 3
+    reach: int = 1
+
+    def track(self, images: np.ndarray, grid: ViewGrid) -> Tracks:
+        """SIFT tracks of one frame's (V, H, W) uint8 views of ``grid``; counts ``detected``, ``matches``, ``chain``
+        (tracks kept: seen in ``min_views`` views) and ``tracks``."""
+        pairs = [(a, b) for a in range(grid.num_views) for b in range(a + 1, grid.num_views)
+                 if _grid_steps(grid, a, b) <= self.reach]
+        tracks = match_unordered(list(images), pairs, self.max_features, min(self.min_views, grid.num_views))
+        return Tracks(tracks.points_px, tracks.valid, {**tracks.counts, "chain": tracks.counts["tracks"]})
+
+
+def _grid_steps(grid: ViewGrid, a: int, b: int) -> int:
+    """Grid steps between two views along one row or column (a large number for any other pair)."""
+    (ra, ca), (rb, cb) = grid.position(a), grid.position(b)
+    return abs(ca - cb) if ra == rb else abs(ra - rb) if ca == cb else 1 << 30
