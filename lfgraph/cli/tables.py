@@ -29,20 +29,23 @@ def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]], float
 
 
 def calibration_table(calib: Calibration) -> str:
-    """Per-view intrinsics and pose relative to the reference (position in mm, rotation angle in degrees)."""
+    """Per-view lens model, image size, intrinsics (the model's other coefficients in ``more``) and pose relative to
+    the reference (position in mm, rotation angle in degrees)."""
     rows = []
     for v in range(calib.num_views):
         intr = calib.intrinsics[v]
         pose = calib.ref_T_view[v]
         pos_mm = 1e3 * pose[:3, 3]
+        more = ", ".join(f"{k}={x:+.4g}" for k, x in intr.distortion.items() if k not in ("k1", "k2") and x != 0.0)
         rows.append([
-            v, calib.grid.name(v) + (" *" if v == calib.grid.reference else ""),
+            v, calib.grid.name(v) + (" *" if v == calib.grid.reference else ""), intr.lens,
+            "x".join(map(str, calib.image_size(v))),
             f"{intr.fx:.2f}", f"{intr.fy:.2f}", f"{intr.cx:.2f}", f"{intr.cy:.2f}", f"{intr.k1:+.4f}",
-            f"{intr.k2:+.4f}", f"{pos_mm[0]:+.3f}", f"{pos_mm[1]:+.3f}", f"{pos_mm[2]:+.3f}",
+            f"{intr.k2:+.4f}", more or "-", f"{pos_mm[0]:+.3f}", f"{pos_mm[1]:+.3f}", f"{pos_mm[2]:+.3f}",
             f"{float(rotation_angle_deg(pose[:3, :3])):.4f}",
         ])
-    return format_table(
-        ["view", "name", "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "x_mm", "y_mm", "z_mm", "rot_deg"], rows)
+    return format_table(["view", "name", "lens", "size_px", "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "more",
+                         "x_mm", "y_mm", "z_mm", "rot_deg"], rows)
 
 
 def calibration_summary(calib: Calibration) -> str:
@@ -51,7 +54,8 @@ def calibration_summary(calib: Calibration) -> str:
     w, h = calib.image_size_px
     lines = [
         f"grid {calib.grid} ({calib.num_views} views), reference view {calib.grid.reference} "
-        f"({calib.grid.name(calib.grid.reference)}, marked *), image {w}x{h} px",
+        f"({calib.grid.name(calib.grid.reference)}, marked *), image {w}x{h} px"
+        + (" (views of other sizes: size_px)" if calib.view_image_sizes_px is not None else ""),
         "positions and rotation angles are relative to the reference view",
         calibration_table(calib),
     ]

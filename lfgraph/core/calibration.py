@@ -192,6 +192,7 @@ class Calibration:
         for v, intr in enumerate(self.intrinsics):
             views.append({"index": v, "name": self.grid.name(v), "fx_px": intr.fx, "fy_px": intr.fy, "cx_px": intr.cx,
                           "cy_px": intr.cy, "lens": intr.lens, **intr.distortion,
+                          "image_size_px": list(self.image_size(v)),
                           "position_mm": [float(x) for x in 1e3 * self.ref_T_view[v, :3, 3]],
                           "rotation_deg": float(rotation_angle_deg(self.ref_T_view[v, :3, :3]))})
         return {"grid": {"rows": self.grid.rows, "cols": self.grid.cols, "reference": self.grid.reference},

@@ -24,9 +24,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from lfgraph.core.calibration import Calibration
+from lfgraph.core.grid_design import grid_problems
 from lfgraph.interop import colmap, hci, json_format, kalibr, middlebury, mrcal, opencv_yaml, ros
 from lfgraph.interop.colmap import COLMAP_CAMERA_MODELS, COLMAP_MODEL_FILES, COLMAP_PIXEL_OFFSET_PX
-from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike, in_folder
+from lfgraph.interop.common import MAX_IMPORT_VIEWS, MM_PER_M, GridLike, PathLike, fail, in_folder
 from lfgraph.interop.kalibr import KALIBR_DISTORTION_MODELS
 
 __all__ = [
@@ -112,7 +113,11 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
     reader = _READERS.get(fmt)
     if reader is None:
         raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
-    return reader(Path(path), grid)
+    calib = reader(Path(path), grid)
+    errors, _ = grid_problems(calib.grid, calib.ref_T_view)  # the file's poses against the grid it is read into
+    if errors:
+        raise fail(path, "grid", "; ".join(errors))
+    return calib
 
 
 def input_paths(path: PathLike, fmt: str) -> tuple[Path, ...]:

@@ -108,7 +108,6 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
         raise ValueError(f"COLMAP has no unified (omnidirectional) camera model, which views {', '.join(unified)} "
                          f"use; export them to Kalibr (omni-radtan) instead")
     n = calib.num_views
-    w, h = calib.image_size_px
     cameras = [
         "# Camera list with one line of data per camera:",
         "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
@@ -117,6 +116,7 @@ def colmap_files(calib: Calibration) -> dict[str, str]:
     ]
     for v, intr in enumerate(calib.intrinsics):
         model = "OPENCV_FISHEYE" if intr.lens == "fisheye" else "OPENCV"
+        w, h = calib.image_size(v)  # each view's own (a rig of mixed sizes)
         cameras.append(f"{v + 1} {model} {w} {h} " + " ".join(num(p) for p in _params(intr)))
     ref = calib.grid.reference
     sensors = []
@@ -256,10 +256,7 @@ def read(path: Path, grid: GridLike) -> Calibration:
 
     cameras = _read_cameras(cameras_path)
     ids = sorted(cameras)
-    sizes = {cameras[i][1] for i in ids}
-    if len(sizes) > 1:
-        raise fail(cameras_path, "WIDTH, HEIGHT", f"cameras have different image sizes {sorted(sizes)}; lfgraph "
-                                                   f"needs one size for all views")
+    sizes = [cameras[i][1] for i in ids]
     ref_id, sensor_from_rig = _read_rig(rigs_path, ids)
     reference = ids.index(ref_id)
 
@@ -278,5 +275,5 @@ def read(path: Path, grid: GridLike) -> Calibration:
     views = [cameras[i][0] for i in ids]
     ref_T_view = np.stack([invert_T(sensor_from_rig[i]) for i in ids])  # noqa: N806
     ref_T_view[reference] = np.eye(4)
-    calib = build(path, "rigs.txt", view_grid, sizes.pop(), views, ref_T_view)
+    calib = build(path, "rigs.txt", view_grid, sizes[reference], views, ref_T_view, sizes)
     return fit_grid(calib, grid, path, "cameras.txt")

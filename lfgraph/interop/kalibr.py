@@ -53,7 +53,6 @@ def _floats(values: Any) -> list[float]:
 
 def camchain(calib: Calibration) -> dict[str, dict[str, Any]]:
     """The camchain as the mapping Kalibr reads (``cam0``, ``cam1``, ...), in view order."""
-    w, h = calib.image_size_px
     chain: dict[str, dict[str, Any]] = {}
     for v in range(calib.num_views):
         intr = calib.intrinsics[v]
@@ -70,7 +69,7 @@ def camchain(calib: Calibration) -> dict[str, dict[str, Any]]:
             "distortion_model": "equidistant" if fisheye else "radtan",
             "distortion_coeffs": _floats([intr.k1, intr.k2, intr.k3, intr.k4] if fisheye
                                          else [intr.k1, intr.k2, intr.p1, intr.p2]),
-            "resolution": [int(w), int(h)],
+            "resolution": [int(x) for x in calib.image_size(v)],  # each view's own (a rig of mixed sizes)
             "rostopic": f"/lfgraph/{calib.grid.name(v)}/image_raw",
         }
         chain[f"cam{v}"] = cam
@@ -111,7 +110,8 @@ def read(path: Path, grid: GridLike) -> Calibration:
             raise fail(path, f"{cam}.{key}", "is missing")
         return entry[key]
 
-    views, size = [], None
+    views: list[Intrinsics] = []
+    sizes: list[tuple[int, int]] = []
     cn_T_c0 = [np.eye(4)]  # noqa: N806 - camera n from camera 0, chained
     for i in range(n):
         cam = f"cam{i}"
@@ -139,12 +139,7 @@ def read(path: Path, grid: GridLike) -> Calibration:
             views.append(intrinsics(path, f"{cam}.intrinsics", K, dist,
                                     "fisheye" if dist_model == "equidistant" else "radtan"))
         res = array(get(cam, "resolution"), (2,), path, f"{cam}.resolution")
-        cam_size = (whole(res[0], path, f"{cam}.resolution"), whole(res[1], path, f"{cam}.resolution"))
-        if size is None:
-            size = cam_size
-        elif cam_size != size:
-            raise fail(path, f"{cam}.resolution", f"is {list(cam_size)}, but cam0's is {list(size)}; lfgraph needs "
-                                                  f"one image size for all views")
+        sizes.append((whole(res[0], path, f"{cam}.resolution"), whole(res[1], path, f"{cam}.resolution")))
         if i > 0:
             key = f"{cam}.T_cn_cnm1"
             T = transform(array(get(cam, "T_cn_cnm1"), (4, 4), path, key), path, key)  # noqa: N806
@@ -154,5 +149,5 @@ def read(path: Path, grid: GridLike) -> Calibration:
     # ref_T_view = inv(view_T_c0 @ c0_T_ref)
     ref_T_view = np.stack([invert_T(cn_T_c0[v] @ c0_T_ref) for v in range(n)])  # noqa: N806
     ref_T_view[ref] = np.eye(4)
-    calib = build(path, "cam*", ref_grid, size, views, ref_T_view)
+    calib = build(path, "cam*", ref_grid, sizes[ref], views, ref_T_view, sizes)
     return fit_grid(calib, grid, path, "cam*")

@@ -1,6 +1,7 @@
 """``opencv-yaml`` (export, import): one ``cv2.FileStorage`` YAML file.
 
-Top level ``grid_rows``, ``grid_cols``, ``reference``, ``image_width``, ``image_height``, ``num_views``; per view
+Top level ``grid_rows``, ``grid_cols``, ``reference``, ``image_width``, ``image_height``, ``num_views``; a rig of
+mixed image sizes also ``image_width_i``, ``image_height_i`` per view; per view
 ``i``: ``K_i`` (3x3), ``D_i`` (1x5: k1 k2 p1 p2 k3 with k3 = 0), ``R_i`` (3x3) and ``T_i`` (3x1, metres) with
 ``x_view = R_i x_ref + T_i`` (= ``calib.view_T_ref(i)``, the convention of ``cv2.stereoCalibrate``).
 
@@ -110,6 +111,9 @@ def write(calib: Calibration, path: Path) -> None:
                 fs.write(f"D_{i}", intr.dist_cv.reshape(1, -1))
                 fs.write(f"R_{i}", view_T_ref[:3, :3])
                 fs.write(f"T_{i}", view_T_ref[:3, 3].reshape(3, 1))
+                if calib.view_image_sizes_px is not None:  # a rig of mixed sizes: each view's own
+                    fs.write(f"image_width_{i}", int(calib.image_size(i)[0]))
+                    fs.write(f"image_height_{i}", int(calib.image_size(i)[1]))
             if rect is not None:
                 fs.writeComment("rectification: initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, "
                                 "rect_image_height)) gives lfgraph's rectified view i; P_i as stereoRectify's P1/P2")
@@ -256,8 +260,10 @@ def read(path: Path, grid: GridLike) -> Calibration:
         file_grid = ViewGrid(rows, cols, reference)
     except ValueError as exc:
         raise fail(path, "reference", str(exc)) from None
-    views, poses = [], []
+    views, poses, sizes = [], [], []
     for i in range(num_views):
+        sizes.append((integer(f"image_width_{i}", 1), integer(f"image_height_{i}", 1))
+                     if f"image_width_{i}" in entries or f"image_height_{i}" in entries else size)
         K = _matrix(entries, f"K_{i}", (3, 3), path)  # noqa: N806
         dist = _matrix(entries, f"D_{i}", None, path)  # 4, 5 or more coefficients; those past p2 must be 0
         model = entries.get(f"model_{i}", "pinhole")
@@ -270,5 +276,5 @@ def read(path: Path, grid: GridLike) -> Calibration:
         if i == reference:
             check_reference_pose(view_T_ref, path, f"R_{i}, T_{i}")
         poses.append(invert_T(view_T_ref))
-    calib = build(path, "num_views", file_grid, size, views, np.stack(poses))
+    calib = build(path, "num_views", file_grid, size, views, np.stack(poses), sizes)
     return fit_grid(calib, grid, path, "num_views")

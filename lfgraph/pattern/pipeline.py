@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
+from lfgraph.core.grid_design import grid_problems
 from lfgraph.core.observer import Observer, resolve, tell
 from lfgraph.detect.board_order import order_symmetric_boards
 from lfgraph.detect.detections import BoardObservations
@@ -18,7 +19,7 @@ from lfgraph.factors.board_graph import WEAK_FOCAL_SIGMA_REL, WEAK_PRINCIPAL_SIG
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.lenses import lens_model
 from lfgraph.pattern.config import CalibrateConfig, Init, Method
-from lfgraph.pattern.design_check import grid_problems, mirrored_views
+from lfgraph.pattern.design_check import mirrored_views
 from lfgraph.pattern.initial import (
     CalibrationInputError,
     check_observations,

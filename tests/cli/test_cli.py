@@ -101,3 +101,21 @@ def test_demo_on_the_small_scene(tmp_path, capsys):
     assert "[4/5]" in text and "parallax removed" in text and "paper / joint" in text and "rig-consistent RMS" in text
     calib = Calibration.load(tmp_path / "calibration.json")
     assert calib.metrics["method"] == "joint" and calib.num_views == 4
+
+
+def test_info_shows_each_views_lens_and_image_size(tmp_path, capsys):
+    """Issue 42: ``info`` showed no lens model (nor fisheye k3, k4 or a unified xi) and one image size for a rig of
+    mixed sizes."""
+    import lfgraph as lf
+
+    calib, _ = lf.synth.knocked_rig("fisheye-1x3", seed=1)
+    calib = calib.replace(view_image_sizes_px=((640, 480), (1280, 720), (640, 480)))
+    path = tmp_path / "c.json"
+    calib.save(path)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "fisheye" in out and "1280x720" in out and "640x480" in out
+    assert main(["info", str(path), "--json"]) == 0
+    views = json.loads(capsys.readouterr().out)["views"]
+    assert [v["image_size_px"] for v in views] == [[640, 480], [1280, 720], [640, 480]]
+    assert all(v["lens"] == "fisheye" and "k4" in v for v in views)

@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 
 from lfgraph.cli import EXIT_BAD_INPUT, main
+from lfgraph.core.grid_design import grid_problems
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.rig import make_rig
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.detect.detections import observations_from_arrays
 from lfgraph.pattern import CalibrateConfig, CalibrationInputError, calibrate
-from lfgraph.pattern.design_check import _mirrored, grid_problems, view_order
+from lfgraph.pattern.design_check import _mirrored, view_order
 
 SIGMA_PX = 0.1  # corner noise of the synthetic observations
 SAME_MM = 1e-6  # the swapped streams re-labelled: the calibration of the rightly cabled rig, to round-off
