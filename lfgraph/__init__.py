@@ -47,6 +47,7 @@ _EXPORTS = {
     "Tracker": "lfgraph.refinement.matching",
     "ChainTracker": "lfgraph.refinement.matching",
     "SiftTracker": "lfgraph.refinement.unordered",
+    "OutlierTracker": "lfgraph.refinement.tracks",
     "tracker_by_name": "lfgraph.refinement.trackers",
     "MatchSettings": "lfgraph.refinement.matching",
     "Tracks": "lfgraph.refinement.matching",
@@ -82,11 +83,11 @@ _SUBMODULES = {"viz": "lfgraph.viz", "factors": "lfgraph.factors", "datasets": "
 __all__ = ["__version__", "BaseObserver", "BoardObservations", "BoardSpec", "CalibrateConfig", "Calibration",
            "CalibrationErrors", "CalibrationFileError", "CalibrationInputError", "CalibrationReport", "CaptureError",
            "CaptureSet", "ChainTracker", "Design", "DriftModel", "DriftReport", "GraphContext", "Init", "Intrinsics",
-           "MatchSettings", "Method", "Observer", "Observers", "PointBoard", "RefineConfig", "RefinementReport",
-           "RobustKernel", "SelfCalConfig", "SelfCalReport", "SiftTracker", "SilentObserver", "Stage", "StageEnd",
-           "Tracker", "Tracks", "TriangulationFilter", "ViewGrid", "calib_key", "calibrate", "calibrate_scene",
-           "check", "detect_capture", "evaluate", "export_calibration", "import_calibration", "landmark_key",
-           "load_detections", "open_capture", "pose_noise", "rectify", "refine", "tracker_by_name",
+           "MatchSettings", "Method", "Observer", "Observers", "OutlierTracker", "PointBoard", "RefineConfig",
+           "RefinementReport", "RobustKernel", "SelfCalConfig", "SelfCalReport", "SiftTracker", "SilentObserver",
+           "Stage", "StageEnd", "Tracker", "Tracks", "TriangulationFilter", "ViewGrid", "calib_key", "calibrate",
+           "calibrate_scene", "check", "detect_capture", "evaluate", "export_calibration", "import_calibration",
+           "landmark_key", "load_detections", "open_capture", "pose_noise", "rectify", "refine", "tracker_by_name",
            "vectorised_estimator", "view_pose_key", "viz", "factors", "datasets", "pattern", "refinement", "synth",
            "study", "selfcal"]
 
@@ -131,6 +132,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from lfgraph.refinement.report import RefinementReport
     from lfgraph.refinement.schedule import refine
     from lfgraph.refinement.trackers import tracker_by_name
+    from lfgraph.refinement.tracks import OutlierTracker
     from lfgraph.refinement.unordered import SiftTracker
     from lfgraph.selfcal.config import Design, SelfCalConfig
     from lfgraph.selfcal.pipeline import calibrate_scene

@@ -42,10 +42,13 @@ def _refine(args: argparse.Namespace) -> int:
     from lfgraph.rectification.checks import check_compatible
     from lfgraph.refinement import RefineConfig, refine, with_reference
     from lfgraph.refinement.config import DriftModel, schedule_name
+    from lfgraph.refinement.trackers import DEFAULT_TRACKER, tracker_by_name
     from lfgraph.refinement.tracks import OutlierTracker
 
     try:
-        tracker = None if args.outliers is None else OutlierTracker.parse(args.outliers, seed=args.outliers_seed)
+        chosen = None if args.tracker == DEFAULT_TRACKER else tracker_by_name(args.tracker)
+        tracker = chosen if args.outliers is None else OutlierTracker.parse(args.outliers, inner=chosen,
+                                                                            seed=args.outliers_seed)
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
                               target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter,
                               drift=DriftModel.parse(args.drift), priors=not args.free, folds=args.folds,
@@ -69,7 +72,7 @@ def _refine(args: argparse.Namespace) -> int:
     if not args.json:
         print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "
               f"triangulation filter {config.triangulation_filter}, robust {describe_noise(config.noise)}")
-        if tracker is not None:
+        if isinstance(tracker, OutlierTracker):
             print(f"note: wrong matches injected (a study): {100 * tracker.share:g} % of the non-reference "
                   f"observations moved by {tracker.min_px:g}-{tracker.max_px:g} px (seed {tracker.seed})")
     frames = (capture.load_frame(f) for f in range(n))
@@ -120,6 +123,9 @@ def add_parsers(sub: Any) -> None:
     rf.add_argument("--tolerance-px", type=non_negative, default=0.1,
                     help="a view is DRIFTED (and changed) only when its change is significant and moves its transfer "
                          "at infinity by more than this (px, default 0.1; 0: apply every significant change)")
+    rf.add_argument("--tracker", default="chain", metavar="NAME",
+                    help="what tracks features: chain (default: KLT along the grid) or sift (SIFT between grid "
+                         "neighbours, for steps too wide for KLT)")
     rf.add_argument("--outliers", metavar="SHARE:MIN-MAX",
                     help="a study: make SHARE of the non-reference track observations wrong matches, moved by MIN-MAX "
                          "px in random directions (e.g. 0.05:2-8), to see the robust kernels at work")

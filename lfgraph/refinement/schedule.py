@@ -247,8 +247,10 @@ def refinement_warnings(coverage: float, counts: list[dict[str, int]], dropped: 
     chained = sum(c.get("chain", 0) for c in counts)
     if detected and chained / detected < CHAIN_WARN:
         warnings.append(f"only {chained} of {detected} features ({100 * chained / detected:.0f} %) could be followed "
-                        f"through every view: the disparity between neighbouring views is too large for the tracker "
-                        f"(a near scene, a narrow field of view or a wide pitch); use a farther scene")
+                        f"through every view: neighbouring views' images differ by more than the tracker follows, even "
+                        f"with a deeper pyramid (a knock of several degrees, a near scene, a narrow field of view or a "
+                        f"wide pitch); refine with --tracker sift (tracker=lf.tracker_by_name('sift')), which does "
+                        f"not care how far the image moved, or use a farther scene")
     if dropped:
         warnings.append(f"frames {', '.join(map(str, dropped))} dropped: most of their tracks disagree with the other "
                         f"frames' (mismatches)")
