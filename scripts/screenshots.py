@@ -1,10 +1,11 @@
 """Make the README's pictures (``make screenshots``; opt-in, not part of ``make test``).
 
-1. Runs ``lfgraph`` on small synthetic data: calibrate, refine (a shaken rig) and rectify with ``--save``, the shake
-   and calibration studies, ``calibrate --plots``.
+1. Runs ``lfgraph`` on small synthetic data: calibrate, refine (a shaken rig) and rectify with ``--save``, refine of
+   a shaken 5x5, 1x8 and fisheye 1x3, the shake and calibration studies, ``calibrate --plots``.
 2. Renders the recordings in rerun's web viewer (``rerun --serve-web``, bound to 127.0.0.1) in headless Chromium
    (software WebGL: ``--use-angle=swiftshader``, ``&renderer=webgl``), driven over the DevTools protocol (tornado's
-   websocket client: the ``test`` extras bring it), each with a blueprint that frames one thing.
+   websocket client: the ``test`` extras bring it): the refine runs as they open (their own layout, as a user sees
+   them), the others each with a blueprint that frames one thing.
 3. Writes small PNGs to ``docs/images/`` (quantised to `PNG_COLOURS` colours when Pillow is there).
 
 Needs the Debian package ``chromium``. Look at every picture before committing it.
@@ -35,6 +36,9 @@ from lfgraph.cli import main as lfgraph
 
 WINDOW_PX = (1400, 860)
 VIEWER_LOAD_S = 60.0  # real time for the web viewer to load its wasm and the recording, decode the JPEGs, draw
+# refine recordings shown as they open: (scene, extra synth arguments, picture); 2 frames, 1 deg / 3 mm shake
+RIGS = (("paper-5x5", [], "rerun_refine_5x5.png"), ("paper-5x5", ["--grid", "1x8"], "rerun_refine_1x8.png"),
+        ("fisheye-1x3", [], "rerun_refine_fisheye_1x3.png"))
 PNG_COLOURS = 256
 APP_ID = "lfgraph"
 CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
@@ -120,14 +124,24 @@ def cdp_screenshot(page_url: str, out_png: Path, wait_s: float) -> None:
         shutil.rmtree(profile, ignore_errors=True)
 
 
-def render_recording(rrd: Path, blueprint: rrb.Blueprint, out_png: Path, work: Path) -> None:
-    """Serve ``rrd`` with ``blueprint`` (saved as .rbl) in rerun's web viewer and screenshot it."""
-    rbl = work / f"{out_png.stem}.rbl"
-    blueprint.save(APP_ID, str(rbl))
+def render_recording(rrd: Path, blueprint: rrb.Blueprint | None, out_png: Path, work: Path) -> None:
+    """Serve ``rrd`` with ``blueprint`` (saved as .rbl; None: the recording's own layout) in rerun's web viewer and
+    screenshot it."""
+    files = [str(rrd)]
+    if blueprint is not None:
+        # the recording's own layout is made active when it loads: a copy of its data alone takes the .rbl's
+        from rerun.chunk import RrdReader
+
+        data = work / f"{out_png.stem}.data.rrd"
+        reader = RrdReader(rrd)
+        reader.stream().write_rrd(data, application_id=APP_ID, recording_id=reader.recordings()[0].recording_id)
+        rbl = work / f"{out_png.stem}.rbl"
+        blueprint.save(APP_ID, str(rbl))
+        files = [str(data), str(rbl)]
     web, grpc = free_port(), free_port()
     rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or "rerun"
     server = subprocess.Popen([rerun, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web),
-                               "--port", str(grpc), str(rrd), str(rbl)],
+                               "--port", str(grpc), *files],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         wait_http(f"http://127.0.0.1:{web}/")
@@ -202,11 +216,11 @@ def make(work: Path, out: Path, viewer: bool) -> None:
                       (work / "report" / "residuals.png", "calibration_residuals.png")):
         shutil.copyfile(src, out / name)
         shrink(out / name)
+    rigs = [refine_rig(work, rig_scene, extra) for rig_scene, extra, _ in RIGS]
     if not viewer:
         return
     from lfgraph.core.calibration import Calibration
     from lfgraph.viz.blueprint import rig_eye
-    from lfgraph.viz.rerun_log import default_blueprint
 
     refined = Calibration.load(work / "refined.json")
     # paused: a playing timeline shows each frame's points while its image is still being decoded
@@ -222,12 +236,23 @@ def make(work: Path, out: Path, viewer: bool) -> None:
         ("rectify.rrd", rrb.Blueprint(rrb.Grid(*[rrb.Spatial2DView(origin=f"rectified/{grid.name(v)}",
                                                                    name=grid.name(v)) for v in range(4)],
                                                grid_columns=2), collapse_panels=True), "rerun_rectified.png"),
-        ("refine.rrd", default_blueprint(grid, "refine", refined), "rerun_refine_default.png"),
+        *((rrd, None, name) for rrd, (_, _, name) in zip(rigs, RIGS, strict=True)),
     ]
     for rrd, blueprint, name in shots:
         print(f"rendering {rrd} -> {name}", flush=True)
         render_recording(work / rrd, blueprint, out / name, work)
         shrink(out / name)
+
+
+def refine_rig(work: Path, scene: str, extra: list[str]) -> str:
+    """A shaken ``scene`` (2 frames, 1 deg / 3 mm) refined with ``--save``: the recording's name in ``work``."""
+    name = "_".join([scene, *extra]).replace("--", "").replace(" ", "")
+    folder = work / name
+    run(["synth", "scene", str(folder), "--scene", scene, *extra, "--frames", "2", "--shake-rot-deg", "1",
+         "--shake-trans-mm", "3", "--jobs", "2", "--quiet"], folder / "original.json")
+    run(["refine", str(folder / "original.json"), str(folder), "-o", str(work / f"{name}.json"), "--quiet",
+         "--save", str(work / f"{name}.rrd")], work / f"{name}.rrd")
+    return f"{name}.rrd"
 
 
 if __name__ == "__main__":
