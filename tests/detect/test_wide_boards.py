@@ -76,6 +76,8 @@ def test_a_fisheye_array_calibrates_from_its_renders_and_rectifies_rows_aligned(
 
 
 STRAIGHT_PX = 0.05  # a board row's logged corners off their straight line, in the pinhole the view is shown in
+MIN_WHOLE_BOARDS = 20  # boards drawn whole in the undistorted views (40 before issue 40: fisheye points are drawn
+# only inside the image as shown, so boards reaching past the pinhole image are drawn in part; measured 23)
 CURVED_PX = 1.0  # ... while the same rows curve by more than this in the fisheye images (median over boards)
 JPEG_CORNER_PX = 0.5  # as tests/viz/test_rerun.py: OpenCV's corners on the logged JPEG against the logged ones
 
@@ -115,7 +117,7 @@ def test_rerun_shows_fisheye_views_undistorted_to_their_pinhole(fisheye_run):
                                                      axis=-1).min(axis=1)))
     print(f"{len(straight)} boards: rows bend {np.median(straight):.4f} px logged, {np.median(curved):.2f} px in the "
           f"fisheye images; {len(gaps)} found again on the logged images, median gap {np.median(gaps):.3f} px")
-    assert len(straight) >= 40 and np.median(straight) < STRAIGHT_PX and np.median(curved) > CURVED_PX
+    assert len(straight) >= MIN_WHOLE_BOARDS and np.median(straight) < STRAIGHT_PX and np.median(curved) > CURVED_PX
     assert len(gaps) >= 10 and np.max(gaps) < JPEG_CORNER_PX
 
 
