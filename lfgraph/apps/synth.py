@@ -22,12 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
+from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import SCENES, NamedScene, get_scene
 from lfgraph.refinement.tracks import OutlierTracker
 
-__all__ = ["SCENES", "OutlierTracker", "SceneCapture", "knocked_rig", "render_frame", "scene_capture", "scene_config"]
+__all__ = ["SCENES", "OutlierTracker", "RigConfig", "SceneCapture", "ShakeConfig", "knocked_rig", "render_frame", "scene_capture", "scene_config"]
 
 
 @dataclass(frozen=True)
@@ -112,7 +112,8 @@ def scene_capture(name: str | NamedScene = "paper-5x5", frames: int | None = Non
         seed: the seed of the rig, the knock, the scenes and the noise (and of the wrong matches).
         outliers: wrong matches, ``"SHARE:MIN-MAX"`` (``"0.05:2-8"``: 5 % of the non-reference observations moved
             by 2-8 px) or an `OutlierTracker`: the capture's ``tracker``; None: none.
-        rig_changes: `RigConfig` fields to override.
+        rig_changes: `RigConfig` fields to override (``lf.synth.RigConfig``: rows, cols, pitch_m, image_size_px,
+            focal_px, lens, ...).
     """
     named = _named(name)
     n = named.frames if frames is None else frames
