@@ -161,3 +161,12 @@ def test_a_calibration_recorded_from_the_library_shows_its_result(tmp_path):
     eye = []
     read_blueprint(tmp_path / "cal.rrd", eye)
     assert eye  # the layout opens on the calibrated rig
+
+
+def test_the_names_synth_documents_exist():
+    """Issue 40: ``help(lf.synth.scene_capture)`` named ``RigConfig``, which ``lf.synth`` did not hold."""
+    import lfgraph as lf
+
+    assert {"rows", "cols", "image_size_px"} <= set(lf.synth.RigConfig.__dataclass_fields__)
+    cap = lf.synth.scene_capture("small-2x2", frames=1, rows=1, cols=3)
+    assert cap.truth.grid.num_views == 3 and len(cap.frames[0]) == 3

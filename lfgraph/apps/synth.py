@@ -27,7 +27,8 @@ from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_views
 from lfgraph.datasets.scenes import SCENES, NamedScene, get_scene
 from lfgraph.refinement.tracks import OutlierTracker
 
-__all__ = ["SCENES", "OutlierTracker", "RigConfig", "SceneCapture", "ShakeConfig", "knocked_rig", "render_frame", "scene_capture", "scene_config"]
+__all__ = ["SCENES", "OutlierTracker", "RigConfig", "SceneCapture", "ShakeConfig", "knocked_rig", "render_frame",
+           "scene_capture", "scene_config"]
 
 
 @dataclass(frozen=True)
