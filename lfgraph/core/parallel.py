@@ -23,6 +23,7 @@ import multiprocessing
 import multiprocessing.forkserver
 import os
 import queue
+import select
 import signal
 import sys
 import threading
@@ -62,32 +63,33 @@ FORKSERVER_PRELOAD = ["lfgraph.core.parallel", "numpy", "cv2", "gtsam", "lfgraph
                       "lfgraph.datasets.checkerboard"]
 
 
-def _in_fork_server() -> bool:
-    """Whether this module is being imported by multiprocessing's fork server, loading its preload modules."""
+def _fork_server_alive_fd() -> int | None:
+    """When this module is being imported by multiprocessing's fork server (loading its preload modules): the read
+    end of the server's "alive" pipe, whose only writer is the parent until the server forks a worker; else None."""
     frame = sys._getframe(1)
     while frame is not None:
         if frame.f_code.co_name == "main" and frame.f_globals.get("__name__") == "multiprocessing.forkserver":
-            return True
+            return frame.f_locals.get("alive_r")
         frame = frame.f_back
-    return False
+    return None
 
 
-def _arm_fork_server() -> None:
+def _arm_fork_server(alive_r: int) -> None:
     """In the fork server, before it forks any worker: ignore SIGINT (the server records the handler it finds and
     gives it to every worker it forks; the parent started the server with SIGINT blocked, so a Ctrl-C that came
-    meanwhile is pending, and ignoring it discards it), and die with the parent.
-
-    A parent that died before the signal was armed is seen too: the server's "alive" pipe, whose only writer is the
-    parent until the first worker exists, then reads end-of-file and the server exits.
-    """
+    meanwhile is pending, and ignoring it discards it), and die with the parent. A parent that died before the
+    signal was armed has closed the alive pipe (it never writes to it): then the server ends at once, instead of
+    after loading the other modules (a second, during which it held the caller's pipes)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if _PRCTL is not None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if select.select([alive_r], [], [], 0)[0]:
+        os._exit(0)
 
 
-if _in_fork_server():
-    _arm_fork_server()
+if (_alive_r := _fork_server_alive_fd()) is not None:
+    _arm_fork_server(_alive_r)
 
 
 def _exited(pid: int) -> bool:
