@@ -76,7 +76,10 @@ class Calibration:
     view_image_sizes_px: tuple[tuple[int, int], ...] | None = None
 
     def image_size(self, view: int) -> tuple[int, int]:
-        """(width, height) of one view's images."""
+        """(width, height) of one view's images; ValueError for a view the grid does not have (-1 is no view)."""
+        if isinstance(view, bool) or not isinstance(view, int | np.integer):
+            raise TypeError(f"image_size: view must be a view index, got {view!r}")
+        self.grid.position(int(view))  # ValueError naming the grid's range
         return self.image_size_px if self.view_image_sizes_px is None else self.view_image_sizes_px[view]
 
     @property
@@ -108,7 +111,12 @@ class Calibration:
             raise ValueError(f"image_size_px must be positive (width, height), got {self.image_size_px}")
         object.__setattr__(self, "image_size_px", (w, h))
         if self.view_image_sizes_px is not None:
-            sizes = tuple((int(a), int(b)) for a, b in self.view_image_sizes_px)
+            given = [tuple(s) for s in self.view_image_sizes_px]
+            if any(len(s) != 2 or not all(isinstance(x, int | np.integer) and not isinstance(x, bool) for x in s)
+                   for s in given):
+                raise ValueError(f"view_image_sizes_px must hold (width, height) in whole pixels, got "
+                                 f"{self.view_image_sizes_px}")
+            sizes = tuple((int(a), int(b)) for a, b in given)
             if len(sizes) != n or any(a <= 0 or b <= 0 for a, b in sizes):
                 raise ValueError(f"view_image_sizes_px must hold {n} positive (width, height), got "
                                  f"{self.view_image_sizes_px}")

@@ -83,6 +83,9 @@ class Design:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be positive, got {value}")
+        if len(self.image_size_px) != 2 or not all(
+                isinstance(x, int | np.integer) and not isinstance(x, bool) for x in self.image_size_px):
+            raise ValueError(f"image_size_px must be (width, height) in whole pixels, got {self.image_size_px}")
         w, h = (int(x) for x in self.image_size_px)
         if w <= 0 or h <= 0:
             raise ValueError(f"image size must be positive, got {self.image_size_px}")

@@ -139,3 +139,20 @@ def test_stored_sigmas_read_in_either_shape_and_refused_when_broken():
     for broken in ([view], [view, {**view, "fx_px": "x"}], [view, {**view, "position_mm": [0.1]}],
                    [view, {**view, "cx_px": float("nan")}], "no"):
         assert calib.replace(metrics={"sigmas": broken}).sigmas is None, broken
+
+
+def test_a_view_the_grid_does_not_have_and_fractional_sizes_are_refused():
+    """Issue 42: ``image_size(4)`` of 4 views and ``image_size(-1)`` answered; fractional image sizes were truncated
+    (``Calibration.replace``, ``Design``)."""
+    import pytest
+
+    import lfgraph as lf
+
+    calib, _ = lf.synth.knocked_rig("small-2x2", seed=1)
+    for view in (4, -1):
+        with pytest.raises(ValueError, match="outside a 2x2 grid"):
+            calib.image_size(view)
+    with pytest.raises(ValueError, match="whole pixels"):
+        calib.replace(view_image_sizes_px=((320.5, 240), (320, 240), (320, 240), (320, 240)))
+    with pytest.raises(ValueError, match="whole pixels"):
+        lf.Design(rows=2, cols=2, pitch_mm=10, focal_px=300, image_size_px=(640.5, 480))
