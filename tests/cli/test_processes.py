@@ -139,7 +139,7 @@ def test_a_killed_run_releases_a_caller_that_reads_its_pipes(command, when, data
     soon as the fork server starts (before it could arm its parent-death signal)."""
     proc = _start([*_argv(command, data), "--quiet"], tmp_path, stdout=subprocess.PIPE)
     try:
-        workers = _wait_for(proc, when)
+        _wait_for(proc, when)
         if when == "workers":
             with pytest.raises(subprocess.TimeoutExpired):
                 proc.communicate(timeout=0.2)
@@ -148,8 +148,7 @@ def test_a_killed_run_releases_a_caller_that_reads_its_pipes(command, when, data
         proc.communicate(timeout=RELEASE_S)  # TimeoutExpired here is the hang
         released = time.monotonic() - start
         assert proc.returncode == -signal.SIGKILL and released < RELEASE_S
-        assert all(_stat(pid) is None or _stat(pid)[0] in ("Z", "X") for pid in workers)
-        assert _wait_session_gone(proc.pid) == []
+        assert _wait_session_gone(proc.pid) == []  # the workers and the fork server too
     finally:
         _end_session(proc)
 
