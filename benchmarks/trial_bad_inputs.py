@@ -70,7 +70,8 @@ MEM_LIMIT_BYTES = 6 * 1024**3  # address space per case
 CLASSES = ("CLEAR_ERROR", "CORRECT", "TRACEBACK", "INTERNAL", "HANG", "DATA_LOSS", "SILENT_WRONG")
 TRACEBACK_RE = re.compile(r"Traceback \(most recent call last\)|Exception ignored in|Fatal Python error|"
                           r"Segmentation fault|core dumped|terminate called after")
-TEMP_RE = re.compile(r"^\..*\.tmp")  # lfgraph.core.files.atomic_path's temporary files
+TEMP_RE = re.compile(r"^\..*\.tmp|^\..*\.partial$")  # lfgraph.core.files.atomic_path's temporary files, and others
+RELEASE_S = 10.0  # popen-kill: a caller that reads a killed run's pipes must get their end within this
 CACHE_NAMES = {".lfgraph-detections.npz"}  # the detection cache calibrate writes into its input (documented)
 
 
@@ -200,7 +201,7 @@ class Case:
     id: str
     command: str
     desc: str
-    kind: str = "cli"  # cli | api | sigint | sigkill | pipe | shell
+    kind: str = "cli"  # cli | api | sigint | sigkill | popen-kill | pipe | shell
     argv: list[str] = field(default_factory=list)
     code: str = ""  # api snippet, or shell command for kind=shell
     setup: Callable[[Path], None] | None = None
@@ -210,8 +211,9 @@ class Case:
     allow_new: tuple[str, ...] = ()  # regexes of new paths allowed even after an error
     mutable: tuple[str, ...] = ()  # regexes of existing paths the case may change
     timeout: float = DEFAULT_TIMEOUT_S
-    delay: float = 1.0  # sigint/sigkill: seconds before the signal; pipe: bytes to read
+    delay: float = 1.0  # sigint/sigkill/popen-kill: seconds before the signal; pipe: bytes to read
     allowed_exc: tuple[str, ...] = ()  # api: extra exception type names that are the right answer
+    teardown: Callable[[Path], None] | None = None  # after the case (e.g. unmount a file system the setup mounted)
 
 
 @dataclass
@@ -238,6 +240,17 @@ def _kill_group(pgid: int) -> None:
 
 
 def _group_alive(pgid: int) -> bool:
+    """Whether a process of the group still runs; a zombie (dead, waiting for init to reap it, which takes up to ~2 s
+    on some machines) holds no file or pipe and does not count."""
+    if Path("/proc/self/stat").exists():
+        for entry in Path("/proc").iterdir():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split() if entry.name.isdigit() else None
+            except (OSError, IndexError):
+                continue
+            if fields and int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+                return True
+        return False
     try:
         os.killpg(pgid, 0)
         return True
@@ -245,6 +258,30 @@ def _group_alive(pgid: int) -> bool:
         return False
     except PermissionError:
         return True
+
+
+def _popen_kill(argv: list[str], d: Path, env: dict, case: Case, res: Result) -> subprocess.Popen:
+    """The bounded run of Python's documentation: ``communicate(timeout)``, on TimeoutExpired ``kill()``, then
+    ``communicate()`` (bounded here by RELEASE_S: the pipes must reach their end once the run is killed)."""
+    p = subprocess.Popen(argv, cwd=d, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                         start_new_session=True, preexec_fn=preexec, env=env)
+    try:
+        out, err = p.communicate(timeout=case.delay)
+        res.notes.append("finished before the kill")
+    except subprocess.TimeoutExpired:
+        p.kill()
+        t0 = time.time()
+        try:
+            out, err = p.communicate(timeout=RELEASE_S)
+            res.notes.append(f"caller released {time.time() - t0:.2f} s after the kill")
+        except subprocess.TimeoutExpired:
+            res.timed_out = True
+            res.notes.append(f"caller not released {RELEASE_S:.0f} s after the kill (the run's pipes stay open)")
+            _kill_group(p.pid)
+            out, err = p.communicate()
+    (d.parent / f"{case.id}.stdout").write_bytes(out)
+    (d.parent / f"{case.id}.stderr").write_bytes(err)
+    return p
 
 
 def _cmd(case: Case) -> list[str]:
@@ -264,6 +301,18 @@ def run_case(case: Case, d: Path) -> Result:
     else:
         argv = _cmd(case)
     t0 = time.time()
+    if case.kind == "popen-kill":
+        p = _popen_kill(argv, d, env, case, res)
+        res.rc, res.seconds = p.returncode, time.time() - t0
+        deadline = time.time() + 3.0
+        while _group_alive(p.pid) and time.time() < deadline:
+            time.sleep(0.1)
+        if _group_alive(p.pid):
+            res.notes.append("processes of the run outlived it (killed)")
+            _kill_group(p.pid)
+        res.stdout = out_f.read_bytes().decode("utf-8", "replace")
+        res.stderr = err_f.read_bytes().decode("utf-8", "replace")
+        return res
     with open(out_f, "wb") as fo, open(err_f, "wb") as fe:
         if case.kind == "pipe":
             p = subprocess.Popen(argv, cwd=d, stdout=subprocess.PIPE, stderr=fe, stdin=subprocess.DEVNULL,
@@ -384,11 +433,8 @@ def classify(case: Case, d: Path, res: Result, changed: list[str], new: list[str
                and Path(c).name not in CACHE_NAMES]
     if changed:
         return "DATA_LOSS", "; ".join([f"input changed/deleted: {', '.join(changed[:4])}", *notes])
-    temps = [n for n in new if _temporary(n)]
-    locks = [n for n in new if n.endswith(".lock")]
-    if locks:
-        notes.append("left lock file(s) " + ", ".join(locks[:3]))
-    unexpected_new = [n for n in new if Path(n).name not in CACHE_NAMES and not n.endswith(".lock")
+    temps = [n for n in new if _temporary(n) or n.endswith(".lock")]  # a lock left after the run is a leftover too
+    unexpected_new = [n for n in new if Path(n).name not in CACHE_NAMES
                       and not any(re.search(m, n) for m in case.allow_new)]
     if case.kind == "api":
         api = res.api or {}
@@ -422,7 +468,7 @@ def classify(case: Case, d: Path, res: Result, changed: list[str], new: list[str
             return "SILENT_WRONG", "; ".join(["returned without an error", *notes])
         return "CORRECT", "; ".join(notes)
     # command line
-    crashed = res.rc is not None and res.rc < 0 and case.kind not in ("sigkill",)
+    crashed = res.rc is not None and res.rc < 0 and case.kind not in ("sigkill", "popen-kill")
     if TRACEBACK_RE.search(res.stderr) or crashed:
         if crashed:
             notes.append(f"killed by signal {-res.rc}")
@@ -431,7 +477,7 @@ def classify(case: Case, d: Path, res: Result, changed: list[str], new: list[str
         if unexpected_new:
             notes.append("and left " + ", ".join(unexpected_new[:3]))
         return "INTERNAL", "; ".join(notes)
-    if case.kind == "sigkill":
+    if case.kind in ("sigkill", "popen-kill"):
         if unexpected_new and not all(_temporary(n) for n in unexpected_new):
             # a run that finished its work before the kill landed leaves its whole output: not a loss, if it is whole
             if case.check is not None and case.check(case, d, res)[0]:
@@ -550,6 +596,56 @@ def remove(*names: str) -> Callable[[Path], None]:
                 shutil.rmtree(p)
             elif p.exists() or p.is_symlink():
                 p.unlink()
+    return f
+
+
+FULL_FS_KIB = 200  # the size of the tmpfs a "full disk" case mounts (root only, as the device-node cases)
+
+
+def full_fs(name: str, free_kib: int, files: dict[str, str]) -> tuple[Callable[[Path], None], Callable[[Path], None]]:
+    """(setup, teardown): a tmpfs of FULL_FS_KIB KiB mounted at ``name`` in the case folder, holding ``files``
+    (path in the tmpfs -> source under the case folder, or ``"text:..."``), then filled up to ``free_kib`` KiB free
+    (``fill``); the teardown unmounts it. Writes beyond the free space fail with ENOSPC, as on a full disk."""
+    def setup(d: Path) -> None:
+        root = d / name
+        root.mkdir()
+        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={FULL_FS_KIB}k", "tmpfs", str(root)], check=True,
+                       timeout=30)
+        for dst, src in files.items():
+            (root / dst).parent.mkdir(parents=True, exist_ok=True)
+            if src.startswith("text:"):
+                (root / dst).write_text(src[len("text:"):].replace("CASE", str(d)))
+            else:
+                shutil.copy(d / src, root / dst)
+        st = os.statvfs(root)
+        (root / "fill").write_bytes(b"\0" * max(0, st.f_bavail * st.f_frsize - free_kib * 1024))
+
+    def teardown(d: Path) -> None:
+        subprocess.run(["umount", str(d / name)], check=False, timeout=30)
+    return setup, teardown
+
+
+def still_special(name: str):
+    """Check: ``name`` is still a FIFO or device (never replaced by a regular file)."""
+    def check(case: Case, d: Path, res: Result) -> tuple[bool, str]:
+        mode = os.lstat(d / name).st_mode
+        ok = stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)
+        return ok, f"{name} {'left as it was' if ok else 'was replaced by a regular file'}"
+    return check
+
+
+# a rotation as HALCON (and many tools) print it, to 6 decimals: R^T R is I only to 1.5e-6
+R_6_DECIMALS = [[0.844693, 0.189133, -0.500721], [-0.073738, 0.967689, 0.241124], [0.530147, -0.166754, 0.831346]]
+
+
+def twelve_views_printed(name: str) -> Callable[[Path], None]:
+    """A 3x4 calibration whose views[5] rotation is printed to 6 decimals (the case as it was reported)."""
+    def f(d: Path) -> None:
+        from lfgraph.datasets.rig import RigConfig, make_rig
+
+        data = make_rig(RigConfig(rows=3, cols=4), np.random.default_rng(0)).to_dict()
+        data["views"][5]["R_view_from_ref"] = R_6_DECIMALS
+        (d / name).write_text(json.dumps(data))
     return f
 
 
@@ -979,6 +1075,8 @@ def _cal_variants() -> list[tuple[str, str, Callable[[Path], None], str]]:
     jv("R_nan", "R holds NaN", S("views", 1, "R_view_from_ref", 0, 0, NAN))
     jv("R_off", "R off a rotation by 1e-3", lambda d: setp(d, ("views", 1, "R_view_from_ref", 0, 1),
                                                            d["views"][1]["R_view_from_ref"][0][1] + 1e-3))
+    jv("R_6dp", "R printed to 6 decimals (R^T R off by 1.5e-6, as HALCON writes it)",
+       S("views", 1, "R_view_from_ref", R_6_DECIMALS), "ok")
     jv("R_tiny_off", "R off a rotation by 1e-12", lambda d: setp(d, ("views", 1, "R_view_from_ref", 0, 1),
                                                                  d["views"][1]["R_view_from_ref"][0][1] + 1e-12), "ok")
     jv("t_missing", "views[1].t_view_from_ref_m missing", D("views", 1, "t_view_from_ref_m"))
@@ -1079,6 +1177,9 @@ def build_cases() -> list[Case]:
         cli(f"infojson-{key}", "info", f"--json: {desc}", ["info", "c.json", "--json"], setup, expect,
             check=strict_json_stdout())
     vmap = {k: (desc, s, e) for k, desc, s, e in variants}
+    cli("info-12views-R6dp", "info", "a 3x4 calibration whose views[5] rotation is printed to 6 decimals (as reported)",
+        ["info", "c.json"], twelve_views_printed("c.json"), "ok",
+        check=lambda case, d, res: ("r02_c03" in res.stdout, "printed the 12 views"))
 
     # ------------------------------------------------------------------ calibration files downstream
     for key in DOWNSTREAM:
@@ -1181,6 +1282,12 @@ def build_cases() -> list[Case]:
     cal("image-size-images", "--image-size with image input (meant for --detections)", ["--image-size", "100x100"],
         expect="either", check=good)
     cal("no-cache", "--no-cache (valid)", ["--no-cache"], expect="ok", check=good)
+    # the detection cache in place is not a regular file: ignored with a warning, never read nor replaced
+    cal("cache-fifo", "INPUT/.lfgraph-detections.npz is a FIFO nobody writes", setup=fifo("cb/.lfgraph-detections.npz"),
+        expect="ok", check=all_of(good, still_special("cb/.lfgraph-detections.npz")))
+    cal("cache-device", "INPUT/.lfgraph-detections.npz is a character device (an endless zero device)",
+        setup=chain(remove("cb/.lfgraph-detections.npz"), device("cb/.lfgraph-detections.npz", 1, 5)), expect="ok",
+        check=all_of(good, still_special("cb/.lfgraph-detections.npz")))
     # outputs
     o = ["calibrate", "cb", *CALARGS, *Q]
     cal("out-is-image", "-o is an input image", argv=[*o, "-o", "cb/000/r00_c00.png"])
@@ -1690,6 +1797,14 @@ def build_cases() -> list[Case]:
     fleet("jobs16", "--jobs 16 for one camera", argv=["fleet", "manifest.csv", "-o", "res.csv", "--jobs", "16",
                                                       "--quiet"],
           expect="ok", check=csv_rows_check("res.csv", 1, "verdict", "DRIFTED"))
+    fleet("manifest-fifo", "the manifest is a FIFO nobody writes", setup=fifo("manifest.csv"))
+    for free_kib in (12, 4):  # 12 KiB: the version fits, the results do not; 4 KiB: not even the version
+        setup, teardown = full_fs("full", free_kib, {"sc/original.json": "sc/original.json",
+                                                     "manifest.csv": "text:camera,calibration,capture\n"
+                                                                     "cam1,sc/original.json,CASE/sc\n"})
+        fleet(f"full-disk-{free_kib}k", f"manifest, calibration and results on a full file system ({free_kib} KiB free)",
+              argv=["fleet", "full/manifest.csv", "-o", "full/res.csv", "--jobs", "1", "--quiet"], setup=setup,
+              teardown=teardown, expect="either", check=csv_rows_check("full/res.csv", 1))
     fleet("lock-present", "a lock file beside the results (left by a crashed run)", setup=put(".res.csv.lock", ""),
           expect="either", mutable=(r"\.lock$",), check=csv_rows_check("res.csv", 1, "verdict", "DRIFTED"))
 
@@ -1995,6 +2110,25 @@ def build_cases() -> list[Case]:
     sig("sigkill-rectify-j2", "rectify", "kill -9 of the parent mid-rectify (--jobs 2)",
         ["rectify", "cal.json", "cb40", "-o", "rect", "--jobs", "2", "--quiet"], 0.7, use("cb40", "cal.json"),
         kind="sigkill", check=exists_check("rect/calibration.json", "rect/039/r01_c01.png"))
+    # a caller bounding the run as Python's documentation shows: its pipes must end once the run is killed (the pool
+    # workers and the fork server held them open, watching the killed parent with os.kill(pid, 0), which a zombie
+    # passes)
+    RECT40 = ["rectify", "cal.json", "cb40", "-o", "rect", "--jobs", "2", "--quiet"]  # noqa: N806
+    SYNTH200 = ["synth", "checkerboard", "out", "--scene", "small-2x2", "--frames", "200", "--jobs", "2", "--quiet"]  # noqa: N806
+    for command, argv, setup in (("calibrate", [*C40, "--jobs", "2"], use("cb40")),
+                                 ("rectify", RECT40, use("cb40", "cal.json")), ("synth", SYNTH200, None)):
+        sig(f"popen-kill-{command}-j2", command, "communicate(timeout=1) on pipes, kill(), communicate(): released?",
+            argv, 1.0, setup, kind="popen-kill")
+    # Ctrl-C while the pool starts (the fork server loading its modules, workers unpickling their first task)
+    for t in (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2):
+        sig(f"sigint-calibrate-j2-at{t:.1f}", "calibrate", f"Ctrl-C {t:g} s into calibrate --jobs 2",
+            [*C40, "--jobs", "2"], t, use("cb40"), check=loads_check("o.json"))
+        sig(f"sigint-rectify-j2-at{t:.1f}", "rectify", f"Ctrl-C {t:g} s into rectify --jobs 2", RECT40, t,
+            use("cb40", "cal.json"), check=rectified_check("rect", 40))
+    for t in (0.3, 0.6, 0.9, 1.2):  # the earlier set must be left as it was
+        sig(f"sigint-synth-overwrite-at{t:.1f}", "synth", f"Ctrl-C {t:g} s into synth --overwrite of an earlier set",
+            [*SYNTH200, "--overwrite"], t, use("out=cb40"),
+            check=exists_check("out/truth.json"))
 
     def pipe_outputs(*names):
         def check(case, d, res):
@@ -2032,6 +2166,23 @@ def build_cases() -> list[Case]:
              setup=use("cb"), expect="either", check=pipe_outputs("o.json")))
     add(Case("closed-stdout-info", "info", "info with standard output closed (>&-)", "shell",
              code="LFG info cal.json >&-", setup=use("cal.json"), expect="either"))
+    # closed standard streams (as under some service managers): the work is done, what is written is dropped
+    CB_LONG = "calibrate cb --grid 2x2 --board 7x5 --square-mm 15 -o o.json --no-cache --jobs 2"  # noqa: N806
+    SY_LONG = "synth checkerboard out --scene small-2x2 --frames 2 --jobs 2"  # noqa: N806
+    for id_, command, code, setup, check in (
+            ("closed-stderr-calibrate", "calibrate", f"LFG {CB_LONG} 2>&-", use("cb"), calib_close("o.json", "cb/truth.json")),
+            ("closed-stderr-refine", "refine", "LFG refine sc/original.json sc -o r.json 2>&-", use("sc"),
+             not_worse("r.json", "sc/original.json", "sc/truth.json")),
+            ("closed-stderr-synth", "synth", f"LFG {SY_LONG} 2>&-", None, exists_check("out/truth.json")),
+            ("closed-stdout-stderr-synth", "synth", f"LFG {SY_LONG} >&- 2>&-", None, exists_check("out/truth.json"))):
+        closed = "standard output and error closed (>&- 2>&-)" if ">&-" in code.replace("2>&-", "") else \
+            "standard error closed (2>&-)"
+        add(Case(id_, command, f"{closed}, progress bars on", "shell", code=code, setup=setup, expect="ok", check=check))
+    # the log's reader goes away: the run ends as a closed pipe ends a program (exit 141), leaving none of its outputs
+    add(Case("pipe-verbose-calibrate", "calibrate", "-v calibrate 2>&1 | head -c 50", "shell",
+             code=f"LFG -v {CB_LONG.replace('cb ', 'cb40 ', 1)} 2>&1 | head -c 50; exit ${{PIPESTATUS[0]}}",
+             setup=use("cb40"), expect="ok", ok_codes=(141,),
+             check=lambda case, d, res: (not (d / "o.json").exists(), "the run ended: o.json not written")))
     add(Case("closed-stderr-calibrate-bad", "calibrate", "a bad --board with standard error closed (2>&-)", "shell",
              code="LFG calibrate cb --grid 2x2 --board 6x4 --square-mm 15 -o o.json --jobs 1 --quiet 2>&-",
              setup=use("cb"), expect="error"))
@@ -2345,6 +2496,8 @@ def describe_call(case: Case) -> str:
         return f"{cmd}   # Ctrl-C (SIGINT to the group) after {case.delay:g} s"
     if case.kind == "sigkill":
         return f"{cmd}   # kill -9 of the parent after {case.delay:g} s"
+    if case.kind == "popen-kill":
+        return f"{cmd}   # Popen(stdout=PIPE, stderr=PIPE).communicate(timeout={case.delay:g}), kill(), communicate()"
     if case.kind == "pipe":
         return f"{cmd} | head -c {int(case.delay)}"
     return cmd
@@ -2388,10 +2541,13 @@ def main() -> int:
         except Exception as exc:  # noqa: BLE001
             raise SystemExit(f"setup of {case.id} failed: {exc!r}") from exc
         before = snapshot(d)
-        res = run_case(case, d)
-        after = snapshot(d)
-        changed, new = diff_snapshots(before, after)
-        cls, note = classify(case, d, res, changed, new)
+        try:
+            res = run_case(case, d)
+            changed, new = diff_snapshots(before, snapshot(d))
+            cls, note = classify(case, d, res, changed, new)
+        finally:
+            if case.teardown is not None:
+                case.teardown(d)
         rows.append({"id": case.id, "command": case.command, "description": case.desc, "class": cls,
                      "exit_code": "timeout" if res.timed_out else res.rc, "seconds": f"{res.seconds:.2f}",
                      "stderr_first_line": first_line(res.stderr),
