@@ -52,6 +52,20 @@ class ViewSigmas:
     position_mm: tuple[float, float, float]
 
 
+def image_size_checked(size: object, name: str) -> tuple[int, int]:
+    """``size`` as (width, height) in whole, positive pixels; ValueError naming ``name`` otherwise (a fraction is
+    refused, not truncated)."""
+    try:
+        w, h = size  # type: ignore[misc]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be (width, height) in whole pixels, got {size!r}") from None
+    if not all(isinstance(x, int | np.integer) and not isinstance(x, bool) for x in (w, h)):
+        raise ValueError(f"{name} must be (width, height) in whole pixels, got {size!r}")
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{name} must be positive (width, height), got {size!r}")
+    return int(w), int(h)
+
+
 @dataclass(frozen=True)
 class Calibration:
     """Per-view intrinsics and poses of a camera array.
@@ -103,23 +117,12 @@ class Calibration:
         poses = poses.copy()
         poses.setflags(write=False)
         object.__setattr__(self, "ref_T_view", poses)
-        if len(self.image_size_px) != 2 or not all(
-                isinstance(x, int | np.integer) and not isinstance(x, bool) for x in self.image_size_px):
-            raise ValueError(f"image_size_px must be (width, height) in whole pixels, got {self.image_size_px}")
-        w, h = (int(x) for x in self.image_size_px)
-        if w <= 0 or h <= 0:
-            raise ValueError(f"image_size_px must be positive (width, height), got {self.image_size_px}")
+        w, h = image_size_checked(self.image_size_px, "image_size_px")
         object.__setattr__(self, "image_size_px", (w, h))
         if self.view_image_sizes_px is not None:
-            given = [tuple(s) for s in self.view_image_sizes_px]
-            if any(len(s) != 2 or not all(isinstance(x, int | np.integer) and not isinstance(x, bool) for x in s)
-                   for s in given):
-                raise ValueError(f"view_image_sizes_px must hold (width, height) in whole pixels, got "
-                                 f"{self.view_image_sizes_px}")
-            sizes = tuple((int(a), int(b)) for a, b in given)
-            if len(sizes) != n or any(a <= 0 or b <= 0 for a, b in sizes):
-                raise ValueError(f"view_image_sizes_px must hold {n} positive (width, height), got "
-                                 f"{self.view_image_sizes_px}")
+            sizes = tuple(image_size_checked(s, "view_image_sizes_px") for s in self.view_image_sizes_px)
+            if len(sizes) != n:
+                raise ValueError(f"view_image_sizes_px must hold {n} (width, height), got {self.view_image_sizes_px}")
             object.__setattr__(self, "view_image_sizes_px", None if set(sizes) == {(w, h)} else sizes)
         object.__setattr__(self, "metrics", {**DEFAULT_METRICS, **dict(self.metrics or {})})
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfgraph.core.calibration import Calibration
+from lfgraph.core.calibration import Calibration, image_size_checked
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.grid import ViewGrid
 from lfgraph.factors.groups import SELFCAL_GROUPS
@@ -83,12 +83,7 @@ class Design:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be positive, got {value}")
-        if len(self.image_size_px) != 2 or not all(
-                isinstance(x, int | np.integer) and not isinstance(x, bool) for x in self.image_size_px):
-            raise ValueError(f"image_size_px must be (width, height) in whole pixels, got {self.image_size_px}")
-        w, h = (int(x) for x in self.image_size_px)
-        if w <= 0 or h <= 0:
-            raise ValueError(f"image size must be positive, got {self.image_size_px}")
+        w, h = image_size_checked(self.image_size_px, "image_size_px")
         fov_deg = self._field_of_view_deg(w / (2 * self.focal_px))
         lo, hi = WIDE_FIELD_OF_VIEW_DEG if lens_model(self.lens).wide else FIELD_OF_VIEW_DEG
         if not lo <= fov_deg <= hi:  # --focal-px 1e9 failed deep in the marginals
