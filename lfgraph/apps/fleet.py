@@ -7,8 +7,9 @@ calibration is written next to the input as a new version (``NAME.v2.json``, ``N
 the input, atomically, through a hidden temporary removed at once). One row per camera goes into the results CSV
 (sorted, rewritten atomically after every camera; a re-run skips cameras already in it), with a verdict:
 
-- ``OK``: the drift check finds no view DRIFTED (a change both significant and above ``tolerance_px`` at infinity,
-  default 0.1 px: the rule of `lfgraph refine` and `lfgraph check`) and the reprojection RMS is <= ``max_px``;
+- ``OK``: the drift check confirms every view within ``tolerance_px`` (its verdict OK), or finds no view DRIFTED (a
+  change both significant and above ``tolerance_px`` at infinity, default 0.1 px: the rule of `lfgraph refine` and
+  `lfgraph check`) and the reprojection RMS is <= ``max_px``;
 - ``DRIFTED``: a view drifted (or the RMS is above ``max_px``) and the refinement changed the calibration (views
   confirmed by held-out tracks; the new version's path is in the row);
 - ``UNCERTAIN``: it did not fit, but the refinement could not improve it (too little texture, too few frames):
@@ -43,11 +44,12 @@ from typing import Any
 import numpy as np
 
 from lfgraph.core.files import default_mode, deferred_interrupt, input_problem, process_alive
+from lfgraph.core.verdict import Verdict
 
 MANIFEST_COLUMNS = ("camera", "calibration", "capture")
 RESULT_COLUMNS = ("camera", "verdict", "rms_before_px", "rms_after_px", "max_rotation_change_deg",
                   "max_position_change_mm", "view_changes", "refined_calibration", "frames", "seconds", "error")
-VERDICTS = ("OK", "DRIFTED", "UNCERTAIN", "ERROR")
+VERDICTS = (Verdict.OK, Verdict.DRIFTED, Verdict.UNCERTAIN, Verdict.ERROR)  # a camera's (`Verdict`)
 DEFAULT_MAX_PX = 0.5  # the drift check's threshold, as `lfgraph check --max-px`
 DEFAULT_MAX_FRAMES = 3
 DEFAULT_TOLERANCE_PX = 0.1  # as RefineConfig.tolerance_px: a drift must move the transfer at infinity by more
@@ -87,6 +89,11 @@ def read_manifest(path: str | os.PathLike) -> list[FleetItem]:
     except (OSError, UnicodeDecodeError) as exc:
         raise ManifestError(f"{path}: cannot read the manifest ({exc})") from None
     reader = csv.DictReader(text.splitlines())
+    names = [str(n).strip() for n in (reader.fieldnames or [])]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ManifestError(f"{path}: the manifest names the column(s) {', '.join(twice)} more than once; which one "
+                            f"holds the value is not clear")
     missing = [c for c in MANIFEST_COLUMNS if c not in (reader.fieldnames or [])]
     if missing:
         raise ManifestError(f"{path}: the manifest needs the columns {', '.join(MANIFEST_COLUMNS)}; missing "
@@ -212,7 +219,7 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
     from lfgraph.refinement import RefineConfig, refine
 
     start = time.perf_counter()
-    row: dict[str, Any] = {"camera": item.camera, "verdict": "ERROR", "rms_before_px": float("nan"),
+    row: dict[str, Any] = {"camera": item.camera, "verdict": Verdict.ERROR, "rms_before_px": float("nan"),
                            "rms_after_px": float("nan"), "max_rotation_change_deg": 0.0,
                            "max_position_change_mm": 0.0, "view_changes": "{}", "refined_calibration": "",
                            "frames": 0, "error": ""}
@@ -223,9 +230,9 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
         config = RefineConfig(max_frames=item.max_frames, tolerance_px=item.tolerance_px)
         report = check(calib, capture.frames(item.max_frames), config=config)
         row.update(rms_before_px=report.rms_px, frames=report.frames)
-        drifted = [v for v in report.verdicts if v.verdict == "DRIFTED"]
-        if not drifted and report.rms_px <= item.max_px:
-            row.update(verdict="OK", rms_after_px=report.rms_px, view_changes=_verdicts_json(report.verdicts))
+        # OK: every view confirmed within the tolerance, or none drifted and the residuals within max_px
+        if report.verdict == Verdict.OK or (not report.drifted() and report.rms_px <= item.max_px):
+            row.update(verdict=Verdict.OK, rms_after_px=report.rms_px, view_changes=_verdicts_json(report.verdicts))
         else:
             refined, ref_report = refine(calib, capture.frames(item.max_frames), config)
             rot, pos = _changes(calib, refined)
@@ -234,11 +241,11 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
                        view_changes=_verdicts_json(ref_report.verdicts))
             if ref_report.accepted and (rot.max() > 0 or pos.max() > 0):  # some view really changed
                 written = _save_new_version(refined, item.calibration, source_key(item))
-                row.update(verdict="DRIFTED", refined_calibration=os.path.relpath(written, item.root))
+                row.update(verdict=Verdict.DRIFTED, refined_calibration=os.path.relpath(written, item.root))
             else:
-                row.update(verdict="UNCERTAIN", error="; ".join(ref_report.warnings))
+                row.update(verdict=Verdict.UNCERTAIN, error="; ".join(ref_report.warnings))
     except Exception as exc:  # one bad recording must never stop the fleet: it becomes an ERROR row
-        row.update(verdict="ERROR", error=f"{type(exc).__name__}: {exc}")
+        row.update(verdict=Verdict.ERROR, error=f"{type(exc).__name__}: {exc}")
     row["seconds"] = time.perf_counter() - start
     return [row]
 

@@ -74,6 +74,10 @@ def test_bad_manifests_are_named(tmp_path):
     bad.write_text("camera,calibration,capture,max_px\nA,a.json,x,zero\n")
     with pytest.raises(ManifestError, match="line 2"):
         read_manifest(bad)
+    # issue 42: a column named twice (which value counts?) was accepted
+    bad.write_text("camera,calibration,capture,max_px,max_px\nA,a.json,x,1,2\n")
+    with pytest.raises(ManifestError, match=r"names the column\(s\) max_px more than once"):
+        read_manifest(bad)
     # issue 27: `../../` paths wrote versions outside the manifest's tree
     bad.write_text("camera,calibration,capture\nA,../../a.json,x\n")
     with pytest.raises(ManifestError, match=r"line 2: calibration '../../a.json' climbs out of the manifest's folder"):
@@ -112,3 +116,18 @@ def test_an_interrupted_run_is_resumed_without_orphans_and_runs_do_not_collide(f
             run_fleet(manifest, results, "local", 1, progress=False)
         assert main(["fleet", str(manifest), "-o", str(results), "--quiet"]) != EXIT_OK
     assert results.read_text() == before
+
+
+def test_a_knock_within_the_tolerance_is_ok(fleet_dir, tmp_path):
+    """Issue 42: with ``tolerance_px`` 100 a knocked camera's changes are within the tolerance: OK (it said UNCERTAIN:
+    the residuals above ``max_px`` sent it to a refinement that, rightly, changed nothing)."""
+    work = tmp_path / "tol"
+    shutil.copytree(fleet_dir, work)
+    with (work / "manifest.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["camera", "calibration", "capture", "max_frames", "tolerance_px"])
+        writer.writerow(["cam-knocked", "knocked/original.json", "knocked", 2, 100])
+    run_fleet(work / "manifest.csv", work / "results.csv", "local", 1, progress=False)
+    (row,) = rows_without_time(work / "results.csv")
+    assert row["verdict"] == "OK" and not row["refined_calibration"]
+    assert not (work / "knocked" / "original.v2.json").exists()
