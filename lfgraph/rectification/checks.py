@@ -10,6 +10,7 @@ import numpy as np
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.errors import RectificationError
 from lfgraph.core.grid import ViewGrid
+from lfgraph.core.grid_design import grid_problems
 
 MIN_SEPARATION_REL = 0.05  # two views closer than this fraction of the median neighbour distance are one position
 MIN_LENS_SLOPE = 0.0  # d(distorted radius)/d(radius) inside the image: below it the lens model folds over
@@ -36,6 +37,9 @@ def check_rectifiable(calib: Calibration) -> None:
                 raise RectificationError(
                     f"views {grid.name(a)} and {grid.name(b)} are at one position ({1e3 * gaps[a, b]:.3f} mm apart, "
                     f"neighbours are {1e3 * scale:.1f} mm): the grid's directions are undefined; check the calibration")
+    errors, _ = grid_problems(grid, calib.ref_T_view)  # swapped views would be rectified ~30 deg off (issue 42)
+    if errors:
+        raise RectificationError("the calibration contradicts its grid: " + "; ".join(errors))
     for v, intr in enumerate(calib.intrinsics):
         w, h = calib.image_size(v)
         if intr.model.wide:  # their field may end inside the image; the crop keeps what maps

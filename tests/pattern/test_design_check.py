@@ -94,3 +94,16 @@ def test_cli_names_the_swap_and_takes_the_true_order(tmp_path, capsys):
     assert "swapped cables" in capsys.readouterr().err and not out.exists()
     assert main([*args, "--view-order", "r00_c01,r00_c00,r01_c00,r01_c01"]) == 0
     assert main(["evaluate", str(out), "--truth", str(cb / "truth.json"), "--json"]) == 0
+
+
+@pytest.mark.slow
+def test_a_swapped_calibration_is_not_rectified():
+    """Issue 42: the swapped capture, calibrated anyway, was rectified with the views ~32 deg off the common
+    orientation and a 0.3 mm row pitch, exit 0."""
+    from lfgraph.core.errors import RectificationError
+    from lfgraph.rectification.rectify import rectify
+
+    _, obs = rig_observations()
+    swapped, _ = calibrate(streams(obs, (1, 0, 2, 3)), CalibrateConfig(check_grid=False))
+    with pytest.raises(RectificationError, match="contradicts its grid.*swapped cables"):
+        rectify(swapped)
