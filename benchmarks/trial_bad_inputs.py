@@ -1333,6 +1333,30 @@ def build_cases() -> list[Case]:
     # images
     import cv2
 
+    # a rig whose streams are wrong (issue 42, third round): refused by name, or re-labelled by --view-order
+    def swap_streams(d: Path) -> None:
+        for fd in frame_dirs(d / "cb"):
+            a, b = fd / "r00_c00.png", fd / "r00_c01.png"
+            data = a.read_bytes()
+            a.write_bytes(b.read_bytes())
+            b.write_bytes(data)
+
+    def duplicate_stream(d: Path) -> None:
+        for fd in frame_dirs(d / "cb"):
+            (fd / "r00_c01.png").write_bytes((fd / "r00_c00.png").read_bytes())
+
+    cal("streams-swapped", "r00_c00 and r00_c01 swapped in every frame (cables swapped)", setup=swap_streams)
+    cal("streams-swapped-view-order", "the swapped capture with --view-order naming the true order",
+        ["--view-order", "r00_c01,r00_c00,r01_c00,r01_c01"], setup=swap_streams, expect="ok", check=good)
+    cal("streams-duplicated", "r00_c01 a copy of r00_c00 in every frame (one stream duplicated)",
+        setup=duplicate_stream)
+    cal("streams-mirrored", "r00_c01 mirrored left-right in every frame (a camera's flip option)",
+        setup=images("cb", lambda im, f, v: im[:, ::-1].copy(), views=(1,)))
+    cal("view-order-short", "--view-order naming three of four views", ["--view-order", "r00_c01,r00_c00,r01_c00"])
+    cal("lens-two-defaults", "--lens fisheye,radtan (two defaults)", ["--lens", "fisheye,radtan"])
+    cal("lens-view-twice", "--lens naming a view twice", ["--lens", "fisheye,r00_c00=fisheye,r00_c00=radtan"])
+    cal("lens-fisheye-tangential", "--lens fisheye --tangential (fisheye has no p1, p2)",
+        ["--lens", "fisheye", "--tangential"])
     cal("img-uint16", "every image 16-bit (x257)", setup=images("cb", lambda im, f, v: im.astype(np.uint16) * 257),
         expect="either", check=good)
     cal("img-uint16-one", "one view's images 16-bit", setup=images("cb", lambda im, f, v: im.astype(np.uint16) * 257,
@@ -2479,6 +2503,23 @@ def build_cases() -> list[Case]:
                            ("valid", "r = lf.viz.RerunLogger.to_file('x.rrd', lf.ViewGrid(2, 2))\nwith r: pass\nassert Path('x.rrd').stat().st_size > 0", "ok"),
                            ("exception-inside", "r = lf.viz.RerunLogger.to_file('x.rrd', lf.ViewGrid(2, 2))\nwith r: raise KeyError('user bug')", "error")):
         a(f"viz-{key}", "viz", call, call + "\n", CB, exp, allowed_exc=("KeyError",) if key == "exception-inside" else ())
+
+    cli("import-kalibr-wrong-grid", "import", "a 2x2 Kalibr camchain imported as --grid 4x1",
+        ["import", "camchain.yaml", "--from", "kalibr", "--grid", "4x1", "-o", "o.json"], use("camchain.yaml"))
+    cli("fleet-manifest-column-twice", "fleet", "a manifest naming max_px twice", ["fleet", "m.csv", "-o", "r.csv"],
+        chain(use("sc"), put("m.csv", "camera,calibration,capture,max_px,max_px\ncam1,sc/original.json,sc,1,2\n")))
+    # validation at the API's door (issue 42, third round)
+    for key, call in (("intrinsics-bool", "lf.Intrinsics(True, 300, 160, 120)"),
+                      ("image-size-out", "lf.Calibration.load('cal.json').image_size(4)"),
+                      ("image-size-neg", "lf.Calibration.load('cal.json').image_size(-1)"),
+                      ("image-size-float", "c = lf.Calibration.load('cal.json')\n"
+                                           "c.replace(view_image_sizes_px=((320.5, 240),) * 4)"),
+                      ("design-size-float", "lf.Design(rows=2, cols=2, pitch_mm=10, focal_px=300, "
+                                            "image_size_px=(640.5, 480))"),
+                      ("vectorised-none", "lf.vectorised_estimator(None, None)"),
+                      ("vectorised-negative", "lf.vectorised_estimator(lambda d: -np.ones_like(d), lambda d: d * d)"),
+                      ("config-lens-bogus", "lf.CalibrateConfig(lens='bogus')")):
+        a(f"door-{key}", "api-door", call, call + "\n", CB, "error")
 
     return cases
 

@@ -68,11 +68,13 @@ def _neighbour_spacing(grid, positions: np.ndarray) -> float:
     return float(np.median(nearest)) if nearest else 0.0
 
 
-def grid_problems(grid, ref_T_view: np.ndarray) -> tuple[list[str], list[str]]:  # noqa: N803
+def grid_problems(grid, ref_T_view: np.ndarray, strict: bool = False) -> tuple[list[str], list[str]]:  # noqa: N803
     """(errors, notes) of a calibration's view poses (``ref_T_view``) held against its grid (module docstring):
     errors name the views and the likely cause — two views at one place, two views each at the other's place, a
     view more than `OFF_GRID_SHARE` of the pitch off the lattice; notes say what is consistent but unusual (views up
-    to that far off the lattice, the grid numbered the other way round, a rig that is no grid design)."""
+    to that far off the lattice, the grid numbered the other way round, a rig that is no grid design). ``strict``
+    (poses read from a file, not fitted: no bad frame can have bent them) refuses a view more than `LATTICE_SHARE`
+    of the pitch off."""
     positions = ref_T_view[:, :3, 3]
     if grid.num_views < 2:
         return [], []
@@ -101,7 +103,7 @@ def grid_problems(grid, ref_T_view: np.ndarray) -> tuple[list[str], list[str]]: 
                     f"lfgraph.pattern.design_check.view_order)"], []
         what = (f"views {', '.join(grid.name(i) for i in off)} are not where the grid puts them (up to "
                 f"{1e3 * max(err[i] for i in off):.1f} mm off the lattice the rig forms, pitch {1e3 * pitch:.1f} mm)")
-        if max(err[i] for i in off) > OFF_GRID_SHARE * pitch:
+        if strict or max(err[i] for i in off) > OFF_GRID_SHARE * pitch:
             return [f"{what}: views out of order, or no grid? Name the true order with --view-order"], []
         return [], [f"{what}: a rig built off its design, or a poor fit (see the residuals)"]
     _, u, v = _lattice(grid, positions)

@@ -114,7 +114,7 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
     if reader is None:
         raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
     calib = reader(Path(path), grid)
-    errors, _ = grid_problems(calib.grid, calib.ref_T_view)  # the file's poses against the grid it is read into
+    errors, _ = grid_problems(calib.grid, calib.ref_T_view, strict=True)  # the file's poses against its grid
     if errors:
         raise fail(path, "grid", "; ".join(errors))
     return calib
