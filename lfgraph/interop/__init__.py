@@ -20,8 +20,11 @@ a ``(rows, cols)`` pair keeps the file's reference. At most `MAX_IMPORT_VIEWS` v
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.grid_design import grid_problems
@@ -117,7 +120,22 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
     errors, _ = grid_problems(calib.grid, calib.ref_T_view, strict=True)  # the file's poses against its grid
     if errors:
         raise fail(path, "grid", "; ".join(errors))
+    _warn_of_units(calib, path)
     return calib
+
+
+SUSPECT_BASELINE_M = 5.0  # neighbouring views of an array farther apart than this: translations in mm read as m?
+
+
+def _warn_of_units(calib: Calibration, path: PathLike) -> None:
+    """A warning when the file's neighbouring views are `SUSPECT_BASELINE_M` or more apart: camera arrays are
+    centimetres to a metre wide, and a file in millimetres read as metres gives baselines 1000x too long."""
+    grid, centres = calib.grid, calib.ref_T_view[:, :3, 3]
+    gaps = [float(np.linalg.norm(centres[a] - centres[b])) for a in range(grid.num_views) for b in grid.neighbours(a)]
+    if gaps and float(np.median(gaps)) >= SUSPECT_BASELINE_M:
+        logging.getLogger("lfgraph").warning(
+            "%s: neighbouring views are %.4g m apart (median): are the file's translations in millimetres? lfgraph "
+            "reads this format in metres", path, float(np.median(gaps)))
 
 
 def input_paths(path: PathLike, fmt: str) -> tuple[Path, ...]:

@@ -835,3 +835,20 @@ def test_a_horizontal_pair_is_not_read_as_a_vertical_grid(tmp_path):
         import_calibration(path, "kalibr", (2, 1))
     assert cli_main(["import", str(path), "--from", "kalibr", "--grid", "2x1", "-o", str(tmp_path / "c.json")]) == 1
     assert not (tmp_path / "c.json").exists()
+
+
+def test_translations_in_millimetres_are_named(tmp_path, caplog):
+    """Issue 42: a file whose baselines are 1000x an array's (translations in mm where the format says m) is read
+    with a warning naming the likely unit."""
+    rig = make_rig(RigConfig(rows=1, cols=2, pitch_m=0.06, image_size_px=(320, 240), focal_px=300.0),
+                   np.random.default_rng(3))
+    poses = rig.ref_T_view.copy()
+    poses[:, :3, 3] *= 1000.0  # as if the file held millimetres
+    path = export_calibration(rig.replace(ref_T_view=poses), "kalibr", tmp_path / "camchain.yaml")
+    with caplog.at_level("WARNING", logger="lfgraph"):
+        import_calibration(path, "kalibr", (1, 2))
+    assert "translations in millimetres" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="lfgraph"):
+        import_calibration(export_calibration(rig, "kalibr", tmp_path / "ok.yaml"), "kalibr", (1, 2))
+    assert "millimetres" not in caplog.text
