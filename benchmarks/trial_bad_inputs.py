@@ -284,6 +284,16 @@ def _popen_kill(argv: list[str], d: Path, env: dict, case: Case, res: Result) ->
     return p
 
 
+def _reap_group(pgid: int, res: Result) -> None:
+    """Give a finished run's process group 3 s to end; what is left outlived it: noted and killed."""
+    deadline = time.time() + 3.0
+    while _group_alive(pgid) and time.time() < deadline:
+        time.sleep(0.1)
+    if _group_alive(pgid):
+        res.notes.append("processes of the run outlived it (killed)")
+        _kill_group(pgid)
+
+
 def _cmd(case: Case) -> list[str]:
     return [str(LFG), *case.argv]
 
@@ -304,12 +314,7 @@ def run_case(case: Case, d: Path) -> Result:
     if case.kind == "popen-kill":
         p = _popen_kill(argv, d, env, case, res)
         res.rc, res.seconds = p.returncode, time.time() - t0
-        deadline = time.time() + 3.0
-        while _group_alive(p.pid) and time.time() < deadline:
-            time.sleep(0.1)
-        if _group_alive(p.pid):
-            res.notes.append("processes of the run outlived it (killed)")
-            _kill_group(p.pid)
+        _reap_group(p.pid, res)
         res.stdout = out_f.read_bytes().decode("utf-8", "replace")
         res.stderr = err_f.read_bytes().decode("utf-8", "replace")
         return res
@@ -350,12 +355,7 @@ def run_case(case: Case, d: Path) -> Result:
         res.rc = p.returncode
         res.seconds = time.time() - t0
         if case.kind in ("sigint", "sigkill", "cli", "pipe", "shell", "api"):
-            deadline = time.time() + 3.0
-            while _group_alive(p.pid) and time.time() < deadline:
-                time.sleep(0.1)
-            if _group_alive(p.pid):
-                res.notes.append("processes of the run outlived it (killed)")
-                _kill_group(p.pid)
+            _reap_group(p.pid, res)
     res.stdout = out_f.read_bytes().decode("utf-8", "replace")
     res.stderr = err_f.read_bytes().decode("utf-8", "replace")
     if case.kind == "api":
