@@ -2139,10 +2139,13 @@ def build_cases() -> list[Case]:
     # passes)
     RECT40 = ["rectify", "cal.json", "cb40", "-o", "rect", "--jobs", "2", "--quiet"]  # noqa: N806
     SYNTH200 = ["synth", "checkerboard", "out", "--scene", "small-2x2", "--frames", "200", "--jobs", "2", "--quiet"]  # noqa: N806
-    for command, argv, setup in (("calibrate", [*C40, "--jobs", "2"], use("cb40")),
-                                 ("rectify", RECT40, use("cb40", "cal.json")), ("synth", SYNTH200, None)):
+    # (a run that finished its work within the second leaves its whole output: its check says whether it is whole)
+    for command, argv, setup, whole in (
+            ("calibrate", [*C40, "--jobs", "2"], use("cb40"), loads_check("o.json")),
+            ("rectify", RECT40, use("cb40", "cal.json"), exists_check("rect/calibration.json", "rect/039/r01_c01.png")),
+            ("synth", SYNTH200, None, exists_check("out/truth.json"))):
         sig(f"popen-kill-{command}-j2", command, "communicate(timeout=1) on pipes, kill(), communicate(): released?",
-            argv, 1.0, setup, kind="popen-kill")
+            argv, 1.0, setup, kind="popen-kill", check=whole)
     # Ctrl-C while the pool starts (the fork server loading its modules, workers unpickling their first task)
     for t in (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2):
         sig(f"sigint-calibrate-j2-at{t:.1f}", "calibrate", f"Ctrl-C {t:g} s into calibrate --jobs 2",

@@ -24,6 +24,7 @@ REFERENCE_POSE_TOLERANCE = 1e-9  # the reference view's pose must be the identit
 # max |R^T R - I| entry of a rotation read from a file: one printed to 6 decimals (HALCON and many tools write them
 # so) is off by up to ~3e-6; anything within this is a rotation to the file's precision (re-orthonormalised on load)
 FILE_ROTATION_TOLERANCE = 1e-4
+EXACT_ROTATION_TOLERANCE = 1e-12  # orthonormal to round-off: kept as stored
 DEFAULT_METRICS: dict[str, Any] = {"e_mono_px": None, "e_pnp_px": None, "rig_rms_px": None}
 
 
@@ -353,8 +354,13 @@ class _Reader:
 
 def nearest_rotation(R: np.ndarray) -> np.ndarray:  # noqa: N803
     """The rotation nearest to ``R`` (Frobenius norm; SVD: U V^T), for a matrix that is one to a file's printed
-    precision (checked before: orthonormal to `FILE_ROTATION_TOLERANCE`, determinant +1)."""
-    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))  # noqa: N806
+    precision (checked before: orthonormal to `FILE_ROTATION_TOLERANCE`, determinant +1). A matrix that is a
+    rotation to round-off (`EXACT_ROTATION_TOLERANCE`: every file lfgraph writes) is returned as it is, so a
+    calibration saved and loaded again is the same to the bit."""
+    R = np.asarray(R, dtype=np.float64)  # noqa: N806
+    if is_rotation(R, EXACT_ROTATION_TOLERANCE):
+        return R
+    U, _, Vt = np.linalg.svd(R)  # noqa: N806
     return U @ Vt
 
 

@@ -82,14 +82,18 @@ def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
         The path written.
 
     Raises:
-        ValueError: unknown format, an incomplete stored rectification (``opencv-yaml``), or a ``colmap`` folder
-            that holds other files.
+        ValueError: unknown format, an incomplete stored rectification (``opencv-yaml``), a ``colmap`` folder
+            that holds other files, or a calibration that contradicts its grid (its import would be refused).
         OSError: the output cannot be written.
     """
     writer = _WRITERS.get(fmt)
     if writer is None:
         raise ValueError(f"unknown export format {fmt!r}; valid formats: {', '.join(EXPORT_FORMATS)}")
     out = Path(path)
+    errors, _ = grid_problems(calib.grid, calib.ref_T_view, strict=True)  # what an import of it would refuse
+    if errors:
+        raise ValueError(f"{out}: not written: the calibration contradicts its grid, and its import would be "
+                         f"refused: {'; '.join(errors)}")
     writer(calib, out)
     return out
 
