@@ -121,7 +121,7 @@ class Intrinsics:
 
     def with_distortion(self, lens: str, **coefficients: float) -> Intrinsics:
         """The same fx, fy, cx, cy with another lens model and its coefficients (the others 0)."""
-        zero = dict.fromkeys(("k1", "k2", "p1", "p2", "k3", "k4", "xi"), 0.0)
+        zero = dict.fromkeys(COEFFICIENTS, 0.0)
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, **{**zero, **coefficients, "lens": lens})
 
     def pinhole(self) -> Intrinsics:
