@@ -4,7 +4,8 @@ stream duplicated), two views each at the other's place (streams swapped), a vie
 pitch off the lattice, positions that run across the grid (a horizontal pair given as 2x1). Said: views up to that far
 off, a lattice whose columns run to -x (rows to -y: the grid numbered the other way round). Rigs whose views are not
 near-parallel (more than `PARALLEL_DEG` between optical axes: tripods around a scene) are no grid design and are not
-judged. `calibrate` (`lfgraph.pattern.design_check`) and every import (`lfgraph.interop`) ask it."""
+judged, nor is a free arrangement (`lfgraph.core.grid.free_grid`: a ring, a dome, a loose set). `calibrate`
+(`lfgraph.pattern.design_check`) and every import (`lfgraph.interop`) ask it."""
 
 from __future__ import annotations
 
@@ -16,9 +17,14 @@ DUPLICATE_SHARE = 0.1  # two views closer than this share of the pitch are at on
 PARALLEL_DEG = 15.0  # the largest angle between the reference's optical axis and a view's for a grid design
 
 
+def axis_spread_deg(ref_T_view: np.ndarray) -> float:  # noqa: N803
+    """The largest angle (deg) between the reference's optical axis and a view's."""
+    z = np.asarray(ref_T_view)[:, :3, 2]  # each view's optical axis in the reference frame
+    return float(np.max(np.degrees(np.arccos(np.clip(z[:, 2], -1.0, 1.0)))))
+
+
 def _parallel(ref_T_view: np.ndarray) -> bool:  # noqa: N803
-    z = ref_T_view[:, :3, 2]  # each view's optical axis in the reference frame
-    return bool(np.all(np.degrees(np.arccos(np.clip(z[:, 2], -1.0, 1.0))) <= PARALLEL_DEG))
+    return axis_spread_deg(ref_T_view) <= PARALLEL_DEG
 
 
 def _lattice(grid, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,6 +83,8 @@ def grid_problems(grid, ref_T_view: np.ndarray, strict: bool = False) -> tuple[l
     of the pitch off."""
     positions = ref_T_view[:, :3, 3]
     if grid.num_views < 2:
+        return [], []
+    if getattr(grid, "is_free", False):  # no lattice to hold it against; one viewpoint captured twice is a ring's
         return [], []
     spacing = _neighbour_spacing(grid, positions)
     errors = _duplicates(grid, positions, max(spacing, 1e-12))
