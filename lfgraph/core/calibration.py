@@ -16,7 +16,7 @@ import numpy as np
 from lfgraph.core.camera import DISTORTION_KEYS, LENSES, RADTAN, Intrinsics
 from lfgraph.core.files import input_problem, write_text_atomic
 from lfgraph.core.geometry import invert_T, is_rotation, make_T
-from lfgraph.core.grid import ViewGrid
+from lfgraph.core.grid import ViewGrid, free_grid
 
 FORMAT_NAME = "lfgraph.calibration"  # the file format's name (not a module path: files written since 0.1 carry it)
 FORMAT_VERSION = 1
@@ -118,6 +118,8 @@ class Calibration:
         poses = poses.copy()
         poses.setflags(write=False)
         object.__setattr__(self, "ref_T_view", poses)
+        if self.grid.is_free:  # a free arrangement's neighbours are its poses' (`lfgraph.core.grid.free_grid`)
+            object.__setattr__(self, "grid", free_grid(poses, self.grid.reference, self.grid.rows))
         w, h = image_size_checked(self.image_size_px, "image_size_px")
         object.__setattr__(self, "image_size_px", (w, h))
         if self.view_image_sizes_px is not None:
@@ -165,7 +167,7 @@ class Calibration:
             raise ValueError(f"reference must be a view index from 0 to {self.num_views - 1}, got {reference!r}")
         poses = np.linalg.inv(self.ref_T_view[reference])[None] @ self.ref_T_view
         poses[reference] = np.eye(4)
-        return self.replace(grid=ViewGrid(self.grid.rows, self.grid.cols, int(reference)), ref_T_view=poses,
+        return self.replace(grid=dataclasses.replace(self.grid, reference=int(reference)), ref_T_view=poses,
                             rectification=None)
 
     # ------------------------------------------------------------------------------------------ JSON
@@ -188,7 +190,7 @@ class Calibration:
             })
         return {
             "format": FORMAT_NAME, "version": FORMAT_VERSION,
-            "grid": {"rows": self.grid.rows, "cols": self.grid.cols, "reference": self.grid.reference},
+            "grid": self.grid.as_dict(),
             "image_size_px": list(self.image_size_px),
             "views": views,
             "rectification": None if self.rectification is None else dict(self.rectification),
@@ -207,7 +209,7 @@ class Calibration:
                           "image_size_px": list(self.image_size(v)),
                           "position_mm": [float(x) for x in 1e3 * self.ref_T_view[v, :3, 3]],
                           "rotation_deg": float(rotation_angle_deg(self.ref_T_view[v, :3, :3]))})
-        return {"grid": {"rows": self.grid.rows, "cols": self.grid.cols, "reference": self.grid.reference},
+        return {"grid": self.grid.as_dict(),
                 "image_size_px": list(self.image_size_px), "views": views,
                 "rectification": self.rectification is not None, "metrics": dict(self.metrics or {})}
 
@@ -309,8 +311,9 @@ class _Reader:
             if isinstance(val, bool) or not isinstance(val, int) or val < 0:
                 raise self.fail(f"grid.{key}", f"must be a non-negative integer, got {val!r}")
             dims[key] = val
+        arrangement = g.get("arrangement", "grid")  # a free arrangement's links follow from the poses
         try:
-            return ViewGrid(dims["rows"], dims["cols"], dims["reference"])
+            return ViewGrid(dims["rows"], dims["cols"], dims["reference"], arrangement)
         except ValueError as exc:
             raise self.fail("grid", str(exc)) from None
 
