@@ -124,10 +124,17 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
                      held_directions(calib, fit.last_stage, fit.held, priors))
 
 
-def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray:
+def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray | tuple[np.ndarray, ...]:
     """(N, 3) rays of ``samples`` x ``samples`` reference pixels over 5-95 % of the image (the reference's own lens
-    undistorts them; pixels a folding lens has no ray for are left out): where the transfer at infinity is measured."""
-    ref = calib.grid.reference
+    undistorts them; pixels a folding lens has no ray for are left out): where the transfer at infinity is measured.
+    In a free arrangement (a ring: views that do not see the reference's directions) each view's own pixels' rays,
+    in the reference frame, one (N_v, 3) array per view."""
+    if calib.grid.is_free:
+        return tuple(_own_rays(calib, v, samples) @ calib.ref_T_view[v][:3, :3].T for v in range(calib.num_views))
+    return _own_rays(calib, calib.grid.reference, samples)
+
+
+def _own_rays(calib: Calibration, ref: int, samples: int) -> np.ndarray:
     xy = calib.intrinsics[ref].undistort(reference_pixels(calib.image_size(ref), samples))
     xy = xy[np.all(np.isfinite(xy), axis=1)]  # corners a strong barrel lens folds over have no ray
     return np.column_stack([xy, np.ones(len(xy))])
@@ -137,6 +144,7 @@ def _transfer(calib: Calibration, v: int, rays: np.ndarray, omega: np.ndarray, d
     """Reference rays at infinity projected into view v turned by body-frame ``omega`` with fx, fy, cx, cy + dk."""
     import dataclasses
 
+    rays = rays[v] if isinstance(rays, tuple) else rays  # a free arrangement's: each view's own (`infinity_rays`)
     R = calib.ref_T_view[v][:3, :3] @ rotation_from_rotvec(omega)  # noqa: N806
     i = calib.intrinsics[v]
     i = dataclasses.replace(i, fx=i.fx + dk[0], fy=i.fy + dk[1], cx=i.cx + dk[2], cy=i.cy + dk[3])
