@@ -57,7 +57,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     calib = import_calibration(args.source, args.fmt, grid)
     calib.save(args.output)
     print(f"wrote {args.output} from {args.source} ({args.fmt}: {calib.num_views} views, {calib.grid} grid, "
-          f"reference view {calib.grid.reference})")
+          f"reference view {calib.grid.reference}" + (", with its rectification" if calib.rectification else "") + ")")
     return EXIT_OK
 
 

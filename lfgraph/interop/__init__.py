@@ -43,6 +43,7 @@ __all__ = [
     "MAX_IMPORT_VIEWS",
     "MM_PER_M",
     "FILE_FORMATS",
+    "RECTIFICATION_FORMATS",
     "export_calibration",
     "import_calibration",
     "input_paths",
@@ -67,6 +68,9 @@ _READERS: dict[str, Callable[[Path, GridLike], Calibration]] = {
 EXPORT_FORMATS: tuple[str, ...] = tuple(_WRITERS)
 IMPORT_FORMATS: tuple[str, ...] = tuple(_READERS)
 FILE_FORMATS: tuple[str, ...] = ("opencv-yaml", "kalibr", "json")  # exports that write one file (colmap: a folder)
+# exports that write a stored rectification (ros: as each camera_info's R and P, not read back); the others have no
+# place for one, and an export to them says so
+RECTIFICATION_FORMATS: tuple[str, ...] = ("opencv-yaml", "json", "ros")
 
 
 def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
@@ -79,7 +83,8 @@ def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
             files of that export).
 
     Returns:
-        The path written.
+        The path written. A stored rectification is written by the formats in `RECTIFICATION_FORMATS`; the others
+        warn that they leave it out.
 
     Raises:
         ValueError: unknown format, an incomplete stored rectification (``opencv-yaml``), a ``colmap`` folder
@@ -95,6 +100,10 @@ def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
         raise ValueError(f"{out}: not written: the calibration contradicts its grid, and its import would be "
                          f"refused: {'; '.join(errors)}")
     writer(calib, out)
+    if calib.rectification is not None and fmt not in RECTIFICATION_FORMATS:
+        logging.getLogger("lfgraph").warning(
+            "%s: %s has no place for a rectification: the stored one is not written (an import of this file has "
+            "none; `lfgraph rectify` computes it again; opencv-yaml and json keep it)", out, fmt)
     return out
 
 
@@ -109,13 +118,15 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
             ``# lfgraph grid`` comment, optional (and then checked against the file) otherwise.
 
     Returns:
-        The calibration, row-major views, poses relative to the reference view. Metrics are empty and the
-        rectification None for every format but ``json``.
+        The calibration, row-major views, poses relative to the reference view. Metrics are empty for every format
+        but ``json``; the rectification is the file's for ``json`` and ``opencv-yaml`` (when it holds one), else
+        None.
 
     Raises:
         ValueError: unknown format. `CalibrationFileError` (a ValueError) naming the file and the key: a missing
             file or key, a malformed or non-finite number, a matrix of the wrong shape or not a rotation, a grid
-            whose shape or view count does not match the file, more than `MAX_IMPORT_VIEWS` views.
+            whose shape or view count does not match the file, more than `MAX_IMPORT_VIEWS` views, a rectification
+            that is incomplete or does not rectify the file's calibration (``opencv-yaml``).
     """
     reader = _READERS.get(fmt)
     if reader is None:

@@ -17,8 +17,12 @@ camera 1) to rectified pixels of view i, with ``p_i = -K_r R_rect_from_ref c_i``
 position (lfgraph's rectified projection, re-expressed). Hence
 ``cv2.initUndistortRectifyMap(K_i, D_i, R_rect_i, P_i, (rect_image_width, rect_image_height), m1type)`` (which uses
 ``P_i``'s left 3x3 as the new camera matrix) gives exactly lfgraph's rectified view i (`lfgraph.rectification.rectify
-.build_maps`). Import reads the calibration, not the rectification (recompute that with ``lfgraph rectify``):
-``K_r``, ``R_rect_i`` and ``P_i`` alone do not make a complete lfgraph rectification.
+.build_maps`), and ``rect_crop`` (``valid`` or ``full``, lfgraph's crop mode). Import keeps such a rectification
+(`lfgraph.rectification.recover` rebuilds the rest of it: the ideal grid from the P_i's last columns, the crop from
+K_r's principal point): every one of ``K_r``, ``R_rect_i``, ``P_i`` and the rectified size must be there, each
+``P_i``'s left 3x3 must be ``K_r`` (to `P_LEFT_BLOCK_REL`) and each ``R_rect_i`` the view's orientation turned by the
+reference's ``R_rect`` (to `RECT_ROTATION_TOLERANCE_RAD`): a rectification of this calibration, or the file is refused
+naming the key. The stereo names (``R1 ... Q``) are not read: they repeat what the per-view keys hold.
 
 Import parses the file once with PyYAML's parser (libyaml when available) and walks its node tree:
 ``cv2.FileStorage`` looks every key up by a linear scan of the top-level map, which made import quadratic in the view
@@ -40,7 +44,7 @@ import yaml
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.files import atomic_path
-from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.core.geometry import invert_T, make_T, rotation_angle_deg
 from lfgraph.core.grid import ViewGrid
 from lfgraph.interop.common import (
     GridLike,
@@ -56,13 +60,17 @@ from lfgraph.interop.common import (
     rotation,
     whole,
 )
-from lfgraph.rectification.rectify import rectification_for_export, stored_rectification
+from lfgraph.rectification.recover import rectification_from_projections
+from lfgraph.rectification.rectify import CROPS, attach, rectification_for_export, stored_rectification
 
 _OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML[: ]\s*\d+\.\d+[^\n]*\n")  # OpenCV 3/4 write %YAML:1.0, OpenCV 5 %YAML 1.2
 # cv2.FileStorage writes these for non-finite numbers; YAML 1.1 spells them .nan/.NaN/.inf only
 _OPENCV_SPECIAL_FLOATS = {".nan": float("nan"), ".inf": float("inf"), "+.inf": float("inf"), "-.inf": float("-inf")}
 _HEADER_COUNT = re.compile(r"^(grid_rows|grid_cols|num_views)[ \t]*:[ \t]*(\d+)[ \t]*(?:#.*)?$", re.MULTILINE)
 _MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"  # what the parser makes of FileStorage's !!opencv-matrix
+_RECT_KEYS = ("rect_image_width", "rect_image_height", "K_r", "rect_crop")  # any of them: a rectification
+P_LEFT_BLOCK_REL = 1e-6  # P_i's left 3x3 against K_r, relative to K_r's largest entry (six significant digits)
+RECT_ROTATION_TOLERANCE_RAD = 1e-4  # R_rect_i against R_rect_ref R_i^T: a file's printed precision, as its rotations
 
 
 def rectified_projection(K_r: np.ndarray, P_lfgraph: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -120,6 +128,7 @@ def write(calib: Calibration, path: Path) -> None:
                 fs.write("rect_image_width", int(rect.image_size_px[0]))
                 fs.write("rect_image_height", int(rect.image_size_px[1]))
                 fs.write("K_r", rect.K_r)
+                fs.write("rect_crop", rect.crop)
                 for i in range(calib.num_views):
                     fs.write(f"R_rect_{i}", rect.rect_R_view[i])
                     fs.write(f"P_{i}", rectified_projection(rect.K_r, rect.P[i]))
@@ -277,4 +286,32 @@ def read(path: Path, grid: GridLike) -> Calibration:
             check_reference_pose(view_T_ref, path, f"R_{i}, T_{i}")
         poses.append(invert_T(view_T_ref))
     calib = build(path, "num_views", file_grid, size, views, np.stack(poses), sizes)
+    if any(key in entries for key in _RECT_KEYS) or any(f"R_rect_{i}" in entries for i in range(num_views)):
+        calib = _with_rectification(calib, entries, path, integer)
     return fit_grid(calib, grid, path, "num_views")
+
+
+def _with_rectification(calib: Calibration, entries: dict[str, Any], path: Path, integer) -> Calibration:
+    """The calibration with the file's rectification stored (module docstring: what must hold, what is rebuilt)."""
+    size = (integer("rect_image_width", 1), integer("rect_image_height", 1))
+    K_r = _matrix(entries, "K_r", (3, 3), path)  # noqa: N806
+    intrinsics(path, "K_r", K_r, None)  # the form [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    crop = entries.get("rect_crop")
+    if crop is not None and crop not in CROPS:
+        raise fail(path, "rect_crop", f"must be {' or '.join(CROPS)}, got {crop!r}")
+    rect_R_view = np.stack([rotation(_matrix(entries, f"R_rect_{i}", (3, 3), path), path, f"R_rect_{i}")  # noqa: N806
+                            for i in range(calib.num_views)])
+    rect_R_ref = rect_R_view[calib.grid.reference]  # noqa: N806
+    p_last = []
+    for i in range(calib.num_views):
+        P = _matrix(entries, f"P_{i}", (3, 4), path)  # noqa: N806
+        if np.max(np.abs(P[:, :3] - K_r)) > P_LEFT_BLOCK_REL * np.max(np.abs(K_r)):
+            raise fail(path, f"P_{i}", f"must be [K_r | p] (stereoRectify's P1/P2: every rectified view has K_r), but "
+                                       f"its left 3x3 is {P[:, :3].tolist()} and K_r {K_r.tolist()}")
+        turn = rect_R_view[i] @ calib.ref_T_view[i][:3, :3].T @ rect_R_ref.T  # the identity for this calibration
+        if np.degrees(RECT_ROTATION_TOLERANCE_RAD) < rotation_angle_deg(turn):
+            raise fail(path, f"R_rect_{i}", f"does not rectify this calibration's view {i}: it is "
+                                            f"{rotation_angle_deg(turn):.4g} deg off the reference's R_rect "
+                                            f"R_{i}^T (a rectification of other extrinsics?)")
+        p_last.append(P[:, 3])
+    return attach(calib, rectification_from_projections(calib, size, K_r, rect_R_view, np.stack(p_last), crop))
