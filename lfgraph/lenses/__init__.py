@@ -14,8 +14,8 @@ import numpy as np
 from lfgraph.lenses import fisheye, radtan, unified
 from lfgraph.lenses.model import COEFFICIENTS, HEAD, LensModel
 
-__all__ = ["COEFFICIENTS", "DEFAULT_LENS", "HEAD", "LensModel", "lens_distort", "lens_model", "lens_names",
-           "register"]
+__all__ = ["COEFFICIENTS", "DEFAULT_LENS", "HEAD", "LensModel", "lens_coefficient_jacobian", "lens_distort",
+           "lens_model", "lens_names", "register"]
 
 _BUILT_IN = (radtan.MODEL, fisheye.MODEL, unified.MODEL)  # one line per model, in code order (never reordered)
 _MODELS: dict[str, LensModel] = {}
@@ -76,3 +76,21 @@ def lens_distort(code: np.ndarray, coef: np.ndarray, x: np.ndarray, y: np.ndarra
                                 strict=True):
                 o[m] = value
     return tuple(out)
+
+
+def lens_coefficient_jacobian(code: np.ndarray, coef: np.ndarray, x: np.ndarray, y: np.ndarray,
+                              width: int) -> np.ndarray:
+    """Each point's d (xd, yd) / d (its lens's coefficients, tangent order), all models at once: (*x.shape, 2,
+    ``width``), zero-padded beyond a model's own coefficients. Arguments as `lens_distort`.
+
+    Raises:
+        ValueError: a model without ``coefficient_jacobian`` (or with more coefficients than ``width``).
+    """
+    out = np.zeros((*np.shape(x), 2, width))
+    for c, model in enumerate(_MODELS.values()):
+        m = code == c
+        if m.any():
+            if model.coefficient_jacobian is None or len(model.tangent) > width:
+                raise ValueError(f"lens model {model.name} has no coefficient Jacobian of width <= {width}")
+            out[m, :, :len(model.tangent)] = model.coefficient_jacobian(x[m], y[m], *(k[m] for k in coef))
+    return out

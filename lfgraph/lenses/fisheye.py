@@ -51,6 +51,18 @@ def fisheye_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, k3, k4) -> tuple[np.n
     return x * s, y * s, s + g * x * x, g * x * y, s + g * y * y
 
 
+def _coefficient_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2, k3, k4, xi) -> np.ndarray:
+    """(*x.shape, 2, 4): d (xd, yd) / d (k1, k2, k3, k4) = (x, y) theta^(2i+1) / r (0 on the axis)."""
+    r = np.hypot(x, y)
+    small = r < FISHEYE_SMALL_R
+    rs = np.where(small, 1.0, r)
+    theta = np.arctan(rs)
+    t2 = theta * theta
+    powers = np.stack([theta * t2, theta * t2**2, theta * t2**3, theta * t2**4], axis=-1) / rs[..., None]
+    powers[small] = 0.0  # theta^3 / r ~ r^2 -> 0
+    return np.stack([x[..., None] * powers, y[..., None] * powers], axis=-2)
+
+
 def undo_fisheye(target: np.ndarray, k: np.ndarray) -> np.ndarray:
     """Newton inverse of `distort_fisheye_xy` for (V, N, 2), k (V, 4, 1) = k1..k4: solve theta_d(theta) = r_d, then
     r = tan(theta). NaN where theta would reach 90 degrees, the polynomial is not increasing, or no root is found."""
@@ -98,4 +110,5 @@ MODEL = LensModel(name="fisheye", gtsam_name="Cal3Fisheye", coefficients=("k1", 
                   undistort=lambda target, intr: undo_fisheye(
                       target, np.array([[i.k1, i.k2, i.k3, i.k4] for i in intr])[:, :, None]),
                   folded=_folded, wide=True, opencv="fisheye",
-                  off_axis_deg=lambda r, xi: float(np.degrees(r)))  # equidistant: the angle is the radius
+                  off_axis_deg=lambda r, xi: float(np.degrees(r)),  # equidistant: the angle is the radius
+                  coefficient_jacobian=_coefficient_jacobian)

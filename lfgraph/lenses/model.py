@@ -24,6 +24,8 @@ HEAD = ("fx", "fy", "s", "cx", "cy")  # every GTSAM calibration's tangent starts
 
 # (x, y, k1, k2, p1, p2, k3, k4, xi, jacobian) -> (xd, yd) or (xd, yd, dxd/dx, dxd/dy, dyd/dx, dyd/dy)
 BulkMap = Callable[..., tuple[np.ndarray, ...]]
+# (x, y, k1, k2, p1, p2, k3, k4, xi) -> (*x.shape, 2, len(tangent)): d (xd, yd) / d each coefficient, tangent order
+CoefficientJacobian = Callable[..., np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,8 @@ class LensModel:
         check: an `Intrinsics` -> a problem (text) or None, beyond the common checks.
         off_axis_deg: (r, xi) -> the angle (deg) from the axis of the ray the model without distortion images at a
             normalised radius r (NaN beyond its image): a nominal field of view.
+        coefficient_jacobian: the distortion's derivatives by its coefficients (in ``tangent`` order), for the
+            bulk calibration solver (`lfgraph.engine.board_problem`); None: calibrations of it take GTSAM's factors.
     """
 
     name: str
@@ -61,6 +65,7 @@ class LensModel:
     opencv: str | None = None
     check: Callable[[Intrinsics], str | None] | None = None
     off_axis_deg: Callable[[float, float], float] = lambda r, xi: float(np.degrees(np.arctan(r)))
+    coefficient_jacobian: CoefficientJacobian | None = None
 
     @property
     def tangent_size(self) -> int:

@@ -37,6 +37,15 @@ def distortion_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2) -> tuple[n
             radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x)
 
 
+def radtan_coefficient_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2, k3=0.0, k4=0.0,
+                                xi=0.0) -> np.ndarray:
+    """(*x.shape, 2, 4): d (xd, yd) / d (k1, k2, p1, p2) of `distort_xy` (the distortion is linear in them)."""
+    r2 = x * x + y * y
+    r4, xy2 = r2 * r2, 2.0 * x * y
+    return np.stack([np.stack([x * r2, x * r4, xy2, r2 + 2.0 * x * x], axis=-1),
+                     np.stack([y * r2, y * r4, r2 + 2.0 * y * y, xy2], axis=-1)], axis=-2)
+
+
 def undo_radtan(target: np.ndarray, k: np.ndarray) -> np.ndarray:
     """Newton inverse of `distort_xy` for (V, N, 2) distorted normalised coordinates, k (V, 4, 1) = k1 k2 p1 p2.
 
@@ -93,4 +102,5 @@ def _folded(intr: Intrinsics, rays: np.ndarray, xy: np.ndarray, px: np.ndarray) 
 MODEL = LensModel(name="radtan", gtsam_name="Cal3DS2", coefficients=("k1", "k2", "p1", "p2"),
                   tangent=("k1", "k2", "p1", "p2"), bulk_map=_map,
                   undistort=lambda target, intr: undo_radtan(target, radtan_rows(intr)), folded=_folded,
-                  tangential=("p1", "p2"), opencv="pinhole")
+                  tangential=("p1", "p2"), opencv="pinhole",
+                  coefficient_jacobian=radtan_coefficient_jacobian)

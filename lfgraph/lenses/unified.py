@@ -11,7 +11,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lfgraph.lenses.model import LensModel
-from lfgraph.lenses.radtan import distort_xy, distortion_jacobian, radtan_rows, undo_radtan
+from lfgraph.lenses.radtan import (
+    distort_xy,
+    distortion_jacobian,
+    radtan_coefficient_jacobian,
+    radtan_rows,
+    undo_radtan,
+)
 
 if TYPE_CHECKING:
     from lfgraph.core.camera import Intrinsics
@@ -57,6 +63,18 @@ def _map(x, y, k1, k2, p1, p2, k3, k4, xi, jacobian: bool) -> tuple[np.ndarray, 
     return unified_jacobian(x, y, xi, k1, k2, p1, p2)
 
 
+def _coefficient_jacobian(x: np.ndarray, y: np.ndarray, k1, k2, p1, p2, k3, k4, xi) -> np.ndarray:
+    """(*x.shape, 2, 5): d (xd, yd) / d (k1, k2, p1, p2, xi): radtan's at Mei's plane point m, and the distortion's
+    Jacobian times d m / d xi = -(x, y) rho / d^2."""
+    rho = np.sqrt(x * x + y * y + 1.0)
+    d = 1.0 + xi * rho
+    mx, my = x / d, y / d
+    d00, d01, d11 = distortion_jacobian(mx, my, k1, k2, p1, p2)
+    dmx, dmy = -x * rho / (d * d), -y * rho / (d * d)
+    dxi = np.stack([d00 * dmx + d01 * dmy, d01 * dmx + d11 * dmy], axis=-1)
+    return np.concatenate([radtan_coefficient_jacobian(mx, my, k1, k2, p1, p2), dxi[..., None]], axis=-1)
+
+
 def _folded(intr: Intrinsics, rays: np.ndarray, xy: np.ndarray, px: np.ndarray) -> np.ndarray:
     """A round trip through `Intrinsics.undistort` must come back to the ray."""
     back = np.full_like(xy, np.nan)
@@ -83,4 +101,5 @@ MODEL = LensModel(name="unified", gtsam_name="Cal3Unified", coefficients=("xi", 
                   tangent=("k1", "k2", "p1", "p2", "xi"), bulk_map=_map,
                   undistort=lambda target, intr: lift_unified(undo_radtan(target, radtan_rows(intr)),
                                                               np.array([i.xi for i in intr])[:, None]),
-                  folded=_folded, tangential=("p1", "p2"), wide=True, check=_check, off_axis_deg=_off_axis_deg)
+                  folded=_folded, tangential=("p1", "p2"), wide=True, check=_check, off_axis_deg=_off_axis_deg,
+                  coefficient_jacobian=_coefficient_jacobian)

@@ -1,7 +1,8 @@
-"""The joint route: one GTSAM factor graph over all views and frames (`lfgraph.factors.board_graph`),
-started from the paper route or design values; 1-sigma uncertainties from the marginals of the graph at its optimum
-(`lfgraph.engine.schur.CameraMarginals`, the one posterior path: the board's corners eliminated like a refinement's
-landmarks, GTSAM's `Marginals` where that cannot reduce the graph)."""
+"""The joint route: one graph over all views and frames (`lfgraph.factors.board_graph`'s model), started from the
+paper route or design values, solved by the engine's bulk board problem (`lfgraph.engine.board_problem`: GTSAM's
+residuals and Jacobians evaluated in numpy, its Levenberg–Marquardt) or, with graph hooks, by GTSAM's factors;
+1-sigma uncertainties from the marginals at its optimum (`lfgraph.engine.schur.CameraMarginals`, the one posterior
+path)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ import numpy as np
 
 from lfgraph.core.camera import Intrinsics
 from lfgraph.detect.detections import BoardObservations
+from lfgraph.engine.board_problem import BoardProblem
 from lfgraph.engine.optimize import IterationCallback, OptimizationResult, OptimizerSettings, gtsam_quiet, optimize
-from lfgraph.engine.schur import CameraMarginals
+from lfgraph.engine.schur import CameraMarginals, optimize_problem
+from lfgraph.engine.schur_system import NotReducible
 from lfgraph.factors import board_graph
 from lfgraph.factors.hooks import GraphContext, run_hooks
 from lfgraph.factors.keys import BOARD_CORNER_CHAR, calib_key, view_pose_key
@@ -53,10 +56,8 @@ class JointResult:
     sigmas: tuple[dict[str, Any], ...] | None
 
 
-def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_views: int, scale: float,
+def _marginal_sigmas(marginals: CameraMarginals, n_views: int, scale: float,
                      lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:
-    with gtsam_quiet():  # the board's corners eliminated as a refinement's landmarks are (`lfgraph.engine.schur`)
-        marginals = CameraMarginals(graph, values, BOARD_CORNER_CHAR)
     out = []
     for v in range(n_views):
         kc = np.sqrt(np.maximum(np.diag(marginals.block(calib_key(v))), 0.0)) * scale
@@ -75,10 +76,60 @@ def _marginal_sigmas(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_
     return tuple(out)
 
 
+def _priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings: CalibrateConfig
+            ) -> gtsam.NonlinearFactorGraph:
+    """Every factor but the observations: the corners' priors, the gauge and the intrinsics pins."""
+    graph = gtsam.NonlinearFactorGraph()
+    board_sigma_m = board_graph.RIGID_BOARD_SIGMA_M if settings.board_sigma_mm is None \
+        else settings.board_sigma_mm * 1e-3
+    board_graph.add_corner_priors(graph, obs.board.object_points(), board_sigma_m)
+    board_graph.add_gauge_prior(graph, obs.grid.reference)
+    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs),
+                                   [obs.size_of(v)[0] for v in range(obs.num_views)])
+    return graph
+
+
+def _with_observations(priors: gtsam.NonlinearFactorGraph, values: gtsam.Values, obs: BoardObservations,
+                       valid: np.ndarray, noise, lenses: tuple[str, ...]) -> tuple[gtsam.NonlinearFactorGraph,
+                                                                                 gtsam.Values]:
+    """The whole GTSAM graph (one factor per observation, `lfgraph.factors.board_graph`) and its values (with the
+    board points of views whose lens has no board factor)."""
+    graph = gtsam.NonlinearFactorGraph(priors)
+    board_graph.add_board_observations(graph, obs.corners_px, valid, noise, lenses)
+    values = gtsam.Values(values)
+    frames = sorted({f for f, _ in board_graph.unified_board_points(valid, lenses)})
+    boards = read_board_poses(values, obs.num_frames, frames)
+    insert_board_points(values, board_graph.unified_board_points(valid, lenses), boards,
+                        read_board_corners(values, obs.board.num_corners))
+    return graph, values
+
+
+def _solve(obs: BoardObservations, valid: np.ndarray, frames: list[int], priors: gtsam.NonlinearFactorGraph,
+           values: gtsam.Values, settings: CalibrateConfig, lenses: tuple[str, ...], callback):
+    """Levenberg–Marquardt on the joint graph: the engine's bulk board problem (`BoardProblem`), or GTSAM's factors
+    where it cannot (graph hooks, a noise model it does not evaluate in bulk). Returns (the result, the problem or
+    None, a function making the whole GTSAM graph and values at a state)."""
+    noise = measurement_noise(settings.noise, settings.corner_sigma_px)
+
+    def build(state: gtsam.Values):
+        return _with_observations(priors, state, obs, valid, noise, lenses)
+
+    if not settings.graph_hooks:
+        try:
+            problem = BoardProblem(priors, values, obs.corners_px[:, frames], valid[:, frames], frames, noise, lenses)
+            return optimize_problem(problem, values, settings.max_iterations, callback=callback), problem, build
+        except NotReducible:
+            pass
+    graph, full = build(values)
+    run_hooks(settings.graph_hooks, GraphContext("calibration", None, graph, full, obs.num_views))
+    result = optimize(graph, full, OptimizerSettings(max_iterations=settings.max_iterations), callback)
+    return result, None, lambda state: (graph, state)
+
+
 def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray,  # noqa: N803
                     board_T_ref: np.ndarray, config: CalibrateConfig | None = None,  # noqa: N803
                     callback: IterationCallback | None = None) -> JointResult:
-    """One GTSAM graph over all views and frames (see `lfgraph.factors.board_graph`).
+    """One graph over all views and frames (see `lfgraph.factors.board_graph`), solved by the engine.
 
     Args:
         obs: the corners.
@@ -90,25 +141,15 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     frames = [f for f in range(obs.num_frames) if np.all(np.isfinite(board_T_ref[f]))]
     valid = obs.valid.copy()
     valid[:, [f for f in range(obs.num_frames) if f not in frames]] = False
-    noise = measurement_noise(settings.noise, settings.corner_sigma_px)
-    graph = gtsam.NonlinearFactorGraph()
     lenses = tuple(i.lens for i in intrinsics)
-    n_obs = board_graph.add_board_observations(graph, obs.corners_px, valid, noise, lenses)
     obj = obs.board.object_points()
-    board_sigma_m = board_graph.RIGID_BOARD_SIGMA_M if settings.board_sigma_mm is None \
-        else settings.board_sigma_mm * 1e-3
-    board_graph.add_corner_priors(graph, obj, board_sigma_m)
-    board_graph.add_gauge_prior(graph, obs.grid.reference)
-    board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs),
-                                   [obs.size_of(v)[0] for v in range(obs.num_views)])
     values = gtsam.Values()
     insert_intrinsics(values, intrinsics)
     insert_view_poses(values, ref_T_view)
     insert_board_poses(values, board_T_ref, frames)
     insert_board_corners(values, obj)
-    insert_board_points(values, board_graph.unified_board_points(valid, lenses), board_T_ref, obj)
-    run_hooks(settings.graph_hooks, GraphContext("calibration", None, graph, values, obs.num_views))
-    result = optimize(graph, values, OptimizerSettings(max_iterations=settings.max_iterations), callback)
+    priors = _priors(obs, intrinsics, settings)
+    result, problem, build = _solve(obs, valid, frames, priors, values, settings, lenses, callback)
     est = result.values
     n_views = obs.num_views
     # skew and (unless estimated) p1, p2 are pinned at 0 by priors: read_intrinsics clears their round-off
@@ -120,13 +161,16 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     res = rig_residuals(intr, poses, boards, obs, corners)
     n_params = sum(len(i.distortion) + 4 - (0 if settings.tangential else len(i.model.tangential))
                    for i in intr) + 6 * (n_views - 1) + 6 * len(frames)
-    dof = max(2 * n_obs - n_params, 1)
+    dof = max(2 * int(valid.sum()) - n_params, 1)
     noise_sigma = float(np.sqrt(np.nansum(res**2) / dof))
     sigmas = None
     if settings.marginals:
         scale = max(noise_sigma, SIGMA_FLOOR_PX) / settings.corner_sigma_px
         try:
-            sigmas = _marginal_sigmas(graph, est, n_views, scale, lenses)
+            with gtsam_quiet():
+                marginals = CameraMarginals(problem=problem, state=est, build=lambda: build(est)) \
+                    if problem is not None else CameraMarginals(*build(est), BOARD_CORNER_CHAR)
+            sigmas = _marginal_sigmas(marginals, n_views, scale, lenses)
         except RuntimeError:  # GTSAM: an indeterminate system (e.g. a unified lens whose xi the board cannot fix)
             logging.getLogger("lfgraph").warning(
                 "the calibration's uncertainties cannot be computed: some parameters are not determined by these "

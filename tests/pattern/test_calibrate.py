@@ -101,21 +101,23 @@ SAME_COVARIANCE = 1e-8  # relative: the reduced system's inverse vs GTSAM's Marg
 
 
 def test_the_joint_graphs_sigmas_are_gtsams_marginals(monkeypatch):
-    """The joint route's posterior is the one camera-marginals path (the board's corners eliminated, as a
-    refinement's landmarks are): the same covariances GTSAM's own `Marginals` gives for the graph."""
+    """The joint route's posterior is the one camera-marginals path (the inverse of the engine's bulk system): the
+    same covariances GTSAM's own `Marginals` gives for the whole factor graph (one GTSAM factor per corner) at the
+    solution."""
     import gtsam
 
     import lfgraph.pattern.joint as joint
     from lfgraph.factors.keys import calib_key, view_pose_key
 
     seen = {}
-    original = joint._marginal_sigmas
+    original = joint._solve
 
-    def keep(graph, values, *args):
-        seen["graph"] = (graph, values)
-        return original(graph, values, *args)
+    def keep(*args):
+        result, problem, build = original(*args)
+        seen["graph"] = build(result.values)
+        return result, problem, build
 
-    monkeypatch.setattr(joint, "_marginal_sigmas", keep)
+    monkeypatch.setattr(joint, "_solve", keep)
     calib, truth = small_rig()
     est, report = calibrate(observations(calib, truth, SIGMA_PX))
     graph, values = seen["graph"]
