@@ -96,7 +96,7 @@ def positive_float(text: str) -> float:
     return _bounded(text, float, 0.0, False, "a number")
 
 
-LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs", "views", "video")
+LAYOUT_CHOICES = ("auto", "folders", "mosaic", "hci", "pairs", "middlebury", "views", "video")
 
 
 RERUN_SINK_FLAGS = ("save", "connect", "serve", "stdout", "url")

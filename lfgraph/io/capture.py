@@ -6,6 +6,10 @@ Layouts (views row-major):
 - ``mosaic``: ``DIR/<frame>.<ext>``, one image per frame with the views tiled row-major.
 - ``hci``: ``input_Cam000.<ext>`` ... (row-major index) in one folder (one frame) or in per-frame folders.
 - ``pairs``: ``left<id>.<ext>`` / ``right<id>.<ext>`` stereo sets (OpenCV's sample), a 1x2 grid, frames by ``<id>``.
+- ``middlebury``: Middlebury 2014 scene folders, a 1x2 grid: ``im0.<ext>`` (left) and ``im1.<ext>`` (right) of one
+  scene folder (one frame), or of each scene folder in ``DIR`` (one frame per folder); ``calib.txt`` beside them
+  (``lfgraph import --from middlebury``) is what auto-detection looks for; the scene's other files (``im1E``,
+  ``mask0nocc``, ``disp0GT``, ...) are not read.
 - ``views``: ``DIR/<view>/<name><N>.<ext>``, one folder per view (folders in natural name order = row-major views,
   e.g. ``left/ middle/ right/``), frames matched by the number ``N`` at the end of each file name (``left7.jpg`` and
   ``right7.jpg`` are frame 7); BoofCV's and many rigs' own layout.
@@ -41,7 +45,7 @@ from lfgraph.io.layouts import (  # noqa: F401  (IMAGE_EXTENSIONS, VIDEO_EXTENSI
 )
 from lfgraph.io.video import read_video_frame, video_info
 
-LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs", "views", "video")
+LAYOUTS = ("auto", "folders", "mosaic", "hci", "pairs", "middlebury", "views", "video")
 MISSING_VIEW = ("error", "unseen")  # what a frame without one of its view images is
 def _read(path: Path, grayscale: bool) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
@@ -79,7 +83,7 @@ class CaptureSet:
 
     Attributes:
         root: the input folder.
-        layout: ``folders``, ``mosaic``, ``hci``, ``pairs`` or ``video``.
+        layout: one of `LAYOUTS` but ``auto``.
         grid: the view grid.
         frame_names: one name per frame, in order.
         files: per frame, the view files in row-major order (one file for a mosaic; the view's video for

@@ -1,6 +1,6 @@
 """Which files of a capture folder are which view of which frame, per layout (`lfgraph.io.capture` documents the
-layouts): the layout guess, the frame folders of rRR_cCC or input_CamNNN images, view folders, mosaics and left/right
-pairs, in natural order."""
+layouts): the layout guess, the frame folders of rRR_cCC or input_CamNNN images, view folders, mosaics, left/right
+pairs and Middlebury scene folders, in natural order."""
 
 from __future__ import annotations
 
@@ -15,8 +15,10 @@ VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".m
 _VIEW_RE = re.compile(r"^r(\d+)_c(\d+)$")
 _HCI_RE = re.compile(r"^input_Cam(\d+)$")
 _PAIR_RE = re.compile(r"^(left|right)(.*)$")
-
-
+MIDDLEBURY_VIEWS = ("im0", "im1")  # Middlebury 2014's left and right view images of a scene folder
+MIDDLEBURY_CALIB = "calib.txt"  # beside them: what tells a scene folder from a capture's images on auto-detection
+# the scene folder's other images (other exposures and lightings, occlusion masks, disparities), not frames of a mosaic
+_MIDDLEBURY_OTHER_RE = re.compile(r"^(im\d+[EL]|mask\d+nocc|disp\d.*)$")
 
 
 def _natural_key(name: str) -> list:
@@ -110,6 +112,49 @@ def _view_folder_frames(root: Path, grid: ViewGrid, missing: str) -> tuple[list[
     return keys, files
 
 
+def _scene_views(folder: Path) -> tuple[Path | None, Path | None] | None:
+    """(im0, im1) of a Middlebury scene folder (None for one it lacks), None when it holds neither."""
+    found: dict[str, Path] = {}
+    for p in _images(folder):
+        if p.stem in MIDDLEBURY_VIEWS:
+            if p.stem in found:
+                raise CaptureError(f"{p}: two images of view {p.stem} in this scene folder (also {found[p.stem].name})")
+            found[p.stem] = p
+    return None if not found else (found.get("im0"), found.get("im1"))
+
+
+def _is_scene(folder: Path) -> bool:
+    """A Middlebury 2014 scene folder: ``im0`` and ``im1`` images with ``calib.txt`` beside them."""
+    views = _scene_views(folder)
+    return views is not None and None not in views and (folder / MIDDLEBURY_CALIB).is_file()
+
+
+def _middlebury_files(root: Path, grid: ViewGrid, missing: str) -> tuple[list[str], list[tuple[Path | None, ...]]]:
+    """The middlebury layout: ``im0``/``im1`` of one scene folder (one frame), or of each scene folder in ``root``
+    (one frame per folder, in natural name order)."""
+    if (grid.rows, grid.cols) != (1, 2):
+        raise CaptureError(f"{root}: the middlebury layout (im0/im1 scene folders) is a 1x2 grid, not {grid}")
+    single = _scene_views(root)
+    folders = [root] if single is not None else sorted(
+        (d for d in root.iterdir() if d.is_dir() and not d.name.startswith(".") and _scene_views(d) is not None),
+        key=lambda d: _natural_key(d.name))
+    calibs = [d / MIDDLEBURY_CALIB for d in folders if (d / MIDDLEBURY_CALIB).is_file()]
+    for other in calibs[1:]:  # frames of one capture are one rig's: Middlebury calibrates each scene on its own
+        if other.read_bytes() != calibs[0].read_bytes():
+            raise CaptureError(f"{other}: differs from {calibs[0]}: scenes of different calibrations are different "
+                               f"captures; open one scene folder")
+    names, files = [], []
+    for d in folders:
+        views = _scene_views(d)
+        absent = [MIDDLEBURY_VIEWS[v] for v, p in enumerate(views) if p is None]
+        if absent and missing == "error":
+            raise CaptureError(f"{d}: no {absent[0]} image in this Middlebury scene folder (--missing-view unseen "
+                               f"counts a missing view image as 'board not seen')")
+        names.append(d.name)
+        files.append(views)
+    return names, files
+
+
 def detect_layout(root: Path, grid: ViewGrid) -> str:
     """Guess the layout of the capture folder ``root`` from the files in it.
 
@@ -119,8 +164,9 @@ def detect_layout(root: Path, grid: ViewGrid) -> str:
 
     Returns:
         ``hci`` or ``folders`` (input_CamNNN or rRR_cCC images, at the top or in frame folders), ``pairs`` (every image
-        named left*/right*), ``mosaic`` (other images), ``video``, or ``views`` (no top-level images or videos, one
-        image folder per view of a grid of two or more views).
+        named left*/right*), ``middlebury`` (im0/im1 images with calib.txt beside them, at the top or in scene
+        folders), ``mosaic`` (other images), ``video``, or ``views`` (no top-level images or videos, one image folder
+        per view of a grid of two or more views).
 
     Raises:
         CaptureError: no images, frame folders or videos found, or the folder holds inputs of more than one layout.
@@ -131,7 +177,13 @@ def detect_layout(root: Path, grid: ViewGrid) -> str:
     pair_named = [p for p in images if _PAIR_RE.match(p.stem)]
     videos = video_files(root)
     frame_dirs = [d for d in subdirs if any(_VIEW_RE.match(p.stem) or _HCI_RE.match(p.stem) for p in _images(d))]
+    scene_dirs = [d for d in subdirs if _is_scene(d)]
     candidates = []
+    if _is_scene(root) or scene_dirs:
+        candidates.append("middlebury")
+        if _is_scene(root):  # the scene's own files are not frames of another layout
+            images = [p for p in images if p.stem not in MIDDLEBURY_VIEWS and not _MIDDLEBURY_OTHER_RE.match(p.stem)]
+        subdirs = [d for d in subdirs if d not in scene_dirs]
     if view_named or frame_dirs:
         sample = view_named or _images(frame_dirs[0])
         candidates.append("hci" if any(_HCI_RE.match(p.stem) for p in sample) else "folders")
@@ -142,7 +194,7 @@ def detect_layout(root: Path, grid: ViewGrid) -> str:
         candidates.append("mosaic")
     if videos:
         candidates.append("video")
-    if not images and not frame_dirs and not videos and len(subdirs) == grid.num_views > 1 \
+    if not images and not frame_dirs and not videos and not scene_dirs and len(subdirs) == grid.num_views > 1 \
             and all(_images(d) for d in subdirs):
         candidates.append("views")
     if not candidates:
@@ -152,7 +204,8 @@ def detect_layout(root: Path, grid: ViewGrid) -> str:
     if len(candidates) > 1:
         raise CaptureError(f"{root}: ambiguous layout, it holds {', '.join(candidates)} inputs "
                            f"({len(frame_dirs)} frame folders, {len(view_named)} view images, {len(other)} other "
-                           f"images, {len(videos)} videos); pass --layout or clean the folder")
+                           f"images, {len(videos)} videos, {len(scene_dirs)} Middlebury scene folders); pass --layout "
+                           f"or clean the folder")
     return candidates[0]
 
 
@@ -174,6 +227,8 @@ def frame_files(root: Path, grid: ViewGrid, layout: str,
         return names, files
     if layout == "views":
         return _view_folder_frames(root, grid, missing)
+    if layout == "middlebury":
+        return _middlebury_files(root, grid, missing)
     if layout == "mosaic":
         images = _images(root)
         return [p.stem for p in images], [(p,) for p in images]

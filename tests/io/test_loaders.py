@@ -1,5 +1,7 @@
 """Input layouts: round trips, auto-detection, real data, and every error."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -161,3 +163,71 @@ def test_open_capture_validates_its_grid_and_frames_its_limit(tmp_path):
         with pytest.raises(ValueError, match="limit"):
             list(capture.frames(bad))
     assert len(list(capture.frames(5))) == 1
+
+
+# ---------------------------------------------------------------------------------------------- middlebury
+SHARED_MIDDLEBURY = Path(__file__).resolve().parents[3] / "shared" / "data" / "middlebury2014_quarter"
+MIDDLEBURY_CALIB = "cam0=[300 0 15.5; 0 300 11.5; 0 0 1]\ncam1=[300 0 17.5; 0 300 11.5; 0 0 1]\ndoffs=2\n" \
+                   "baseline=100\nwidth=32\nheight=24\nndisp=16\n"
+
+
+def _scene(folder: Path, seed: int = 0, calib: str = MIDDLEBURY_CALIB, views=("im0", "im1")) -> np.ndarray:
+    """A Middlebury 2014 scene folder as the benchmark ships it: im0/im1, calib.txt and the scene's other files."""
+    folder.mkdir(parents=True, exist_ok=True)
+    imgs = _frames(1, seed)[0][:2]
+    for name, img in zip(("im0", "im1"), imgs, strict=True):
+        if name in views:
+            cv2.imwrite(str(folder / f"{name}.png"), img)
+    cv2.imwrite(str(folder / "mask0nocc.png"), np.full((24, 32), 255, np.uint8))
+    cv2.imwrite(str(folder / "im1E.png"), imgs[1])  # another exposure of the right view
+    (folder / "disp0GT.pfm").write_bytes(b"Pf\n32 24\n-1\n" + bytes(4 * 32 * 24))
+    (folder / "calib.txt").write_text(calib)
+    return imgs
+
+
+def test_a_middlebury_scene_folder_is_a_pair(tmp_path):
+    imgs = _scene(tmp_path / "Teddy")
+    cap = open_capture(tmp_path / "Teddy", (1, 2))
+    assert (cap.layout, cap.frame_names, cap.image_size_px) == ("middlebury", ("Teddy",), (32, 24))
+    assert np.array_equal(cap.load_frame(0), imgs)  # im0 left (r00_c00), im1 right; im1E is not a view
+    # scene folders of one rig (the same calib.txt): one frame each, in natural order
+    second = _scene(tmp_path / "scene10", seed=1)
+    _scene(tmp_path / "scene2", seed=2)
+    (tmp_path / "Teddy").rename(tmp_path / "scene1")
+    cap = open_capture(tmp_path, (1, 2))
+    assert (cap.layout, cap.frame_names) == ("middlebury", ("scene1", "scene2", "scene10"))
+    assert np.array_equal(cap.load_frame(2), second)
+
+
+def test_middlebury_errors_name_the_folder(tmp_path):
+    _scene(tmp_path / "a")
+    with pytest.raises(CaptureError, match=r"a: the middlebury layout .* is a 1x2 grid, not 2x1"):
+        open_capture(tmp_path / "a", (2, 1), "middlebury")
+    _scene(tmp_path / "b", calib=MIDDLEBURY_CALIB.replace("baseline=100", "baseline=120"))
+    with pytest.raises(CaptureError, match=r"b/calib\.txt: differs from .*a/calib\.txt: .*open one scene folder"):
+        open_capture(tmp_path, (1, 2))
+    _scene(tmp_path / "c", views=("im0",))
+    with pytest.raises(CaptureError, match=r"c: no im1 image in this Middlebury scene folder"):
+        open_capture(tmp_path / "c", (1, 2), "middlebury")
+    cap = open_capture(tmp_path / "c", (1, 2), "middlebury", missing="unseen")
+    assert cap.is_missing(0, 1) and not cap.is_missing(0, 0)
+
+
+def test_numbered_images_without_calib_txt_stay_a_mosaic(tmp_path):
+    """im0.png, im1.png, ... without calib.txt beside them are the frames of a mosaic capture, not a scene."""
+    for f, imgs in enumerate(_frames(3)):
+        cv2.imwrite(str(tmp_path / f"im{f}.png"), tile_mosaic(imgs, GRID))
+    assert open_capture(tmp_path, GRID).layout == "mosaic"
+
+
+@pytest.mark.skipif(not SHARED_MIDDLEBURY.is_dir(), reason="the shared Middlebury 2014 set is not beside the project")
+def test_real_middlebury_scenes_open_at_their_calibrated_size():
+    from lfgraph.interop import import_calibration
+
+    scenes = sorted(p for p in SHARED_MIDDLEBURY.iterdir() if p.is_dir())
+    assert len(scenes) == 6
+    for scene in scenes:
+        cap = open_capture(scene, (1, 2))
+        assert cap.layout == "middlebury" and len(cap) == 1
+        assert cap.image_size_px == import_calibration(scene, "middlebury").image_size_px
+        assert cap.load_frame(0).shape == (2, cap.image_size_px[1], cap.image_size_px[0])
