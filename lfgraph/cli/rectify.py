@@ -71,7 +71,7 @@ def _rectify(args: argparse.Namespace) -> int:
 
             logger.rig(calib)
             logger.rectified(calib, remap_views(capture.load_frame(0, grayscale=False), build_maps(calib, rect)))
-    out_layout = "folders" if capture.layout in ("pairs", "views", "video") else capture.layout
+    out_layout = "folders" if capture.layout in ("pairs", "middlebury", "views", "video") else capture.layout
     with staged_folder(out) as tmp:  # the folder appears complete or not at all
         tasks = [(capture, f, rectified.to_dict(), args.crop, tmp, out_layout) for f in range(len(capture))]
         run_tasks(_rectify_frame_task, tasks, args.jobs, desc="rectifying", unit="frame", progress=not args.quiet)
