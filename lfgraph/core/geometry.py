@@ -17,9 +17,14 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:  # noqa: N802, N803
 
 
 def invert_T(a_T_b: np.ndarray) -> np.ndarray:  # noqa: N802, N803
-    """Inverse of a rigid transform: ``b_T_a``."""
-    R = a_T_b[:3, :3]  # noqa: N806
-    return make_T(R.T, -R.T @ a_T_b[:3, 3])
+    """Inverse of a rigid transform: ``b_T_a`` (of each, for a (..., 4, 4) stack)."""
+    a_T_b = np.asarray(a_T_b, dtype=np.float64)  # noqa: N806
+    Rt = np.swapaxes(a_T_b[..., :3, :3], -1, -2)  # noqa: N806
+    out = np.zeros(a_T_b.shape)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ a_T_b[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def is_rotation(R: np.ndarray, tol: float = ROTATION_ORTHONORMAL_TOLERANCE) -> bool:  # noqa: N803

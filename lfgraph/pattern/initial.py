@@ -151,14 +151,18 @@ def duplicate_view_frames(obs: BoardObservations) -> list[tuple[int, int, int]]:
     out = []
     for v in range(obs.num_views):
         frames = np.nonzero(obs.seen[v])[0]
+        valid, corners = obs.valid[v, frames], obs.corners_px[v, frames]
+        same_mask = np.all(valid[:, None] == valid[None, :], axis=-1)
+        with np.errstate(invalid="ignore"):
+            gap = np.nanmax(np.abs(corners[:, None] - corners[None, :]), axis=(2, 3), initial=0.0)
+        match = same_mask & (gap <= DUPLICATE_TOLERANCE_PX)
         kept: list[int] = []
-        for f in frames:
-            same = next((g for g in kept if np.array_equal(obs.valid[v, f], obs.valid[v, g]) and np.nanmax(
-                np.abs(obs.corners_px[v, f] - obs.corners_px[v, g])) <= DUPLICATE_TOLERANCE_PX), None)
+        for i, f in enumerate(frames):
+            same = next((j for j in kept if match[i, j]), None)
             if same is None:
-                kept.append(int(f))
+                kept.append(i)
             else:
-                out.append((v, int(f), same))
+                out.append((v, int(f), int(frames[same])))
     return out
 
 
@@ -202,8 +206,8 @@ def inconsistent_view_frames(view_T_board: np.ndarray, reference: int) -> list[t
         shared_count[frames] += 1
         if len(frames) < CONSENSUS_MIN_FRAMES:
             continue
-        est = np.stack([view_T_board[reference, f] @ invert_T(view_T_board[v, f]) for f in frames])
-        rot = np.array([[_angle_deg(a[:3, :3].T @ b[:3, :3]) for b in est] for a in est])
+        est = view_T_board[reference, frames] @ invert_T(view_T_board[v, frames])
+        rot = _angles_deg(est[:, :3, :3])
         pos = np.linalg.norm(est[:, None, :3, 3] - est[None, :, :3, 3], axis=-1)
         baseline = float(np.median(np.linalg.norm(est[:, :3, 3], axis=1)))
         scale = max(baseline, 1e-9)
@@ -230,8 +234,9 @@ def inconsistent_view_frames(view_T_board: np.ndarray, reference: int) -> list[t
     return out
 
 
-def _angle_deg(R: np.ndarray) -> float:  # noqa: N803
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+def _angles_deg(R: np.ndarray) -> np.ndarray:  # noqa: N803
+    """(N, N) angle (deg) between every two of the (N, 3, 3) rotations: trace(Ra^T Rb) = sum of Ra * Rb."""
+    return np.degrees(np.arccos(np.clip((np.einsum("aij,bij->ab", R, R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
 def initial_board_T_ref(view_T_board: np.ndarray, ref_T_view: np.ndarray, counts: np.ndarray) -> np.ndarray:  # noqa: N802, N803

@@ -6,7 +6,7 @@ view's frames), with a radial-residual check of the one kept."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -176,6 +176,7 @@ class LensChoice:
     lenses: tuple[str, ...]
     fit_px: dict[str, np.ndarray]
     heldout_px: dict[str, np.ndarray]
+    mono: dict[tuple[int, str], MonoFit] = field(default_factory=dict, compare=False, repr=False)  # (view, lens) fits
 
     def metrics(self) -> dict[str, Any]:
         """``{"lens_choice": {"fit_px": ..., "heldout_px": ...}}`` for ``calibration.json`` (None where not computed);
@@ -217,10 +218,10 @@ def _preferred(heldout: dict[str, np.ndarray], v: int) -> str:
 
 
 def _fit_rms(obs: BoardObservations, v: int, lens: str, into: dict[str, np.ndarray],
-             starts: dict[str, Intrinsics]) -> float:
+             starts: dict[str, Intrinsics], mono: dict[tuple[int, str], MonoFit]) -> float:
     try:
         fit = fit_mono(obs, v, lens)
-        into[lens][v], starts[lens] = fit.rms_px, fit.intrinsics
+        into[lens][v], starts[lens], mono[v, lens] = fit.rms_px, fit.intrinsics, fit
     except FIT_ERRORS:
         into[lens][v] = float("inf")
     return float(into[lens][v])
@@ -236,6 +237,7 @@ def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoic
     table = {lens: np.full(n, np.nan) for lens in FIT_LENSES}
     fits = {lens: np.full(n, np.nan) for lens in FIT_LENSES}
     lenses = list(requested)
+    mono: dict[tuple[int, str], MonoFit] = {}
     undecided = []
     weak = obs.seen.sum(axis=1) < 3
     for v in range(n):
@@ -243,8 +245,8 @@ def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoic
             continue
         starts: dict[str, Intrinsics] = {}
         if not weak[v]:
-            base = _fit_rms(obs, v, RADTAN, fits, starts)
-            if not _clearly_better(_fit_rms(obs, v, FISHEYE, fits, starts), base):
+            base = _fit_rms(obs, v, RADTAN, fits, starts, mono)
+            if not _clearly_better(_fit_rms(obs, v, FISHEYE, fits, starts, mono), base):
                 lenses[v] = RADTAN
                 continue
         for lens in FIT_LENSES:
@@ -258,7 +260,7 @@ def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoic
     common = max(FIT_LENSES, key=lambda lens: (decided.count(lens), lens == RADTAN)) if decided else RADTAN
     for v in undecided:
         lenses[v] = common
-    return LensChoice(tuple(lenses), fits, table)
+    return LensChoice(tuple(lenses), fits, table, mono)
 
 
 def radial_profile_warning(obs: BoardObservations, v: int, intr: Intrinsics, residuals_px: np.ndarray) -> str | None:

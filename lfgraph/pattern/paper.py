@@ -24,7 +24,7 @@ from lfgraph.pattern.initial import (
     relative_poses,
     weak_views,
 )
-from lfgraph.pattern.lenses import FIT_ERRORS, fit_mono
+from lfgraph.pattern.lenses import FIT_ERRORS, MonoFit, fit_mono
 
 
 @dataclass(frozen=True)
@@ -63,10 +63,13 @@ def _pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics,
     return invert_T(make_T(R, T.ravel())), float(rms), 2.0 * sum(len(p) for p in objs)
 
 
-def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = None) -> PaperResult:
+def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = None,
+                    mono: dict[tuple[int, str], MonoFit] | None = None, pair_lm: bool = True) -> PaperResult:
     """The paper's Section 3.2: per-view Zhang (k1, k2) then relative poses by PnP + LM with intrinsics fixed.
 
-    ``lenses`` gives each view's model (radtan or fisheye; all radtan by default).
+    ``lenses`` gives each view's model (radtan or fisheye; all radtan by default); ``mono`` Zhang fits of these
+    observations made already (by the lens choice), by (view, lens). Without ``pair_lm`` the relative poses are the
+    PnP averages (the start of a joint graph, which refines them with everything else): no E_PnP.
 
     A view that saw the board in fewer than `MIN_FRAMES_PER_VIEW` frames cannot be calibrated alone: the route
     skips its Zhang step (no E_mono), starts its intrinsics from its neighbours (`borrowed_intrinsics`) and its pose
@@ -89,7 +92,7 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
     lenses = lenses or (DEFAULT_LENS,) * n_views
     for v in np.nonzero(~weak)[0]:
         try:
-            fit = fit_mono(obs, int(v), lenses[v])
+            fit = (mono or {}).get((int(v), lenses[v])) or fit_mono(obs, int(v), lenses[v])
         except FIT_ERRORS as exc:
             what = {"pinhole": "OpenCV's calibrateCamera", "fisheye": "OpenCV's fisheye.calibrate"}.get(
                 lens_model(lenses[v]).opencv, f"the {lenses[v]} one-view graph")
@@ -115,7 +118,7 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
                                     f"show the board to these views together with others")
     e_pnp = np.full(n_views, np.nan)
     pnp_points = np.zeros(n_views)
-    for v in range(n_views):
+    for v in range(n_views) if pair_lm else ():
         if v == ref:
             continue
         frames = np.nonzero(seen[v] & seen[ref])[0]
