@@ -23,9 +23,14 @@ def check_rectifiable(calib: Calibration) -> None:
     undistortion is undefined there, e.g. k1 = 50).
 
     Raises:
-        RectificationError: naming the views or the view and its coefficients.
+        RectificationError: naming the views or the view and its coefficients; a free arrangement (a ring: no rows
+            and columns to line up).
     """
     grid = calib.grid
+    if grid.is_free:
+        raise RectificationError(f"rectification lines up rows and columns of a grid; these {grid.num_views} views "
+                                 f"are a free arrangement (a ring, a dome or a loose set): check and refine work on "
+                                 f"them, rectify does not")
     centres = calib.ref_T_view[:, :3, 3]
     gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     neighbours = [gaps[a, b] for a in range(grid.num_views) for b in range(a + 1, grid.num_views)
