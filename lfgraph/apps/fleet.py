@@ -213,6 +213,7 @@ def _save_new_version(calib: Any, input_path: Path, key: dict[str, Any] | None =
 def process_camera(item: FleetItem) -> list[dict[str, Any]]:
     """Check one camera's recording, refine on drift, write the new version; one result row (never raises)."""
     from lfgraph.core.calibration import Calibration
+    from lfgraph.core.grid_design import free_when_not_parallel
     from lfgraph.io.capture import open_capture
     from lfgraph.judge.check import check
     from lfgraph.rectification.checks import check_compatible
@@ -224,7 +225,7 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
                            "max_position_change_mm": 0.0, "view_changes": "{}", "refined_calibration": "",
                            "frames": 0, "error": ""}
     try:
-        calib = Calibration.load(item.calibration)
+        calib, _ = free_when_not_parallel(Calibration.load(item.calibration))  # a ring stored as a row: its poses'
         capture = open_capture(item.capture, calib.grid, item.layout)
         check_compatible(calib, capture.grid, capture.sizes_px, str(item.capture))
         config = RefineConfig(max_frames=item.max_frames, tolerance_px=item.tolerance_px)

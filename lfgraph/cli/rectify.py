@@ -90,6 +90,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     """
     from lfgraph.cli.tables import drift_text
     from lfgraph.core.calibration import Calibration
+    from lfgraph.core.grid_design import free_when_not_parallel
     from lfgraph.core.verdict import Verdict
     from lfgraph.io.capture import open_capture
     from lfgraph.judge.check import check
@@ -105,7 +106,9 @@ def cmd_check(args: argparse.Namespace) -> int:
                               **({} if args.tracker == DEFAULT_TRACKER else {"tracker": tracker_by_name(args.tracker)}))
     except ValueError as exc:
         raise UsageError(f"{exc}") from None
-    calib = Calibration.load(args.calibration)
+    calib, arranged = free_when_not_parallel(Calibration.load(args.calibration))
+    if arranged and not args.json:
+        print(f"note: {arranged}")
     capture = open_capture(args.input, calib.grid, args.layout)
     for note in capture.notes:
         print(f"note: {note}")
@@ -168,9 +171,10 @@ def add_parsers(sub: Any) -> None:
     ck.add_argument("--drift", default="",
                     help="drift model sigmas, e.g. roll_deg=1,pan_tilt_deg=0.5,position_mm=5 (see RefineConfig)")
     ck.add_argument("--max-frames", type=positive_int, default=3, help="frames to use (default 3)")
-    ck.add_argument("--tracker", default="chain", metavar="NAME",
-                    help="what tracks features: chain (default: KLT along the grid) or sift (SIFT between grid "
-                         "neighbours, for steps too wide for KLT)")
+    ck.add_argument("--tracker", default="auto", metavar="NAME",
+                    help="what tracks features: auto (default: chain on a grid; on a ring or other free arrangement "
+                         "chain or sift by the angle between its views), chain (KLT along the grid or the views' "
+                         "links) or sift (SIFT between neighbours, for steps too wide for KLT)")
     ck.add_argument("--layout", choices=LAYOUT_CHOICES, default="auto", help="input layout (default: detect)")
     ck.add_argument("--json", action="store_true", help="print the figures and the verdict as JSON")
     ck.set_defaults(func=cmd_check)

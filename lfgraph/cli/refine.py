@@ -37,6 +37,7 @@ def _refine(args: argparse.Namespace) -> int:
 
     from lfgraph.cli.tables import refinement_text
     from lfgraph.core.calibration import Calibration
+    from lfgraph.core.grid_design import free_when_not_parallel
     from lfgraph.factors.noise import describe_noise
     from lfgraph.io.capture import open_capture
     from lfgraph.rectification.checks import check_compatible
@@ -47,7 +48,8 @@ def _refine(args: argparse.Namespace) -> int:
 
     try:
         chosen = None if args.tracker == DEFAULT_TRACKER else tracker_by_name(args.tracker)
-        tracker = chosen if args.outliers is None else OutlierTracker.parse(args.outliers, inner=chosen,
+        inner = chosen or tracker_by_name(DEFAULT_TRACKER)
+        tracker = chosen if args.outliers is None else OutlierTracker.parse(args.outliers, inner=inner,
                                                                             seed=args.outliers_seed)
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
                               target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter,
@@ -57,7 +59,9 @@ def _refine(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     check_output_file(args.output, overwritable=[args.calibration], overwrite=args.overwrite)
     logging = check_rerun(args)
-    calib = Calibration.load(args.calibration)
+    calib, arranged = free_when_not_parallel(Calibration.load(args.calibration))
+    if arranged:
+        print(f"note: {arranged}")
     if args.reference is not None:
         if not 0 <= args.reference < calib.num_views:
             raise UsageError(f"--reference {args.reference} is not a view of the {calib.grid} grid")
@@ -123,9 +127,10 @@ def add_parsers(sub: Any) -> None:
     rf.add_argument("--tolerance-px", type=non_negative, default=0.1,
                     help="a view is DRIFTED (and changed) only when its change is significant and moves its transfer "
                          "at infinity by more than this (px, default 0.1; 0: apply every significant change)")
-    rf.add_argument("--tracker", default="chain", metavar="NAME",
-                    help="what tracks features: chain (default: KLT along the grid) or sift (SIFT between grid "
-                         "neighbours, for steps too wide for KLT)")
+    rf.add_argument("--tracker", default="auto", metavar="NAME",
+                    help="what tracks features: auto (default: chain on a grid; on a ring or other free arrangement "
+                         "chain or sift by the angle between its views), chain (KLT along the grid or the views' "
+                         "links) or sift (SIFT between neighbours, for steps too wide for KLT)")
     rf.add_argument("--outliers", metavar="SHARE:MIN-MAX",
                     help="a study: make SHARE of the non-reference track observations wrong matches, moved by MIN-MAX "
                          "px in random directions (e.g. 0.05:2-8), to see the robust kernels at work")

@@ -9,6 +9,8 @@ judged, nor is a free arrangement (`lfgraph.core.grid.free_grid`: a ring, a dome
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 LATTICE_SHARE = 0.35  # a view farther than this share of the pitch from its lattice place is off the grid (a note) ...
@@ -121,3 +123,18 @@ def grid_problems(grid, ref_T_view: np.ndarray, strict: bool = False) -> tuple[l
                                                ("columns", "each row", v, 1, grid.rows))
              if n > 1 and step[axis] < 0]
     return [], notes
+
+
+def free_when_not_parallel(calib):  # a Calibration (lfgraph.core.calibration imports this package's grid)
+    """``(calib, note)``: a calibration stored as a grid whose views are not near-parallel (more than `PARALLEL_DEG`
+    between the reference's optical axis and a view's: a ring imported as one row) as a free arrangement, with a note
+    saying so; otherwise ``(calib, None)``. What ``refine``, ``check`` and ``fleet`` track with."""
+    if calib.grid.is_free or calib.num_views < 2:
+        return calib, None
+    spread = axis_spread_deg(calib.ref_T_view)
+    if spread <= PARALLEL_DEG:
+        return calib, None
+    free = calib.replace(grid=dataclasses.replace(calib.grid, arrangement="free"))
+    return free, (f"the views are not near-parallel (up to {spread:.0f} deg between the reference's optical axis and "
+                  f"a view's, a grid's are within {PARALLEL_DEG:g}): taken as a free arrangement, neighbours from the "
+                  f"poses (the file can say so: \"arrangement\": \"free\" in its grid)")

@@ -1,4 +1,4 @@
-"""Drift check of a stored calibration on an ordinary capture (no pattern): track features through the grid,
+"""Drift check of a stored calibration on an ordinary capture (no pattern): track features through the views,
 triangulate them with the calibration, report reprojection residuals and parallax-compensated misalignment, and a
 per-view verdict from the refinement's own test (`lfgraph.refinement.assess`): a MAP refit with the drift priors,
 a significance test of each view's change against its posterior sigma (widened to the scatter of refits on
@@ -19,7 +19,8 @@ from lfgraph.core.verdict import Verdict
 from lfgraph.io.capture import check_frame_array, check_frames_argument
 from lfgraph.judge.alignment import PointAlignmentReport, align_points
 from lfgraph.rectification.rectify import Rectification
-from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracks
+from lfgraph.refinement.matching import MatchSettings, Tracks
+from lfgraph.refinement.trackers import AutoTracker
 from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 
 if TYPE_CHECKING:
@@ -37,7 +38,8 @@ class DriftReport:
         view_rms_px: (V,) the same per view.
         counts: tracks after each filter, summed over frames (``detected``, ``chain``, ``dedup``, ``ransac``,
             ``triangulation``).
-        alignment: parallax-compensated alignment of the kept tracks (before/after/compensated/parallax).
+        alignment: parallax-compensated alignment of the kept tracks (before/after/compensated/parallax); None for a
+            free arrangement (a ring: no rows and columns to align).
         frames: number of frames used.
         verdicts: per view `lfgraph.refinement.assess.ViewVerdict` (OK, DRIFTED, UNCERTAIN, REFERENCE).
         sigma_px: the measurement sigma of the test (px per coordinate).
@@ -51,7 +53,7 @@ class DriftReport:
     rms_px: float
     view_rms_px: np.ndarray
     counts: dict[str, int]
-    alignment: PointAlignmentReport
+    alignment: PointAlignmentReport | None
     frames: int
     verdicts: tuple = ()
     sigma_px: float = float("nan")
@@ -115,8 +117,8 @@ class DriftReport:
             "verdict": self.verdict, "rms_px": _finite_or_none(self.rms_px), "frames": self.frames,
             "tracks": dict(self.counts),
             "view_rms_px": {calib.grid.name(v): _finite_or_none(x) for v, x in enumerate(self.view_rms_px)},
-            "alignment": {name: getattr(self.alignment, name).as_dict()
-                          for name in ("before", "after", "compensated", "parallax")},
+            "alignment": None if self.alignment is None else {name: getattr(self.alignment, name).as_dict() for name
+                                                              in ("before", "after", "compensated", "parallax")},
             "sigma_px": _finite_or_none(self.sigma_px), "frames_dropped": list(self.frames_dropped),
             "heldout_px": {"input": _finite_or_none(self.heldout_px[0]),
                            "refits": _finite_or_none(self.heldout_px[1])},
@@ -150,7 +152,8 @@ def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSetti
     Args:
         calib: the calibration to check.
         frames: (V, H, W) uint8 grayscale images per frame, of the calibration's grid and image size.
-        settings: options of the default tracker; None: the tracker of ``config`` (`ChainTracker` by default).
+        settings: options of the default tracker's chain KLT; None: the tracker of ``config`` (`AutoTracker` by
+            default: the chain KLT on a grid, KLT or SIFT by the links' angles on a free arrangement).
         config: the refinement options of the test (drift priors, significance, folds, ``tracker``); default
             `RefineConfig()`.
     """
@@ -163,7 +166,7 @@ def check(calib: Calibration, frames: Iterable[np.ndarray], settings: MatchSetti
         raise TypeError(f"check: calib must be a lfgraph.Calibration "
                         f"(load a file with lfgraph.Calibration.load), got {type(calib).__name__}")
     check_frames_argument(frames, "check")
-    rect = stored_rectification(calib) or compute_rectification(calib)
+    rect = None if calib.grid.is_free else stored_rectification(calib) or compute_rectification(calib)
     return check_capture(calib, rect, frames, settings, config)
 
 
@@ -184,16 +187,17 @@ def input_transfer_sigma_px(calib: Calibration) -> np.ndarray | None:
                      for v in range(n)])
 
 
-def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.ndarray],
+def check_capture(calib: Calibration, rect: Rectification | None, frames: Iterable[np.ndarray],
                   settings: MatchSettings | None = None, config: RefineConfig | None = None) -> DriftReport:
-    """Run the drift check over (V, H, W) grayscale frames (lists of (H, W) for views of different sizes)."""
+    """Run the drift check over (V, H, W) grayscale frames (lists of (H, W) for views of different sizes); the
+    alignment figures need ``rect`` (None: not measured, as for a free arrangement)."""
     from lfgraph.refinement.assess import assess
     from lfgraph.refinement.config import RefineConfig
     from lfgraph.refinement.resample import canvas_for, track_views
     from lfgraph.refinement.tracks import pooled_filter, track_coverage
 
     config = config or RefineConfig()
-    tracker = config.tracker if settings is None else ChainTracker(settings)
+    tracker = config.tracker if settings is None else AutoTracker(settings)
     pixels, valid, frame_ids, counts, n_frames = [], [], [], {}, 0
     canvas = canvas_for(calib)  # None unless the views differ in size
     sizes = calib.image_sizes
@@ -235,5 +239,6 @@ def check_capture(calib: Calibration, rect: Rectification, frames: Iterable[np.n
         mismatch = result.intrinsics_mismatch
     except (RuntimeError, ValueError) as exc:  # too few tracks for a graph: no verdict rather than a wrong one
         notes.append(f"no per-view verdict: {exc}")
-    return DriftReport(rms, view_rms, counts, align_points(calib, rect, px, ok), n_frames, verdicts, sigma,
+    alignment = None if rect is None else align_points(calib, rect, px, ok)
+    return DriftReport(rms, view_rms, counts, alignment, n_frames, verdicts, sigma,
                        tuple(dropped), input_transfer_sigma_px(calib), heldout, tuple(notes), mismatch)

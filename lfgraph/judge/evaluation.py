@@ -97,7 +97,9 @@ def transfer_error_at_infinity(estimate: Calibration, truth: Calibration,
     """(V,) RMS over reference pixels of |q_est - q_true|: a reference-view pixel sent to infinite depth and projected
     into view i with the estimated and with the true cameras — the error that disparity and refocusing see.
 
-    Both calibrations are taken relative to their own reference view (which must be the same view).
+    Both calibrations are taken relative to their own reference view (which must be the same view). In a free
+    arrangement (a ring, whose views do not see the reference's directions) each view's own pixels are sent to
+    infinity with the true camera and projected with the estimated one: the same figure in the view's own image.
     """
     if (estimate.grid.rows, estimate.grid.cols, estimate.grid.reference) != \
             (truth.grid.rows, truth.grid.cols, truth.grid.reference):
@@ -113,9 +115,27 @@ def transfer_error_at_infinity(estimate: Calibration, truth: Calibration,
         rays = np.column_stack([xy, np.ones(len(xy))])
         return np.stack([calib.intrinsics[i].project(rays @ rel[i][:3, :3]) for i in range(calib.num_views)])
 
-    q_est, q_true = project_all(estimate), project_all(truth)
-    d = np.linalg.norm(q_est - q_true, axis=-1)
+    if truth.grid.is_free or estimate.grid.is_free:
+        d = _own_transfer(estimate, truth, samples)
+    else:
+        d = np.linalg.norm(project_all(estimate) - project_all(truth), axis=-1)
     for i in range(truth.num_views):
         di = d[i][np.isfinite(d[i])]
         out[i] = np.sqrt(np.mean(di**2)) if di.size else np.nan
+    return out
+
+
+def _own_transfer(estimate: Calibration, truth: Calibration, samples: int) -> list[np.ndarray]:
+    """Per view, (N,) |q_est - q_true| of its own pixels sent to infinity by the true view and projected by the
+    estimated one (both relative to the reference)."""
+    ref = truth.grid.reference
+    out = []
+    for i in range(truth.num_views):
+        px = reference_pixels(truth.image_size(i), samples)
+        xy = truth.intrinsics[i].undistort(px)
+        rays = np.column_stack([xy, np.ones(len(xy))])
+        in_ref = rays @ (np.linalg.inv(truth.ref_T_view[ref]) @ truth.ref_T_view[i])[:3, :3].T
+        est_R = (np.linalg.inv(estimate.ref_T_view[ref]) @ estimate.ref_T_view[i])[:3, :3]  # noqa: N806
+        out.append(np.linalg.norm(estimate.intrinsics[i].project(in_ref @ est_R) - truth.intrinsics[i].project(rays),
+                                  axis=-1))
     return out

@@ -285,7 +285,7 @@ def track_chain(images: np.ndarray, grid: ViewGrid, settings: MatchSettings | No
         if not src.any():
             continue
         (ra, ca), (rb, cb) = grid.position(a), grid.position(b)
-        direction = (rb - ra, cb - ca)
+        direction = (a, b) if grid.is_free else (rb - ra, cb - ca)  # a free arrangement's steps share no direction
         idx = np.nonzero(src)[0]
         guess = _step_guess(steps.get(direction), idx)
         p1, ok = _klt_step(images[a], images[b], pts[a, idx], pts[a, idx] + guess, s, win, criteria)

@@ -69,9 +69,10 @@ def test_a_tracker_must_have_a_track_method():
 
     with pytest.raises(TypeError, match="SelfCalConfig.tracker must have a track"):
         SelfCalConfig(tracker="klt")
-    assert isinstance(lf.RefineConfig().tracker, lf.ChainTracker)  # the paper's chain KLT by default
+    grid = lf.ViewGrid(2, 2)
+    assert lf.RefineConfig().tracker.choose(grid) == lf.ChainTracker()  # on a grid, the paper's chain KLT by default
     settings = lf.MatchSettings(max_features=500)
-    assert lf.RefineConfig(match=settings).tracker == lf.ChainTracker(settings)
+    assert lf.RefineConfig(match=settings).tracker.choose(grid) == lf.ChainTracker(settings)
 
 
 SIFT_KNOCK_DEG = 4.0  # issue 40's large knock of a 3x3 of paper-5x5's cameras (2 frames, 3 mm)
@@ -105,5 +106,5 @@ def test_a_tracker_is_one_class_and_one_registration_line(knocked):
         assert np.max(transfer_error_at_infinity(refined, truth)) < REFINED_TRANSFER_PX
     finally:
         trackers._TRACKERS.pop("oracle-for-a-test")
-    with pytest.raises(ValueError, match="unknown tracker 'klt': one of chain, sift"):
+    with pytest.raises(ValueError, match="unknown tracker 'klt': one of auto, chain, sift"):
         trackers.tracker_by_name("klt")
