@@ -10,7 +10,8 @@ import numpy as np
 
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
-from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
+from lfgraph.refinement.matching import MatchSettings, Tracker, as_tracker
+from lfgraph.refinement.trackers import AutoTracker
 
 
 class Stage(StrEnum):
@@ -217,9 +218,10 @@ class RefineConfig:
             weakly determined: on the Middlebury ring, views with 3-9 observations drifted by 10-35 degrees).
         graph_hooks: user functions called with a `lfgraph.factors.GraphContext` after each stage's graph is built
             and before it is optimised: add factors or priors of your own (see `lfgraph.factors.hooks`).
-        match: the options of the default tracker (`ChainTracker`).
+        match: the options of the default tracker's chain KLT.
         tracker: what tracks features through the grid (`lfgraph.refinement.matching.Tracker`: an object with
-            ``track(images, grid) -> Tracks``); None (default): ``ChainTracker(match)``, the paper's chain KLT.
+            ``track(images, grid) -> Tracks``); None (default): ``AutoTracker(match)``, on a grid the paper's chain
+            KLT, on a free arrangement (a ring) KLT or SIFT by the angle between linked views.
             ``lfgraph.refinement.tracks.OutlierTracker`` wraps one with a share of wrong matches (a study).
     """
 
@@ -248,7 +250,7 @@ class RefineConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.match, MatchSettings):
             raise TypeError(f"RefineConfig.match must be a lfgraph MatchSettings, got {type(self.match).__name__}")
-        object.__setattr__(self, "tracker", ChainTracker(self.match) if self.tracker is None
+        object.__setattr__(self, "tracker", AutoTracker(self.match) if self.tracker is None
                            else as_tracker(self.tracker, "RefineConfig.tracker"))
         stages = parse_stages(self.stages)
         object.__setattr__(self, "stages", stages)
