@@ -182,11 +182,13 @@ def drift_text(calib: Calibration, report, depths_m=()) -> str:  # report: lfgra
     lines += [f"reprojection RMS {report.rms_px:.4f} px (not a drift measure: mismatches raise it too); per view:",
               format_table(["view", "rms_px"], [[calib.grid.name(v), float(report.view_rms_px[v])]
                                                 for v in range(calib.num_views)]),
-              "alignment of the tracks in rectified views (RMS px):",
-              alignment_table([("original views", report.alignment.before),
-                               ("rectified", report.alignment.after),
-                               ("off-grid parallax alone", report.alignment.parallax),
-                               ("rectified, parallax removed", report.alignment.compensated)])]
+              "alignment of the tracks in rectified views (RMS px):" if report.alignment else
+              "alignment: not measured (a free arrangement has no rows and columns to rectify)"]
+    if report.alignment:
+        lines.append(alignment_table([("original views", report.alignment.before),
+                                      ("rectified", report.alignment.after),
+                                      ("off-grid parallax alone", report.alignment.parallax),
+                                      ("rectified, parallax removed", report.alignment.compensated)]))
     if report.verdicts:
         lines.append(verdict_text(report.verdicts, report.sigma_px, *report.heldout_px))
     lines += list(report.notes)
