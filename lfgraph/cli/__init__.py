@@ -19,6 +19,7 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext, redirect_stdout
 
 from lfgraph.cli.args import EXIT_BAD_INPUT, EXIT_DRIFT, EXIT_INTERNAL, EXIT_OK, EXIT_USAGE, UsageError
 from lfgraph.core.files import run_outputs
@@ -45,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="more log output (debug level)")
     verbosity.add_argument("-q", "--log-quiet", dest="log_quiet", action="store_true",
-                           help="warnings and errors only on the log, no progress bars")
+                           help="quiet: nothing on standard output (but --json's document), warnings and errors only "
+                                "on standard error, no progress bars; the exit code says how it went")
     sub = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"lfgraph.cli.{name}").add_parsers(sub)
@@ -209,7 +211,7 @@ def run_command(argv: Sequence[str]) -> int:
         args.quiet = True
     configure_logging(args.verbose, args.log_quiet or getattr(args, "quiet", False))
     try:
-        with run_outputs():  # a command that fails leaves none of the files it created
+        with run_outputs(), _quiet_stdout(args):  # a command that fails leaves none of the files it created
             code = int(args.func(args) or 0)
             for stream in (sys.stdout, sys.stderr):  # a reader gone before the last line is a failure, said here
                 stream.flush()
@@ -221,6 +223,26 @@ def run_command(argv: Sequence[str]) -> int:
     except KeyboardInterrupt:
         print("lfgraph: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+class _Dropped:
+    """A text stream that drops what is written to it (the standard output of a ``-q`` run)."""
+
+    def write(self, text: str) -> int:
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+
+def _quiet_stdout(args: argparse.Namespace) -> AbstractContextManager:
+    """Under ``-q`` a command prints nothing on standard output: its report, tables, notes and "wrote ..." lines are
+    dropped, so success is the exit code alone (errors and warnings reach standard error as always). What was asked
+    for on standard output is kept: ``--json``'s document, and ``--stdout``'s rerun recording (written to the file
+    descriptor, not through `sys.stdout`)."""
+    if args.log_quiet and not getattr(args, "json", False):
+        return redirect_stdout(_Dropped())
+    return nullcontext()
 
 
 def _failure(exc: Exception, parser: argparse.ArgumentParser) -> int:

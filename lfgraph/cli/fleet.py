@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +26,8 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     counts = summarise(rows)
     print(format_table(["verdict", "cameras"], [[v, counts.get(v, 0)] for v in VERDICTS]))
     errors = [r for r in rows if r["verdict"] == "ERROR"]
-    for r in errors[:10]:
-        print(f"ERROR {r['camera']}: {r['error']}")
+    for r in errors[:10]:  # a camera's error: on standard error, which -q keeps
+        print(f"ERROR {r['camera']}: {r['error']}", file=sys.stderr)
     print(f"wrote {args.output} ({len(rows)} cameras)")
     return EXIT_OK
 

@@ -30,12 +30,13 @@ def test_synth_checkerboard_then_info(tmp_path, capsys):
 
 
 def test_global_quiet_hides_progress_bars_and_info_logs(tmp_path, capsys):
-    """`lfgraph -q CMD` shows neither progress bars nor info lines on standard error; results stay on stdout."""
+    """`lfgraph -q CMD` shows neither progress bars nor info lines on standard error, and (issue 40) nothing on
+    standard output: the exit code says how it went (every command: tests/cli/test_quiet.py)."""
     assert main(["-q", "synth", "checkerboard", str(tmp_path / "q"), "--scene", "small-2x2", "--frames", "2",
                  "--jobs", "1"]) == 0
     captured = capsys.readouterr()
-    assert captured.err == ""
-    assert "ground truth" in captured.out
+    assert captured.err == "" and captured.out == ""
+    assert (tmp_path / "q" / "truth.json").is_file()
     assert main(["synth", "checkerboard", str(tmp_path / "loud"), "--scene", "small-2x2", "--frames", "2",
                  "--jobs", "1"]) == 0
     assert "rendering" in capsys.readouterr().err  # the bar is there without -q
