@@ -7,8 +7,9 @@ The model is `lfgraph.factors.board_graph`'s: corner j of frame f seen by view v
 (`lfgraph.lenses`, its ``coefficient_jacobian``), the other factors (corner priors, the gauge, the intrinsics pins)
 as a small GTSAM graph on the same variables. Residuals and Jacobians are GTSAM's (poses perturbed on the right,
 ``pose * Exp([w, v])``; checked against GTSAM's factors in tests/engine/test_board_problem.py), so the fit converges
-to the minimum GTSAM's optimiser finds, without a C++ factor per observation or a sparse elimination: the system
-(9 V + 6 V + 6 F + 3 C unknowns, a few hundred) is small and dense.
+to the minimum GTSAM's optimiser finds, without a C++ factor per observation. The board poses are eliminated as a
+refinement's landmarks are (6x6 blocks in the Schur complement: no factor ties two frames), leaving a small dense
+system of the views' intrinsics and poses and the board's corners.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from lfgraph.engine.schur_system import (
     NotReducible,
     ReducedSystem,
     camera_block,
+    full_step,
     schur_layout,
     sparse_jacobian,
     vector_values,
@@ -32,28 +34,40 @@ from lfgraph.lenses import COEFFICIENTS, HEAD, lens_code, lens_coefficient_jacob
 
 POSE_DIM = 6
 POINT_DIM = 3
+BOARD_POSE_CHAR = chr(gtsam.Symbol(board_pose_key(0)).chr())  # the landmarks of this problem
 
 
 def _cross_rows(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     """(..., 2, 3): each row a of ``q`` (..., 2, 3) crossed with ``p`` (..., 3): ``a [p]x`` = (a x p)^T."""
-    return np.cross(q, p[..., None, :])
+    p0, p1, p2 = p[..., None, 0], p[..., None, 1], p[..., None, 2]
+    q0, q1, q2 = q[..., 0], q[..., 1], q[..., 2]
+    return np.stack([q1 * p2 - q2 * p1, q2 * p0 - q0 * p2, q0 * p1 - q1 * p0], axis=-1)
+
+
+def _times(j: np.ndarray, R: np.ndarray, axis: int) -> np.ndarray:  # noqa: N803
+    """(V, F, C, 2, 3) rows times ``R^T`` of their view (``axis`` 0, R (V, 3, 3)) or frame (``axis`` 1, (F, 3, 3)):
+    one matrix product per view or frame."""
+    moved = np.moveaxis(j, axis, 0)
+    out = np.matmul(moved.reshape(len(R), -1, 3), np.swapaxes(R, 1, 2)).reshape(moved.shape)
+    return np.moveaxis(out, 0, axis)
 
 
 class BoardProblem:
-    """Board corners seen by views with free intrinsics and poses, the board pose of every frame and the board's
-    corners free (with their priors in ``graph``); state: `gtsam.Values` holding every variable.
+    """Board corners seen by views with free intrinsics and poses, the board pose of every frame (the landmarks,
+    6x6 blocks) and the board's corners free (with their priors in ``graph``); state: `gtsam.Values` of every
+    variable.
 
     Args:
-        graph: the other factors (corner priors, gauge, intrinsics pins) on the same keys.
+        graph: the other factors (corner priors, gauge, intrinsics pins) on the same keys, none on a board pose.
         values: the start: every view's calibration and pose, every used frame's board pose, every corner.
         corners_px: (V, F, C, 2) observed corners of the used ``frames`` (in that order); valid: (V, F, C).
-        frames: the frame index of each of the F used frames (their board-pose keys).
+        frames: the frame index of each of the F used frames (their board-pose keys), increasing.
         noise: the measurement noise model of every observation (a 2-D Gaussian, optionally robust).
         lenses: each view's lens model (its ``coefficient_jacobian`` is needed).
 
     Raises:
-        NotReducible: a noise model that is not a 2-D Gaussian, a lens without coefficient Jacobian, a corner
-            behind its camera at the start.
+        NotReducible: a noise model that is not a 2-D Gaussian, a lens without coefficient Jacobian, a factor of
+            ``graph`` on a board pose, a corner behind its camera at the start.
     """
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, corners_px: np.ndarray,
@@ -72,15 +86,20 @@ class BoardProblem:
         self.n_coef = max(len(m.tangent) for m in models)
         self.extrapolate = self.noise.kernel is not None and self.noise.kernel.vectorised
         self.noise_cost = float(self.valid.sum())
-        self.layout = schur_layout(values, "\0")
+        self.layout = schur_layout(values, BOARD_POSE_CHAR, POSE_DIM)
+        if self.layout.n_landmarks != self.n_frames or np.any(np.diff(self.frames) <= 0):
+            raise NotReducible("the board poses of the values are not the frames'")
         self.n_c = self.layout.n_camera
         self._indices()
+        keys = graph.keys()  # held: iterating GTSAM's temporary key set directly crashes
+        if any(gtsam.Symbol(k).chr() == ord(BOARD_POSE_CHAR) for k in list(keys)):
+            raise NotReducible("a factor on a board pose")
         if self._residuals(values, False) is None:
             raise NotReducible("a board corner behind its camera at the start")
 
     def _indices(self) -> None:
-        """Column indices of every block in the state's layout; a view's unused coefficient columns (a model with
-        fewer than ``n_coef``) point at a dummy column ``n_c``, dropped after assembly."""
+        """Camera-column indices of every view's (intrinsics, pose) and every corner; a view's unused coefficient
+        columns (a model with fewer than ``n_coef``) point at a dummy column ``n_c``, dropped after assembly."""
         lay, n = self.layout, self.n_c
         cam = np.full((self.n_views, len(HEAD) + self.n_coef + POSE_DIM), n, dtype=np.int64)
         for v in range(self.n_views):
@@ -89,8 +108,6 @@ class BoardProblem:
             p = camera_block(lay, view_pose_key(v))
             cam[v, -POSE_DIM:] = np.arange(p.start, p.stop)
         self.cam_idx = cam
-        self.board_idx = np.array([np.arange(s.start, s.stop) for s in
-                                   (camera_block(lay, board_pose_key(f)) for f in self.frames)]).reshape(-1, POSE_DIM)
         self.corner_idx = np.array([np.arange(s.start, s.stop) for s in
                                     (camera_block(lay, board_corner_key(c)) for c in range(self.n_corners))])
 
@@ -108,10 +125,9 @@ class BoardProblem:
         corners = np.stack([np.asarray(values.atPoint3(board_corner_key(c))) for c in range(self.n_corners)])
         return head, coef, poses, boards, corners
 
-    def _residuals(self, values: gtsam.Values, jacobians: bool):
-        """Whitened residuals (V, F, C, 2) (0 where not observed) and, with ``jacobians``, those of the camera
-        (V, F, C, 2, 5 + n_coef + 6), board pose (.., 6) and corner (.., 3) blocks; None when an observed corner is
-        behind its camera."""
+    def _project(self, values: gtsam.Values):
+        """Every slot's camera point and distorted coordinates, or None when an observed corner is behind its
+        camera: (head, coef, ra, rb, x_ref, pc, x, y, z, code, cf, lens) with lens = `lens_distort`'s output."""
         head, coef, poses, boards, corners = self._read(values)
         V, F, C = self.n_views, self.n_frames, self.n_corners  # noqa: N806
         rb, tb, ra, ta = boards[:, :3, :3], boards[:, :3, 3], poses[:, :3, :3], poses[:, :3, 3]
@@ -124,7 +140,18 @@ class BoardProblem:
         x, y = pc[..., 0] / z, pc[..., 1] / z
         code = np.broadcast_to(self.codes[:, None, None], x.shape)
         cf = np.broadcast_to(coef[:, :, None, None], (len(COEFFICIENTS), V, F, C))
-        xd, yd, d00, d01, d10, d11 = lens_distort(code, cf, x, y, jacobian=True)
+        return head, coef, ra, rb, x_ref, pc, x, y, z, code, cf
+
+    def _residuals(self, values: gtsam.Values, jacobians: bool):
+        """Whitened residuals (V, F, C, 2) (0 where not observed) and, with ``jacobians``, those of the camera
+        (V, F, C, 2, 5 + n_coef + 6), board pose (.., 6) and corner (.., 3) blocks; None when an observed corner is
+        behind its camera."""
+        projected = self._project(values)
+        if projected is None:
+            return None
+        head, coef, ra, rb, x_ref, pc, x, y, z, code, cf = projected
+        lens = lens_distort(code, cf, x, y, jacobian=jacobians)
+        xd, yd = lens[:2]
         fx, fy, s, cx, cy = (head[:, i, None, None] for i in range(5))
         r = np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=-1) - self.uv
         r[~self.valid] = 0.0
@@ -132,31 +159,34 @@ class BoardProblem:
         if not jacobians:
             return e
         sw = self.noise.sqrt_weights(e.reshape(-1, 2))
-        w = self.noise.whiten(np.broadcast_to(np.eye(2), (1, 2, 2)))[0]  # whitening matrix (2, 2)
         if sw is not None:
             e = e * sw.reshape(e.shape)
-        scale = (sw.reshape(e.shape) if sw is not None else np.ones(e.shape)) * self.valid[..., None]
-        # d pixel / d (xd, yd) = [[fx, s], [0, fy]], whitened and weighted: (V, F, C, 2, 2)
-        kd = np.zeros((V, 1, 1, 2, 2))
-        kd[:, 0, 0, 0, 0], kd[:, 0, 0, 0, 1], kd[:, 0, 0, 1, 1] = head[:, 0], head[:, 2], head[:, 1]
-        kd = np.matmul(w, kd) * scale[..., None]
-        dist = np.stack([np.stack([d00, d01], -1), np.stack([d10, d11], -1)], -2)  # d (xd, yd) / d (x, y)
-        jxy = np.matmul(kd, dist)  # d pixel / d (x, y)
-        iz = 1.0 / z
-        jpc = np.concatenate([jxy * iz[..., None, None],
-                              -(jxy[..., 0] * x[..., None] + jxy[..., 1] * y[..., None])[..., None] * iz[..., None,
-                                                                                                         None]],
-                             axis=-1)  # d pixel / d pc: (V, F, C, 2, 3)
-        jhead = np.zeros((V, F, C, 2, len(HEAD)))
-        jhead[..., 0, 0], jhead[..., 0, 2], jhead[..., 1, 1] = xd, yd, yd
-        jhead[..., 0, 3] = jhead[..., 1, 4] = 1.0
-        jhead = np.matmul(w, jhead) * scale[..., None]
-        jcoef = np.matmul(kd, lens_coefficient_jacobian(code, cf, x, y, self.n_coef))
-        jpose = np.concatenate([_cross_rows(jpc, pc), -jpc], axis=-1)  # d pc / d view pose: [[pc]x, -I]
-        q = np.matmul(jpc, np.swapaxes(ra, 1, 2)[:, None, None])  # jpc R_A^T
+        d00, d01, d10, d11 = lens[2:]
+        # raw pixel derivatives by (x, y), the head and the coefficients: K2 = [[fx, s], [0, fy]] times the lens's
+        jxy = np.stack([np.stack([fx * d00 + s * d10, fx * d01 + s * d11], -1), np.stack([fy * d10, fy * d11], -1)],
+                       -2)
+        one, zero = np.ones_like(xd), np.zeros_like(xd)
+        jhead = np.stack([np.stack([xd, zero, yd, one, zero], -1), np.stack([zero, yd, zero, zero, one], -1)], -2)
+        cj = lens_coefficient_jacobian(code, cf, x, y, self.n_coef)
+        jcoef = np.stack([fx[..., None] * cj[..., 0, :] + s[..., None] * cj[..., 1, :], fy[..., None] * cj[..., 1, :]],
+                         -2)
+        iz = (1.0 / z)[..., None, None]
+        jpc = np.concatenate([jxy, -(jxy[..., 0:1] * x[..., None, None] + jxy[..., 1:2] * y[..., None, None])],
+                             axis=-1) * iz  # d pixel / d pc: (V, F, C, 2, 3)
+        jcam = self._whitened(np.concatenate([jhead, jcoef, _cross_rows(jpc, pc), -jpc], axis=-1), sw)
+        q = _times(self._whitened(jpc, sw), ra, 0)  # jpc R_A^T (whitened)
         jboard = np.concatenate([_cross_rows(q, np.broadcast_to(x_ref[None], pc.shape)), -q], axis=-1)
-        jcorner = np.matmul(q, np.swapaxes(rb, 1, 2)[None, :, None])  # jpc R_A^T R_B^T
-        return e, np.concatenate([jhead, jcoef, jpose], axis=-1), jboard, jcorner
+        return e, jcam, jboard, _times(q, rb, 1)  # d pc / d corner: R_A^T R_B^T
+
+    def _whitened(self, j: np.ndarray, sw: np.ndarray | None) -> np.ndarray:
+        """Raw (V, F, C, 2, k) Jacobian rows whitened by the noise model, weighted by the robust kernel and zeroed
+        where nothing was observed."""
+        if self.noise.isotropic_sigma is not None:
+            j = j * (1.0 / self.noise.isotropic_sigma)
+        else:
+            j = np.einsum("ij,...jk->...ik", self.noise.sqrt_information, j)
+        scale = self.valid[..., None] if sw is None else sw.reshape(*self.valid.shape, 2) * self.valid[..., None]
+        return j * scale[..., None]
 
     def error(self, state: gtsam.Values) -> float:
         """Cost at ``state``: the observations' noise-model error plus the other factors' GTSAM error; inf when a
@@ -168,7 +198,8 @@ class BoardProblem:
         return self.noise.cost(e[self.valid]) + other
 
     def system(self, state: gtsam.Values) -> ReducedSystem:
-        """The undamped normal equations at ``state``, every variable in the camera block (no landmarks).
+        """The undamped normal equations at ``state`` in Schur form: the board poses' 6x6 blocks V (F, 6, 6), their
+        coupling W (F, 6, n_c) to the camera variables (intrinsics, view poses, corners) and those's H (n_c, n_c).
 
         Raises:
             NotReducible: a corner behind its camera at ``state``.
@@ -176,18 +207,19 @@ class BoardProblem:
         out = self._residuals(state, True)
         if out is None:
             raise NotReducible("a board corner behind its camera at the linearisation point")
-        H, g = _normal_equations(*out, self.cam_idx, self.board_idx, self.corner_idx, self.n_c)  # noqa: N806
+        sys_ = _normal_equations(*out, self.cam_idx, self.corner_idx, self.n_c)
         if self.graph.size():
             rows, cols, vals, _ = sparse_jacobian(self.graph.linearize(state), self.layout)
             A = np.zeros((int(rows.max()) + 1, self.n_c + 1))  # noqa: N806
-            np.add.at(A, (rows, cols), vals)
-            H += A[:, :self.n_c].T @ A[:, :self.n_c]
-            g += A[:, :self.n_c].T @ A[:, self.n_c]
-        return ReducedSystem(np.zeros((0, 3, 3)), np.zeros((0, 3, self.n_c)), np.zeros((0, 3)), H, g)
+            np.add.at(A, (rows, np.where(cols < self.layout.n, self.layout.col_cam[np.minimum(cols, self.layout.n - 1)],
+                                         self.n_c)), vals)
+            sys_.H += A[:, :self.n_c].T @ A[:, :self.n_c]
+            sys_.g_c += A[:, :self.n_c].T @ A[:, self.n_c]
+        return sys_
 
     def retract(self, state: gtsam.Values, dl: np.ndarray, dc: np.ndarray) -> gtsam.Values:
-        """``state`` moved by the step ``dc`` (every variable; ``dl`` is empty)."""
-        return state.retract(vector_values(self.layout, dc))
+        """``state`` moved by the board poses' step ``dl`` (F, 6) and the other variables' ``dc`` (n_c,)."""
+        return state.retract(vector_values(self.layout, full_step(self.layout, dl, dc)))
 
 
 def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -196,33 +228,35 @@ def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _normal_equations(e: np.ndarray, jc: np.ndarray, jb: np.ndarray, jx: np.ndarray, cam_idx: np.ndarray,
-                      board_idx: np.ndarray, corner_idx: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """J^T J and -J^T e of the observations, assembled block by block (camera x camera per view, camera x board
-    per view and frame, ..., corner x corner per corner) into (n, n) and (n,)."""
+                      corner_idx: np.ndarray, n: int) -> ReducedSystem:
+    """The observations' J^T J and -J^T e in Schur form: the board poses' blocks (per frame), their coupling to the
+    camera variables (per view and frame: a view's intrinsics and pose; per frame and corner) and the camera
+    variables' block (per view, per view and corner, per corner), scattered by index."""
     V, F, C = e.shape[:3]  # noqa: N806
     kc = jc.shape[-1]
-    blocks = {  # (rows' indices, columns' indices, block) for the upper triangle and the diagonal
-        "cc": (cam_idx, cam_idx, _gram(jc.reshape(V, -1, kc), jc.reshape(V, -1, kc))),
-        "cb": (cam_idx[:, None], board_idx[None], _gram(jc.reshape(V, F, -1, kc), jb.reshape(V, F, -1, POSE_DIM))),
-        "cx": (cam_idx[:, None], corner_idx[None],
-               _gram(jc.transpose(0, 2, 1, 3, 4).reshape(V, C, -1, kc),
-                     jx.transpose(0, 2, 1, 3, 4).reshape(V, C, -1, POINT_DIM))),
-        "bb": (board_idx, board_idx, _gram(*(jb.transpose(1, 0, 2, 3, 4).reshape(F, -1, POSE_DIM),) * 2)),
-        "bx": (board_idx[:, None], corner_idx[None],
-               _gram(jb.transpose(1, 2, 0, 3, 4).reshape(F, C, -1, POSE_DIM),
-                     jx.transpose(1, 2, 0, 3, 4).reshape(F, C, -1, POINT_DIM))),
-        "xx": (corner_idx, corner_idx, _gram(*(jx.transpose(2, 0, 1, 3, 4).reshape(C, -1, POINT_DIM),) * 2)),
-    }
+    jb_f = np.moveaxis(jb, 1, 0)  # (F, V, C, 2, 6)
+    jx_c = np.moveaxis(jx, 2, 0)  # (C, V, F, 2, 3)
+    jc_vc = np.moveaxis(jc, 2, 1)  # (V, C, F, 2, kc)
     H = np.zeros((n + 1, n + 1))  # noqa: N806  (the last row and column collect the padding)
-    for name, (ri, ci, block) in blocks.items():
+    blocks = ((cam_idx, cam_idx, _gram(jc.reshape(V, -1, kc), jc.reshape(V, -1, kc))),
+              (cam_idx[:, None], corner_idx[None], _gram(jc_vc.reshape(V, C, -1, kc),
+                                                         np.moveaxis(jx, 2, 1).reshape(V, C, -1, POINT_DIM))),
+              (corner_idx, corner_idx, _gram(*(jx_c.reshape(C, -1, POINT_DIM),) * 2)))
+    for i, (ri, ci, block) in enumerate(blocks):
         H[ri[..., :, None], ci[..., None, :]] += block
-        if name[0] != name[1]:
+        if i == 1:
             H[ci[..., :, None], ri[..., None, :]] += np.swapaxes(block, -1, -2)
-    g = np.zeros(n + 1)
+    W = np.zeros((F, POSE_DIM, n + 1))  # noqa: N806
+    cb = _gram(jb.reshape(V, F, -1, POSE_DIM), jc.reshape(V, F, -1, kc))  # (V, F, 6, kc)
+    frame = np.arange(F)[None, :, None, None]
+    W[frame, np.arange(POSE_DIM)[None, None, :, None], cam_idx[:, None, None, :]] += cb
+    bx = _gram(np.moveaxis(jb_f, 2, 1).reshape(F, C, -1, POSE_DIM), np.moveaxis(jx, 1, 0).swapaxes(1, 2).reshape(
+        F, C, -1, POINT_DIM))  # (F, C, 6, 3)
+    W[np.arange(F)[:, None, None, None], np.arange(POSE_DIM)[None, None, :, None], corner_idx[None, :, None, :]] += bx
     ev = e[..., None]
+    g = np.zeros(n + 1)
     np.add.at(g, cam_idx, -_gram(jc.reshape(V, -1, kc), ev.reshape(V, -1, 1))[..., 0])
-    np.add.at(g, board_idx, -_gram(jb.transpose(1, 0, 2, 3, 4).reshape(F, -1, POSE_DIM),
-                                   ev.transpose(1, 0, 2, 3, 4).reshape(F, -1, 1))[..., 0])
-    np.add.at(g, corner_idx, -_gram(jx.transpose(2, 0, 1, 3, 4).reshape(C, -1, POINT_DIM),
-                                    ev.transpose(2, 0, 1, 3, 4).reshape(C, -1, 1))[..., 0])
-    return H[:n, :n], g[:n]
+    np.add.at(g, corner_idx, -_gram(jx_c.reshape(C, -1, POINT_DIM), np.moveaxis(ev, 2, 0).reshape(C, -1, 1))[..., 0])
+    jbr = jb_f.reshape(F, -1, POSE_DIM)
+    return ReducedSystem(_gram(jbr, jbr), W[:, :, :n], -_gram(jbr, np.moveaxis(ev, 1, 0).reshape(F, -1, 1))[..., 0],
+                         H[:n, :n], g[:n])

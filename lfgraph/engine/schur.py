@@ -88,8 +88,8 @@ def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
 
     Each landmark block is factored ``V = L L^T`` (closed form); with cameras, ``Y = L^-1 W`` and the reduced camera
     system ``S = H - Y^T Y`` is formed by a symmetric rank-k update (half a general product's work)."""
-    n_lm, n_c = sys_.V.shape[0], sys_.H.shape[0]
-    linv = chol3_inv(sys_.V + lam * np.eye(3))
+    n_lm, n_c, d = sys_.V.shape[0], sys_.H.shape[0], sys_.V.shape[-1]
+    linv = chol3_inv(sys_.V + lam * np.eye(3)) if d == 3 else _chol_inv(sys_.V + lam * np.eye(d))
     u = np.matmul(linv, sys_.g_l[..., None]).reshape(-1)  # L^-1 g_l
     dc = np.zeros(n_c)
     if n_c:
@@ -97,7 +97,12 @@ def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
         Ls = np.linalg.cholesky(sys_.H + lam * np.eye(n_c) - Y.T @ Y)  # noqa: N806  (numpy calls syrk for Y^T Y)
         dc = np.linalg.solve(Ls.T, np.linalg.solve(Ls, sys_.g_c - Y.T @ u))
         u = u - Y @ dc
-    return np.matmul(np.swapaxes(linv, 1, 2), u.reshape(n_lm, 3, 1))[..., 0], dc  # dl = L^-T (L^-1 g_l - Y dc)
+    return np.matmul(np.swapaxes(linv, 1, 2), u.reshape(n_lm, d, 1))[..., 0], dc  # dl = L^-T (L^-1 g_l - Y dc)
+
+
+def _chol_inv(V: np.ndarray) -> np.ndarray:  # noqa: N803
+    """`chol3_inv` for blocks of any size (a calibration's 6x6 board poses): batched Cholesky and inverse."""
+    return np.linalg.inv(np.linalg.cholesky(V))  # raises LinAlgError for a block that is not positive definite
 
 
 def _times_w(vinv: np.ndarray, W: np.ndarray) -> np.ndarray:  # noqa: N803
@@ -320,7 +325,9 @@ def problem_covariance(problem, state) -> np.ndarray:
         sys_ = problem.system(state)
         n_c = sys_.H.shape[0]
         S = sys_.H.copy()  # noqa: N806
-        if sys_.V.shape[0]:
+        if sys_.V.shape[0] and sys_.V.shape[-1] != 3:  # e.g. board poses (6x6): positive definite, or raise
+            S -= sys_.W.reshape(-1, n_c).T @ _times_w(np.linalg.inv(sys_.V), sys_.W).reshape(-1, n_c)
+        elif sys_.V.shape[0]:
             inv = inv3(sys_.V, strict=False)
             # a landmark block singular in floating point (a far landmark on a short baseline: its depth direction
             # carries ~no information, and its Jacobian none either) is marginalised by its pseudo-inverse

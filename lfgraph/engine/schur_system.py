@@ -29,13 +29,15 @@ class SchurLayout:
     col_cam: np.ndarray
 
 
-def schur_layout(values: gtsam.Values, landmark_char: str) -> SchurLayout:
-    """The column layout of ``values`` (sorted keys, as `GaussianFactorGraph.sparseJacobian_` orders them)."""
+def schur_layout(values: gtsam.Values, landmark_char: str, landmark_dim: int = 3) -> SchurLayout:
+    """The column layout of ``values`` (sorted keys, as `GaussianFactorGraph.sparseJacobian_` orders them); the
+    landmarks are the keys of ``landmark_char`` with ``landmark_dim`` columns (3-D points; a calibration's board
+    poses: 6)."""
     keys = np.array(sorted(values.keys()), dtype=np.uint64)
     zero = values.zeroVectors()
     dims = np.array([zero.at(int(k)).shape[0] for k in keys], dtype=np.int64)
     chars = keys >> np.uint64(56)
-    landmark = (chars == np.uint64(ord(landmark_char))) & (dims == 3)
+    landmark = (chars == np.uint64(ord(landmark_char))) & (dims == landmark_dim)
     offsets = np.concatenate([[0], np.cumsum(dims)[:-1]]).astype(np.int64)
     n = int(dims.sum())
     col_key = np.repeat(np.arange(len(keys)), dims)

@@ -71,6 +71,8 @@ def lens_distort(code: np.ndarray, coef: np.ndarray, x: np.ndarray, y: np.ndarra
     out = [np.empty(np.shape(x)) for _ in range(6 if jacobian else 2)]
     for c, model in enumerate(_MODELS.values()):
         m = code == c
+        if m.all():  # one model for every point: no gather and scatter
+            return tuple(model.bulk_map(x, y, *coef, jacobian=jacobian))
         if m.any():
             for o, value in zip(out, model.bulk_map(x[m], y[m], *(k[m] for k in coef), jacobian=jacobian),
                                 strict=True):
@@ -92,5 +94,8 @@ def lens_coefficient_jacobian(code: np.ndarray, coef: np.ndarray, x: np.ndarray,
         if m.any():
             if model.coefficient_jacobian is None or len(model.tangent) > width:
                 raise ValueError(f"lens model {model.name} has no coefficient Jacobian of width <= {width}")
+            if m.all():  # one model for every point: no gather and scatter
+                out[..., :len(model.tangent)] = model.coefficient_jacobian(x, y, *coef)
+                break
             out[m, :, :len(model.tangent)] = model.coefficient_jacobian(x[m], y[m], *(k[m] for k in coef))
     return out

@@ -73,10 +73,28 @@ def test_cost_and_system_are_gtsams(lens, kernel):
     graph = gtsam.NonlinearFactorGraph(priors)
     board_graph.add_board_observations(graph, obs.corners_px, obs.valid, noise, lenses)
     assert problem.error(values) == pytest.approx(graph.error(values), rel=COST_REL_TOL)
-    ours, theirs = problem.system(values), GraphProblem(graph, values, "\0").system(values)
+    (H, g), theirs = _whole(problem, values), GraphProblem(graph, values, "\0").system(values)  # noqa: N806
     scale = np.sqrt(np.outer(np.abs(np.diag(theirs.H)), np.abs(np.diag(theirs.H))))
-    assert np.max(np.abs(ours.H - theirs.H) / scale) < SYSTEM_REL_TOL
-    assert np.max(np.abs(ours.g_c - theirs.g_c) / np.sqrt(np.abs(np.diag(theirs.H)))) < SYSTEM_REL_TOL
+    assert np.max(np.abs(H - theirs.H) / scale) < SYSTEM_REL_TOL
+    assert np.max(np.abs(g - theirs.g_c) / np.sqrt(np.abs(np.diag(theirs.H)))) < SYSTEM_REL_TOL
+
+
+def _whole(problem: BoardProblem, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+    """The problem's Schur-form system (board-pose blocks V, coupling W, the rest H) as one matrix and gradient in
+    the values' column order (what GTSAM's linearisation gives)."""
+    sys_, lay = problem.system(values), problem.layout
+    cam, lm = np.nonzero(lay.col_cam >= 0)[0], np.nonzero(lay.col_lm >= 0)[0]
+    lm = lm[np.lexsort((lay.col_comp[lm], lay.col_lm[lm]))]  # board by board, component by component
+    H, g = np.zeros((lay.n, lay.n)), np.zeros(lay.n)  # noqa: N806
+    H[np.ix_(cam, cam)], g[cam] = sys_.H, sys_.g_c
+    n_b, d = sys_.V.shape[:2]
+    blocks = np.zeros((n_b * d, n_b * d))
+    for b in range(n_b):
+        blocks[b * d:(b + 1) * d, b * d:(b + 1) * d] = sys_.V[b]
+    H[np.ix_(lm, lm)], g[lm] = blocks, sys_.g_l.ravel()
+    H[np.ix_(lm, cam)] = sys_.W.reshape(n_b * d, -1)
+    H[np.ix_(cam, lm)] = sys_.W.reshape(n_b * d, -1).T
+    return H, g
 
 
 def test_unified_cost_and_gradient():
@@ -94,9 +112,14 @@ def test_unified_cost_and_gradient():
                 point = np.asarray(values.atPoint3(gtsam.symbol("c", int(c))))
                 expected += 0.5 * np.sum(((camera.project(point) - obs.corners_px[v, f, c]) / 0.5) ** 2)
     assert problem.error(values) == pytest.approx(expected, rel=COST_REL_TOL)
-    g = problem.system(values).g_c  # -J^T e: minus the cost's gradient
+    g = _whole(problem, values)[1]  # -J^T e: minus the cost's gradient, in the values' column order
+    lay = problem.layout
     rng = np.random.default_rng(5)
     for _ in range(5):
-        d = rng.normal(size=problem.n_c) * 1e-7
-        numeric = (problem.error(problem.retract(values, None, d)) - problem.error(problem.retract(values, None, -d))) / 2
+        d = rng.normal(size=lay.n) * 1e-7
+        dl = np.zeros((lay.n_landmarks, 6))
+        lm = lay.col_lm >= 0
+        dl[lay.col_lm[lm], lay.col_comp[lm]] = d[lm]
+        dc = d[~lm][np.argsort(lay.col_cam[~lm])]
+        numeric = (problem.error(problem.retract(values, dl, dc)) - problem.error(problem.retract(values, -dl, -dc))) / 2
         assert numeric == pytest.approx(-float(g @ d), rel=GRADIENT_REL_TOL)
