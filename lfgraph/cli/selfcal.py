@@ -29,9 +29,49 @@ def _focal_px(args: argparse.Namespace, image_width_px: int) -> float:
     return focal_from_lens(args.focal_mm, args.sensor_width_mm, image_width_px)
 
 
+def _pins(args: argparse.Namespace, grid, inputs: list) -> tuple:
+    """The pins the flags ask for (`lfgraph.selfcal.pins`), every file read and checked before the work starts.
+
+    Raises:
+        UsageError: a pin's flags that do not go together; PinError / CaptureError: a pin's file (named)."""
+    from lfgraph.selfcal import BoardPin, DistancePin, ViewPin
+
+    pins = []
+    board_flags = [f for f, v in (("--board", args.board), ("--square-mm", args.square_mm)) if v is not None]
+    if args.pin_board is None and (board_flags or args.marker_mm is not None):
+        raise UsageError(f"{', '.join(board_flags or ['--marker-mm'])} describe(s) the board of --pin-board DIR")
+    if args.pin_board is not None:
+        from lfgraph.detect.board import BoardSpec
+        from lfgraph.detect.detections import detect_capture
+        from lfgraph.io.capture import open_capture
+
+        if args.board is None or args.square_mm is None:
+            raise UsageError("--pin-board needs the board: --board COLSxROWS --square-mm S (and --marker-mm for a "
+                             "ChArUco board)")
+        try:
+            board = BoardSpec.parse(args.board, args.square_mm, args.marker_mm)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        capture = open_capture(args.pin_board, grid, args.layout)
+        inputs += [p for f in range(len(capture)) for p in capture.paths(f)]
+        obs, _ = detect_capture(capture, board, progress=not args.quiet, cache=False)  # writes nothing
+        pins.append(BoardPin.from_observations(obs, args.pin_corner_sigma_px, name=f"board {args.pin_board}"))
+    if args.pin_distance is not None:
+        inputs.append(args.pin_distance)
+        pins.append(DistancePin.load(args.pin_distance, grid))
+    for spec in args.pin_view or ():
+        view, sep, path = spec.partition("=")
+        if not sep or not view or not path:
+            raise UsageError(f"--pin-view takes VIEW=calibration.json (e.g. r00_c00=calib.json), got {spec!r}")
+        inputs.append(Path(path))
+        pins.append(ViewPin.from_file(view, Path(path), grid))
+    return tuple(pins)
+
+
 def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     """``lfgraph calibrate-scene``: calibrate from design values and textured scene frames (no target), rectify unless
     ``--no-rectify``, save, and print the report (``--report-json``: also as JSON); returns 0."""
+    import dataclasses
     import json
 
     from tqdm import tqdm
@@ -63,6 +103,9 @@ def cmd_calibrate_scene(args: argparse.Namespace) -> int:
     capture = open_capture(args.input, ViewGrid(rows, cols, reference), args.layout)
     capture.require_one_size("calibrate-scene")
     inputs = [p for f in range(len(capture)) for p in capture.paths(f)]
+    pins = _pins(args, capture.grid, inputs)
+    if pins:
+        config = dataclasses.replace(config, pins=pins)
     check_output_file(args.output, inputs=inputs)
     if args.report_json is not None:
         check_output_file(args.report_json, inputs=[*inputs, args.output])
@@ -135,6 +178,23 @@ def add_parsers(sub: Any) -> None:
                    help=f"1-sigma spread of the view rotations (default {ROTATION_TOLERANCE_DEG:g} deg)")
     p.add_argument("--position-tolerance-mm", type=positive_float, default=POSITION_TOLERANCE_MM,
                    help=f"1-sigma spread of the view positions (default {POSITION_TOLERANCE_MM:g} mm)")
+    pin = p.add_argument_group("pins: what fixes the common zoom (absolute focal length)")
+    pin.add_argument("--pin-board", type=Path, metavar="DIR",
+                     help="a capture folder of a few frames of a known board (even one, seen by one view or more; "
+                          "held tilted), with --board and --square-mm")
+    pin.add_argument("--board", help="the pin board: checkerboard inner corners COLSxROWS (e.g. 11x8) or "
+                                     "charuco:SQUARESXxSQUARESY:DICT_NAME (with --marker-mm)")
+    pin.add_argument("--square-mm", type=positive_float, help="the pin board's square side in millimetres")
+    pin.add_argument("--marker-mm", type=positive_float, help="the pin board's ChArUco marker side in millimetres")
+    pin.add_argument("--pin-corner-sigma-px", type=positive_float,
+                     help="the pin board's corner noise (default: measured from its corners)")
+    pin.add_argument("--pin-distance", type=Path, metavar="FILE",
+                     help='a known distance between two points marked in one view of one frame: JSON {"view": '
+                          '"r00_c00", "frame": 0, "points_px": [[u, v], [u, v]], "distance_m": 1.0, "sigma_m": '
+                          '0.001} (points at different depths)')
+    pin.add_argument("--pin-view", action="append", metavar="VIEW=FILE",
+                     help="one view's intrinsics from a factory or earlier calibration.json, with its stored sigmas, "
+                          "e.g. r00_c00=calib.json")
     p.add_argument("--no-rectify", action="store_true", help="do not compute and store the rectification")
     p.add_argument("--crop", choices=("valid", "full"), default="valid", help="rectification crop (default valid)")
     p.add_argument("--report-json", type=Path, help="also write the report (coverage, sigmas, modes, verdict)")

@@ -10,6 +10,7 @@ _BOARD_POSE = "b"  # board_T_ref of frame f (the reference view's pose in that f
 _BOARD_CORNER = "c"  # board corner j (board frame), shared by all frames
 _LANDMARK = "l"  # scene landmark j (reference frame)
 _BOARD_POINT = "q"  # board corner j of frame f in the reference frame (views whose lens has no board factor)
+_PIN_POINT = "p"  # a scene point a self-calibration pin measures (reference frame; not eliminated with the landmarks)
 LANDMARK_CHAR = _LANDMARK  # for solvers that eliminate landmarks (`lfgraph.engine.schur`)
 BOARD_CORNER_CHAR = _BOARD_CORNER  # the board's corners: the landmarks of a calibration's joint graph
 
@@ -44,10 +45,16 @@ def landmark_key(index: int) -> int:
     return gtsam.symbol(_LANDMARK, index)
 
 
+def pin_point_key(index: int) -> int:
+    """Key of the self-calibration pins' scene point ``index`` (Point3 in the reference frame): a point whose distance
+    is known, kept apart from the landmarks because a factor joins two of them."""
+    return gtsam.symbol(_PIN_POINT, index)
+
+
 def describe_key(key: int) -> str:
     """Readable name of a key, e.g. ``view pose 3`` — for error messages."""
     sym = gtsam.Symbol(key)
     names = {_VIEW_POSE: "view pose", _CALIB: "intrinsics of view", _BOARD_POSE: "board pose of frame",
              _BOARD_CORNER: "board corner", _LANDMARK: "landmark",
-             _BOARD_POINT: "board point (frame x corners + corner)"}
+             _BOARD_POINT: "board point (frame x corners + corner)", _PIN_POINT: "pinned scene point"}
     return f"{names.get(chr(sym.chr()), chr(sym.chr()))} {sym.index()}"

@@ -23,14 +23,24 @@ import numpy as np
 
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.grid import ViewGrid
+from lfgraph.factors.board_graph import RIGID_BOARD_SIGMA_M, add_board_observations, add_corner_priors
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
-from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA
+from lfgraph.factors.keys import calib_key, pin_point_key, view_pose_key
+from lfgraph.factors.noise import (
+    FREE_SIGMA,
+    HELD_SIGMA,
+    MIN_SIGMA,
+    calibration_noise,
+    pixel_noise,
+    range_noise,
+)
 from lfgraph.factors.prior_table import (
     POSE_TANGENT,
     calibration_vectors,
     intrinsics_prior_factors,
     pose_prior_factors,
 )
+from lfgraph.lenses import lens_model
 
 
 @dataclass(frozen=True)
@@ -121,3 +131,56 @@ def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sig
         sig[:, 3:5] = sigmas.position_m
         sig[:, 5] = np.hypot(sigmas.position_m, sigmas.rotation_rad * baseline)
     return pose_prior_factors(reference, mean, sig)
+
+
+# ---- pins: what fixes the common zoom (`lfgraph.selfcal.pins`), each a fragment with its own sigma ----------------
+
+
+def board_pin_factors(corners_px: np.ndarray, valid: np.ndarray, object_points_m: np.ndarray, sigma_px: float,
+                      lenses: Sequence[str]) -> gtsam.NonlinearFactorGraph:
+    """A board pin: every corner a view sees in a pin frame, projected through ``board_T_ref(f)`` and the view's
+    pose and intrinsics (`board_graph.add_board_observations`: GTSAM's `ProjectionFactorPPPC` of the view's lens), the
+    corners held at the board's known geometry (`board_graph.RIGID_BOARD_SIGMA_M`): the board's size in pixels
+    against its known size ties the focal length through its perspective.
+
+    Args:
+        corners_px: (V, F, C, 2); valid: (V, F, C); object_points_m: (C, 3) board frame; sigma_px: corner noise.
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    add_board_observations(graph, corners_px, valid, pixel_noise(sigma_px), lenses)
+    add_corner_priors(graph, object_points_m, RIGID_BOARD_SIGMA_M)
+    return graph
+
+
+def distance_pin_factors(first: int, pixels: np.ndarray, valid: np.ndarray, distance_m: float, sigma_m: float,
+                         sigma_px: float, lenses: Sequence[str]) -> gtsam.NonlinearFactorGraph:
+    """A distance pin: two scene points (`pin_point_key` ``first`` and ``first + 1``) seen by the views
+    (`GeneralSFMFactor2` of each view's lens, ``sigma_px``) and GTSAM's `RangeFactor3` between them: their distance,
+    ``distance_m`` +- ``sigma_m``. Under the common zoom the points' depths scale, so their distance moves unless they
+    lie at one depth.
+
+    Args:
+        pixels: (V, 2, 2) the two points in every view; valid: (V, 2).
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    noise = pixel_noise(sigma_px)
+    factors = [lens_model(lens).gtsam("GeneralSFMFactor2") for lens in lenses]
+    for v, k in zip(*np.nonzero(valid), strict=True):
+        graph.add(factors[v](pixels[v, k], noise, view_pose_key(int(v)), pin_point_key(first + int(k)),
+                             calib_key(int(v))))
+    graph.add(gtsam.RangeFactor3(pin_point_key(first), pin_point_key(first + 1), float(distance_m),
+                                 range_noise(sigma_m)))
+    return graph
+
+
+def view_pin_factor(view: int, intrinsics: Intrinsics, sigmas: np.ndarray) -> gtsam.NonlinearFactorGraph:
+    """A view pin: one view's intrinsics known from a factory or an earlier calibration, a prior on its calibration
+    with that calibration's sigmas (``sigmas``: fx, fy, cx, cy (px), k1, k2); the coefficients the self-calibration
+    holds (skew, p1, p2, a fisheye's k3, k4, xi) are left to the design priors (`FREE_SIGMA` here)."""
+    fx, fy, cx, cy, k1, k2 = (float(s) for s in sigmas)
+    model = intrinsics.model
+    tail = [k1 if k == "k1" else k2 if k == "k2" else FREE_SIGMA for k in model.tangent]
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(model.gtsam("PriorFactor")(calib_key(view), intrinsics.to_gtsam(),
+                                         calibration_noise([fx, fy, FREE_SIGMA, cx, cy, *tail])))
+    return graph

@@ -25,6 +25,7 @@ from lfgraph.selfcal.defaults import (
     ROTATION_TOLERANCE_DEG,
     TRACKS_PER_FRAME,
 )
+from lfgraph.selfcal.pins import PIN_TYPES, BoardPin, Pin
 
 # The default order of stages (measured on the benchmark rigs, see README "Calibrating without a target"): poses
 # first (a 1 deg rotation moves an image by ~f/60 px, far more than any other error), then the relative focal
@@ -173,6 +174,9 @@ class SelfCalConfig:
         retrack: before the final stage, track every feature again from the reference view with the window warped
             by the local map the staged calibration gives (`lfgraph.selfcal.retrack`; needs the patches that
             `pool_tracks` keeps).
+        pins: measurements that fix the common zoom the scene leaves to the design focal length
+            (`lfgraph.selfcal.pins`: `BoardPin`, `DistancePin`, `ViewPin`), each a factor of the final stage with its
+            own sigma; a pin that disagrees with the scene beyond their sigmas is refused (`PinRefused`).
     """
 
     focal_tolerance: float = FOCAL_TOLERANCE
@@ -192,8 +196,20 @@ class SelfCalConfig:
     tracker: Tracker | None = None
     graph_hooks: tuple[Callable, ...] = ()
     retrack: bool = True
+    pins: tuple[Pin, ...] = ()
 
     def __post_init__(self) -> None:
+        pins = (self.pins,) if isinstance(self.pins, PIN_TYPES) else tuple(self.pins)
+        for pin in pins:
+            if not isinstance(pin, PIN_TYPES):
+                raise TypeError(f"SelfCalConfig.pins must hold BoardPin, DistancePin or ViewPin, got "
+                                f"{type(pin).__name__}")
+        if sum(isinstance(p, BoardPin) for p in pins) > 1:
+            raise ValueError("SelfCalConfig.pins: one BoardPin (it may hold several frames)")
+        names = [p.name for p in pins]
+        if len(set(names)) != len(names):
+            raise ValueError(f"SelfCalConfig.pins: two pins of one name ({', '.join(names)})")
+        object.__setattr__(self, "pins", pins)
         for name in ("focal_tolerance", "principal_tolerance_px", "k1_tolerance", "k2_tolerance",
                      "rotation_tolerance_deg", "position_tolerance_mm", "track_sigma_px"):
             value = getattr(self, name)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterable
 
@@ -15,10 +16,13 @@ from lfgraph.factors.noise import RobustKernel
 from lfgraph.refinement.tracks import in_front
 from lfgraph.refinement.triangulate import per_coordinate_sigma
 from lfgraph.selfcal.config import Design, SelfCalConfig
+from lfgraph.selfcal.pinned import SceneFit, fit_pins, weak_modes, zoom_of
+from lfgraph.selfcal.pins import PIN_TYPES, DistancePin, PinError
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
 from lfgraph.selfcal.retrack import retrack
 from lfgraph.selfcal.solve import (
     LANDMARK_ITERATIONS,
+    Posterior,
     drop_outliers,
     initial_landmarks,
     measurement,
@@ -174,12 +178,63 @@ def _final_fit(calib: Calibration, nominal: Calibration, tracks: PooledTracks, p
     return calib, points, tracks, graph, values, used_noise, passes
 
 
+def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+               config: SelfCalConfig, say: Observer) -> tuple[Calibration, Posterior, list[Mode], tuple, SceneFit]:
+    """The posterior of the scene's final fit, or with ``config.pins`` that of the pinned fit (`_pinned`):
+    (calibration, posterior, modes, one `PinResult` per pin, the scene fit with its zoom and sigma)."""
+    grid = scene.calib.grid
+    distortion = "distortion" in scene.free
+    post, joint = posterior(graph, values, grid.num_views)
+    zoom, sigma = zoom_of(scene.calib, joint, scene.sigmas, distortion)
+    mode_values, mode_cov = weak_modes(scene.calib, joint)
+    scene = dataclasses.replace(scene, zoom_px=zoom, zoom_sigma_px=sigma, modes=mode_values, modes_cov=mode_cov)
+    if not config.pins:
+        return scene.calib, post, modes(joint, scene.sigmas.intrinsic_sigmas(), grid, distortion), (), scene
+    return (*_pinned(scene, config, say), scene)
+
+
+def _pinned(scene: SceneFit, config: SelfCalConfig, say: Observer) -> tuple[Calibration, Posterior, list[Mode],
+                                                                             tuple]:
+    """The pins' fit from the scene's optimum (`fit_pins`: each pin tested against the scene first) and its
+    posterior: (calibration, posterior, modes, one `PinResult` per pin)."""
+    grid = scene.calib.grid
+    distortion = "distortion" in scene.free
+    calib, _, graph, values, results = fit_pins(scene, config.pins, distortion, config.graph_hooks, say)
+    post, joint = posterior(graph, values, grid.num_views)
+    return calib, post, modes(joint, scene.sigmas.intrinsic_sigmas(), grid, distortion), results
+
+
+def pin_scene(report: SelfCalReport, design: Design, pins, config: SelfCalConfig | None = None,
+              observer: Observer | None = None) -> tuple[Calibration, SelfCalReport]:
+    """Pins added to a finished self-calibration: the final stage of ``report``'s scene fit with the pins' factors,
+    without tracking or solving the scene again (what `calibrate_tracks` does with ``config.pins``).
+
+    Args:
+        report: a `calibrate_tracks` or `calibrate_scene` report (it keeps its scene fit).
+        pins: `BoardPin`, `DistancePin` (followed into the views: `DistancePin.followed`) or `ViewPin` values.
+
+    Raises:
+        PinRefused: a pin disagrees with the scene beyond their sigmas (named).
+        PinError: a pin cannot be used.
+    """
+    if report.scene is None:
+        raise ValueError("pin_scene needs the report of a self-calibration run (its scene fit)")
+    config = dataclasses.replace(config or SelfCalConfig(), pins=tuple(pins) if not isinstance(pins, PIN_TYPES)
+                                 else (pins,))
+    start = time.perf_counter()
+    calib, post, mode_list, results = _pinned(report.scene, config, resolve(observer))
+    seconds = {**report.seconds, "pins": time.perf_counter() - start}
+    out = dataclasses.replace(report, posterior=post, modes=tuple(mode_list), pins=results, seconds=seconds)
+    return calib.replace(metrics=_metrics(design, out, out.noise_px, post)), out
+
+
 def _metrics(design: Design, report: SelfCalReport, noise_px: float, post) -> dict:
     """What a self-calibration stores in ``Calibration.metrics``."""
     return {"source": "self-calibration from scene frames (lfgraph calibrate-scene)", "scale_from": "design pitch",
             "design": {"rows": design.rows, "cols": design.cols, "pitch_mm": design.pitch_mm,
                        "focal_px": design.focal_px},
             "selfcal_rms_px": report.rms_px, "selfcal_noise_px": noise_px, "verdict": report.verdict,
+            "zoom_from": report.zoom_from,
             "sigmas": post.as_dict()["views"]}  # one entry per view, as calibrate writes them (`Calibration.sigmas`)
 
 
@@ -253,16 +308,37 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
                                                                          sigmas, noise, design, config, say)
     stages += passes
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
-    post, joint = posterior(graph, values, grid.num_views)
-    mode_list: list[Mode] = modes(joint, sigmas.intrinsic_sigmas(), grid, "distortion" in free)
+    calib, post, mode_list, pins, scene = _posterior(
+        SceneFit(calib, nominal, points, tracks, free, sigmas, used_noise, 0.0, 0.0), graph, values, config, say)
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
     report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
-                           tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES, retracked, tracks)
-    metrics = _metrics(design, report, used_noise, post)
+                           tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES, retracked, tracks, pins,
+                           scene)
     say.log(f"self-calibration: rms {report.rms_px:.3f} px at a measured noise of {used_noise:.3f} px; verdict "
             f"{report.verdict}")
-    return calib.replace(metrics=metrics), report
+    return calib.replace(metrics=_metrics(design, report, used_noise, post)), report
+
+
+def _keeping(frames: Iterable[np.ndarray], kept: dict) -> Iterable[np.ndarray]:
+    """``frames`` as they are read, keeping those whose index is a key of ``kept`` (a distance pin's frame)."""
+    for f, images in enumerate(frames):
+        if f in kept:
+            kept[f] = np.asarray(images)
+        yield images
+
+
+def _followed(pin, kept: dict, design: Design):
+    """A distance pin marked in one view followed into every view of its frame (other pins unchanged).
+
+    Raises:
+        PinError: its frame was not read (fewer frames, or beyond ``max_frames``)."""
+    if not (isinstance(pin, DistancePin) and pin.needs_images):
+        return pin
+    if kept.get(pin.frame) is None:
+        raise PinError(f"pin {pin.name}: frame {pin.frame} was not read (frames are counted from 0 among those "
+                       f"used)")
+    return pin.followed(kept[pin.frame], design.grid)
 
 
 def calibrate_scene(frames: Iterable[np.ndarray], design: Design, config: SelfCalConfig | None = None,
@@ -292,8 +368,11 @@ def calibrate_scene(frames: Iterable[np.ndarray], design: Design, config: SelfCa
     """
     config = config or SelfCalConfig()
     t0 = time.perf_counter()
-    tracks = pool_tracks(frames, design.grid, design.image_size_px, config.tracks_per_frame, config.tracker,
-                         config.max_frames, keep_patches=config.retrack)
+    marked = {p.frame: None for p in config.pins if isinstance(p, DistancePin) and p.needs_images}
+    tracks = pool_tracks(_keeping(frames, marked), design.grid, design.image_size_px, config.tracks_per_frame,
+                         config.tracker, config.max_frames, keep_patches=config.retrack)
+    if marked:
+        config = dataclasses.replace(config, pins=tuple(_followed(p, marked, design) for p in config.pins))
     seconds = time.perf_counter() - t0
     calib, report = calibrate_tracks(tracks, design, config, observer)
     return calib, SelfCalReport(**{**report.__dict__, "seconds": {"tracking": seconds, **report.seconds}})

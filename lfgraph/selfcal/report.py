@@ -120,7 +120,9 @@ class SelfCalReport:
             seen combinations; distortion_estimated: False when tracks did not reach the corners (the stages held
             k2, or k1 and k2, at the design; the final stage's estimate rests largely on the design tolerances);
             warnings; seconds: wall time of tracking and of the graph; retracked: observations re-tracked with the
-            calibrated local maps (`lfgraph.selfcal.retrack`); tracks: the tracks of the final fit.
+            calibrated local maps (`lfgraph.selfcal.retrack`); tracks: the tracks of the final fit; pins: what each
+            pin did to the common zoom (`lfgraph.selfcal.pinned.PinResult`), empty without pins; scene: the scene's
+            final fit without pins (`lfgraph.selfcal.pinned.SceneFit`: where `pin_scene` starts).
     """
 
     coverage: Coverage
@@ -135,6 +137,14 @@ class SelfCalReport:
     gauges: tuple[str, ...] = GAUGES
     retracked: int = 0
     tracks: PooledTracks | None = field(default=None, repr=False)
+    pins: tuple = ()
+    scene: object = field(default=None, repr=False)
+
+    @property
+    def zoom_from(self) -> str:
+        """What set the common zoom (absolute focal length): the pins that fixed it, or the design focal length."""
+        fixed = [p.name for p in self.pins if p.fixes_zoom]
+        return ("pin " + ", ".join(fixed)) if fixed else "design focal length"
 
     @property
     def from_prior(self) -> list[Mode]:
@@ -155,7 +165,8 @@ class SelfCalReport:
                 "coverage": self.coverage.as_dict(), "stages": [s.as_dict() for s in self.stages],
                 "noise_px": self.noise_px, "rms_px": self.rms_px, "distortion_estimated": self.distortion_estimated,
                 "modes": [m.as_dict() for m in self.modes], "posterior_sigmas": self.posterior.as_dict(),
-                "warnings": list(self.warnings), "seconds": dict(self.seconds), "retracked": self.retracked}
+                "warnings": list(self.warnings), "seconds": dict(self.seconds), "retracked": self.retracked,
+                "zoom_from": self.zoom_from, "pins": [p.as_dict() for p in self.pins]}
 
     def text(self) -> str:
         """A readable summary for the CLI."""
@@ -180,6 +191,8 @@ class SelfCalReport:
         for m in self.modes:
             lines.append(f"  {m.name:<48} {m.posterior_sigma:.3g} / {m.prior_sigma:.3g} {m.unit}"
                          f"{'  <- from the design prior: ' + m.effect if m.from_prior else ''}")
+        lines.extend(p.text() for p in self.pins)
+        lines.append(f"common zoom (absolute focal length) from: {self.zoom_from}")
         lines.append("gauges: " + "; ".join(self.gauges))
         lines.extend(f"warning: {w}" for w in self.warnings)
         lines.append(f"verdict: {self.verdict}")

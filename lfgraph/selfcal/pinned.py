@@ -1,0 +1,235 @@
+"""The pinned final stage of a self-calibration: the scene's final graph plus each pin's factors, the zoom's sigma
+with and without each pin, and the refusal of a pin that disagrees with the scene beyond their sigmas.
+
+A pin's test is that of nested estimates in the space of the weakly seen modes (`report.modes`: the common zoom,
+the common principal-point shift and the hidden principal-point gauge's slopes). The scene alone gives them m0 with
+covariance S0, the scene and the pin m1 with S1; when both are right, m1 - m0 is Gaussian with covariance S0 - S1
+(the information the pin added). In S0's whitened coordinates the pin removed a fraction l of the variance along
+each eigen-direction of S0 - S1; over the directions where it removed at least `INFORMED_SHARE`, the shift's
+chi-square (degrees of freedom: their number) is the disagreement, as a one-sided normal deviate. A pin beyond
+`PIN_DISAGREEMENT_SIGMAS` is refused by name: a mismeasured distance, a board of another square size, another
+camera's calibration. A distance fixes one combination of the two near-gauges (the common zoom scales depths, the
+hidden gauge shifts inverse depths): which one it mostly fixes depends on which the scene holds better.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.observer import Observer
+from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL
+from lfgraph.factors.noise import RobustKernel
+from lfgraph.factors.selfcal_graph import DesignSigmas
+from lfgraph.refinement.posterior import chi2_sigma
+from lfgraph.selfcal.pins import BoardPin, DistancePin, Pin, PinError, ViewPin
+from lfgraph.selfcal.report import Mode, modes
+from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, run_map_stage
+
+PIN_DISAGREEMENT_SIGMAS = 3.0  # a pin whose shift of the weak modes is beyond this deviate (p ~ 0.001) is refused
+INFORMED_SHARE = 0.1  # the test's directions: those along which the pin removed at least this share of the variance
+FIXES_ZOOM = 0.5  # a pin "fixes the zoom" when the zoom's sigma with it is below this fraction of the scene's alone
+PIN_ITERATIONS = 100  # Levenberg–Marquardt cap of a pinned fit (it starts at the scene's optimum)
+
+
+class PinRefused(PinError):
+    """A pin disagrees with the scene beyond their sigmas; the message names it and the disagreement in sigmas."""
+
+
+@dataclass(frozen=True)
+class PinResult:
+    """What one pin did to the common zoom (the mean focal length over views, px).
+
+    Attributes:
+        name, kind: the pin (``board``, ``distance``, ``view``); description: what it measures.
+        scene_zoom_px, scene_sigma_px: the zoom and its posterior sigma from the scene and design alone.
+        zoom_px, sigma_px: with the pin (the scene's graph and this pin only).
+        disagreement_sigmas: how far the pin disagrees with the scene, as a one-sided normal deviate (module
+            docstring), large when they disagree.
+        residual: the pin's own fit (e.g. the fitted distance against the measured, in its sigmas).
+    """
+
+    name: str
+    kind: str
+    description: str
+    scene_zoom_px: float
+    scene_sigma_px: float
+    zoom_px: float
+    sigma_px: float
+    disagreement_sigmas: float
+    residual: str
+
+    @property
+    def fixes_zoom(self) -> bool:
+        """Whether the pin, not the design, set the zoom (its sigma below `FIXES_ZOOM` of the scene's)."""
+        return bool(self.sigma_px < FIXES_ZOOM * self.scene_sigma_px)
+
+    def as_dict(self) -> dict:
+        """The fields and ``fixes_zoom`` as a JSON-ready dict."""
+        return {"name": self.name, "kind": self.kind, "description": self.description,
+                "scene_zoom_px": self.scene_zoom_px, "scene_sigma_px": self.scene_sigma_px, "zoom_px": self.zoom_px,
+                "sigma_px": self.sigma_px, "disagreement_sigmas": self.disagreement_sigmas,
+                "fixes_zoom": self.fixes_zoom, "residual": self.residual}
+
+    def text(self) -> str:
+        """One line for the report."""
+        pct = 100.0 / self.scene_zoom_px
+        verb = "fixes the zoom" if self.fixes_zoom else "adds little to the zoom"
+        return (f"pin {self.name} ({self.description}) {verb}: sigma {self.scene_sigma_px:.3g} px "
+                f"({pct * self.scene_sigma_px:.2g} %) without it, {self.sigma_px:.3g} px "
+                f"({pct * self.sigma_px:.2g} %) with it; it moved the zoom {self.zoom_px - self.scene_zoom_px:+.3g} px "
+                f"(disagreement {self.disagreement_sigmas:.2f} sigma); {self.residual}")
+
+
+def pin_kind(pin: Pin) -> str:
+    """``board``, ``distance`` or ``view``."""
+    return {BoardPin: "board", DistancePin: "distance", ViewPin: "view"}[type(pin)]
+
+
+def zoom_of(calib: Calibration, joint: np.ndarray, sigmas: DesignSigmas, distortion: bool) -> tuple[float, float]:
+    """The common zoom (mean of every view's fx and fy, px) and its posterior sigma from the (DV, DV) ``joint``."""
+    zoom = float(np.mean([[i.fx, i.fy] for i in calib.intrinsics]))
+    mode: Mode = modes(joint, sigmas.intrinsic_sigmas(), calib.grid, distortion)[0]
+    return zoom, mode.posterior_sigma
+
+
+@dataclass(frozen=True)
+class SceneFit:
+    """The scene's final stage, where the pins start: calibration, (N, 3) landmarks, tracks (`PooledTracks`), the
+    groups freed, the design priors and calibration, the measured noise, its zoom and sigma, and its weak modes'
+    values and covariance (`weak_modes`: what a pin is tested on)."""
+
+    calib: Calibration
+    nominal: Calibration
+    points: np.ndarray
+    tracks: object
+    free: frozenset
+    sigmas: DesignSigmas
+    noise_px: float
+    zoom_px: float
+    zoom_sigma_px: float
+    modes: np.ndarray | None = None
+    modes_cov: np.ndarray | None = None
+
+
+def _fit(scene: SceneFit, pins: Sequence[Pin], max_iterations: int, hooks: tuple[Callable, ...],
+         say: Observer):
+    """The scene's final graph with ``pins``' factors, from the scene's optimum: (calibration, landmarks, graph,
+    values, the pins' fragments)."""
+    fragments: list[gtsam.NonlinearFactorGraph] = []
+
+    def add_pins(ctx) -> None:
+        fragments.clear()
+        for k, pin in enumerate(pins):
+            fragment = pin.factors(ctx.calib, ctx.initial, scene.noise_px, 2 * k)
+            fragments.append(fragment)
+            ctx.graph.push_back(fragment)
+
+    calib, points, graph, values, _ = run_map_stage(
+        scene.calib, scene.nominal, scene.tracks.pixels, scene.tracks.valid, scene.points, scene.free, scene.sigmas,
+        measurement(RobustKernel("none"), scene.noise_px), max_iterations, FINAL_RELATIVE_TOL, say.iteration,
+        (*hooks, add_pins), hold_gauges=False, landmark_iterations=LANDMARK_ITERATIONS)
+    return calib, points, graph, values, list(fragments)
+
+
+def _residual(pin: Pin, k: int, calib: Calibration, values: gtsam.Values, fragment: gtsam.NonlinearFactorGraph) -> str:
+    """The pin's own fit, in words."""
+    if isinstance(pin, DistancePin):
+        d = pin.fitted_distance_m(values, 2 * k)
+        return (f"fitted distance {d:.4f} m vs {pin.distance_m:.4f} m measured "
+                f"({(d - pin.distance_m) / pin.sigma_m:+.2f} sigma)")
+    if isinstance(pin, ViewPin):
+        fx = calib.intrinsics[pin.view].fx
+        return (f"fitted fx {fx:.2f} px vs {pin.intrinsics.fx:.2f} px pinned "
+                f"({(fx - pin.intrinsics.fx) / pin.sigmas[0]:+.2f} sigma)")
+    n = int(pin.valid.sum())
+    chi2 = 2.0 * float(fragment.error(values))
+    return f"corner residual {np.sqrt(max(chi2, 0.0) / (2 * n)):.2f} of the corner sigma over {n} corners"
+
+
+def weak_modes(calib: Calibration, joint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weak modes' values (the zoom, the common cx and cy shift, cx per grid column and cy per grid row; px)
+    and their covariance, from ``calib`` and the (DV, DV) ``joint`` covariance of every view's calibration."""
+    grid, n = calib.grid, calib.num_views
+    dim = len(joint) // n
+    off = np.array([grid.offset(v) for v in range(n)], dtype=float)
+    rows = [{0: np.full(n, 0.5 / n), 1: np.full(n, 0.5 / n)}, {3: np.full(n, 1.0 / n)}, {4: np.full(n, 1.0 / n)}]
+    for axis, idx in ((1, 3), (0, 4)):
+        d = off[:, axis] - off[:, axis].mean()
+        if np.sum(d**2) > 0:
+            rows.append({idx: d / np.sum(d**2)})
+    a = np.zeros((len(rows), dim * n))
+    theta = np.zeros(dim * n)
+    for k, row in enumerate(rows):
+        for idx, w in row.items():
+            a[k, idx::dim] = w
+    for idx, name in ((0, "fx"), (1, "fy"), (3, "cx"), (4, "cy")):
+        theta[idx::dim] = [getattr(i, name) for i in calib.intrinsics]
+    return a @ theta, a @ joint @ a.T
+
+
+def disagreement(scene: SceneFit, values: np.ndarray, cov: np.ndarray) -> float:
+    """The nested test of the module docstring: the pin's shift of the weak modes against the variance it removed,
+    as a one-sided normal deviate (0 when it removed none)."""
+    s0 = scene.modes_cov
+    lam0, u0 = np.linalg.eigh(s0)
+    w = u0 @ np.diag(1.0 / np.sqrt(np.maximum(lam0, 1e-30))) @ u0.T  # S0^(-1/2)
+    removed, u = np.linalg.eigh(np.eye(len(s0)) - w @ cov @ w)
+    keep = removed >= INFORMED_SHARE
+    if not keep.any():
+        return 0.0
+    shift = u[:, keep].T @ (w @ (values - scene.modes))
+    return chi2_sigma(float(np.sum(shift**2 / removed[keep])), int(keep.sum()))
+
+
+def _result(scene: SceneFit, pin: Pin, k: int, fit, distortion: bool) -> PinResult:
+    calib, _, graph, values, fragments = fit
+    joint = posterior(graph, values, calib.num_views)[1]
+    zoom, sigma = zoom_of(calib, joint, scene.sigmas, distortion)
+    return PinResult(pin.name, pin_kind(pin), pin.describe(), scene.zoom_px, scene.zoom_sigma_px, zoom, sigma,
+                     disagreement(scene, *weak_modes(calib, joint)), _residual(pin, k, calib, values, fragments[k]))
+
+
+def _refuse(result: PinResult) -> None:
+    """Raises PinRefused when the pin disagrees with the scene beyond `PIN_DISAGREEMENT_SIGMAS`."""
+    if result.disagreement_sigmas <= PIN_DISAGREEMENT_SIGMAS:
+        return
+    pct = 100.0 * (result.zoom_px - result.scene_zoom_px) / result.scene_zoom_px
+    raise PinRefused(f"pin {result.name} disagrees with the scene by {result.disagreement_sigmas:.1f} sigma "
+                     f"of what the scene and the pin's own sigma allow (limit {PIN_DISAGREEMENT_SIGMAS:g}): it moves "
+                     f"the common focal length by {result.zoom_px - result.scene_zoom_px:+.3g} px ({pct:+.2g} %); "
+                     f"{result.residual}. Check the pin's measurement ({result.description}); nothing was written")
+
+
+def fit_pins(scene: SceneFit, pins: Sequence[Pin], distortion: bool, hooks: tuple[Callable, ...],
+             say: Observer):
+    """Each pin tested against the scene (a fit of the scene and that pin alone), then the fit of all of them.
+
+    Returns:
+        (calibration, landmarks, graph, values, one `PinResult` per pin).
+
+    Raises:
+        PinRefused: a pin disagrees with the scene (the first one found, by name).
+        PinError: a pin cannot be used (e.g. its points do not triangulate).
+    """
+    pins = [p.retracked(scene.calib) if isinstance(p, DistancePin) else p for p in pins]
+    results, fit = [], None
+    for pin in pins:
+        fit = _fit(scene, [pin], PIN_ITERATIONS, hooks, say)
+        try:
+            result = _result(scene, pin, 0, fit, distortion)
+        except RuntimeError as exc:  # the marginals: the pin was met only by pushing landmarks out of reach
+            raise PinRefused(f"pin {pin.name} cannot be fitted with the scene: meeting it left the system "
+                             f"indeterminate (landmarks pushed beyond any depth); check the pin's measurement "
+                             f"({pin.describe()}); nothing was written") from exc
+        say.log(f"self-calibration: {result.text()}")
+        _refuse(result)
+        results.append(result)
+    if len(pins) > 1:
+        fit = _fit(scene, pins, PIN_ITERATIONS, hooks, say)
+    calib, points, graph, values, _ = fit
+    return calib, points, graph, values, tuple(results)

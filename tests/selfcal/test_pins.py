@@ -1,0 +1,174 @@
+"""Pins of a self-calibration (issue 43): a board frame, a known distance, a known view fix the common zoom; a pin
+that disagrees with the scene is refused by name. Exact synthetic tracks plus noise; boards from the generators."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import project_world
+from lfgraph.datasets.board_render import CheckerboardConfig
+from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
+from lfgraph.datasets.rig import RigConfig, make_rig
+from lfgraph.detect.board import BoardSpec
+from lfgraph.selfcal import (
+    BoardPin,
+    Design,
+    DistancePin,
+    PinError,
+    PinRefused,
+    SelfCalConfig,
+    ViewPin,
+    calibrate_tracks,
+    pin_scene,
+)
+from tests.selfcal.test_selfcal import synthetic_tracks
+
+# a 3x3 array with a wide baseline for its depths (10 cm pitch, scenes at 1-3 m: a point's depth to ~0.3 %), so that
+# one known distance can fix the zoom; the issue's spreads of focal length, principal point, k1, rotation, position
+WIDE = RigConfig(rows=3, cols=3, reference=0, pitch_m=0.1, image_size_px=(320, 240), focal_px=300.0, k1=-0.1, k2=0.0,
+                 focal_jitter_px=9.0, principal_jitter_px=10.0, distortion_jitter=0.01, rot_jitter_deg=1.0,
+                 trans_jitter_mm=0.3)
+WIDE_DESIGN = Design(3, 3, pitch_mm=100.0, focal_px=300.0, image_size_px=(320, 240), k1=-0.1)
+DEPTH_M = (1.0, 3.0)
+TRACK_NOISE_PX = 0.1
+CORNER_NOISE_PX = 0.1
+HONEST_SIGMAS = 3.0  # a pinned zoom lies within this many of its posterior sigmas of the truth
+FIXED = 0.5  # a pin that fixes the zoom leaves at most this fraction of the scene's zoom sigma
+WRONG = 0.05  # a mismeasured view pin: 5 % off
+# a board of 20 % larger squares: the board's size against its disparity is a depth, which this rig's scene holds only
+# through the hidden principal-point gauge (~1.1 px per grid step, ~4 % of inverse depth at 0.8 m), so a 5 % wrong
+# board lies within the sigmas (measured: 0.1 sigma) and a 20 % wrong one does not (4.6 sigma)
+WRONG_SQUARES = 0.2
+# two scene points 1.0 and 2.0 m deep (reference frame, m), about 1.01 m apart
+POINTS_M = np.array([[0.10, 0.05, 1.0], [-0.05, 0.10, 2.0]])
+DISTANCE_SIGMA_M = 1e-3
+
+
+def zoom_px(calib: Calibration) -> float:
+    return float(np.mean([[i.fx, i.fy] for i in calib.intrinsics]))
+
+
+@pytest.fixture(scope="module")
+def truth() -> Calibration:
+    return make_rig(WIDE, np.random.default_rng(11))
+
+
+@pytest.fixture(scope="module")
+def scene(truth):
+    """The unpinned self-calibration the pins are added to (`pin_scene`)."""
+    tracks = synthetic_tracks(truth, 5, 50, TRACK_NOISE_PX, np.random.default_rng(12), depth_m=DEPTH_M)
+    return calibrate_tracks(tracks, WIDE_DESIGN)
+
+
+def board_pin(truth: Calibration, square_m: float = 0.05) -> BoardPin:
+    """One board frame 42 deg tilted (seeded), seen whole by the views it fits in; ``square_m`` what the maker says
+    (the board's true squares are 50 mm)."""
+    cfg = CheckerboardConfig(board=BoardSpec(9, 6, 0.05), frames=1, distance_m=(0.7, 0.9), max_tilt_deg=45.0)
+    board = make_checkerboard_truth(truth, cfg, np.random.default_rng(16))
+    corners, valid = make_corner_observations(board, CORNER_NOISE_PX, np.random.default_rng(14))
+    assert valid.any(axis=(1, 2)).sum() >= 2
+    return BoardPin(corners, valid, BoardSpec(9, 6, square_m).object_points(),
+                    name="one board frame" if square_m == 0.05 else "a board of other squares")
+
+
+def distance_pin(truth: Calibration, error: float = 0.0) -> DistancePin:
+    px = np.stack([project_world(truth.intrinsics[v], truth.view_T_ref(v), POINTS_M) for v in range(truth.num_views)])
+    px += TRACK_NOISE_PX * np.random.default_rng(15).standard_normal(px.shape)
+    true_m = float(np.linalg.norm(POINTS_M[0] - POINTS_M[1]))
+    return DistancePin(true_m * (1.0 + error), DISTANCE_SIGMA_M, pixels=px, name=f"tape {100 * error:+.0f} %")
+
+
+def test_a_board_frame_fixes_the_zoom(truth, scene):
+    calib, report = scene
+    pinned, pinned_report = pin_scene(report, WIDE_DESIGN, [board_pin(truth)])
+    (result,) = pinned_report.pins
+    sigma = pinned_report.modes[0].posterior_sigma
+    assert result.fixes_zoom and sigma < FIXED * report.modes[0].posterior_sigma
+    assert abs(zoom_px(pinned) - zoom_px(truth)) < HONEST_SIGMAS * sigma
+    assert pinned_report.zoom_from == "pin one board frame" and report.zoom_from == "design focal length"
+    assert pinned.metrics["zoom_from"] == "pin one board frame"
+    assert "one board frame" in pinned_report.text() and pinned_report.as_dict()["pins"][0]["fixes_zoom"]
+
+
+def test_a_known_distance_fixes_the_near_gauge_the_scene_sees_least(truth, scene):
+    """A distance fixes one combination of the two near-gauges (the zoom scales depths, the hidden principal-point
+    gauge shifts inverse depths); on this wide rig the scene holds the zoom better than the hidden gauge, which the
+    distance then fixes (a cx slope per grid step: the disparity of infinity)."""
+    calib, report = scene
+    pinned, pinned_report = pin_scene(report, WIDE_DESIGN, [distance_pin(truth)])
+    slope = [m for m in pinned_report.modes if m.name.startswith("cx per grid column")][0]
+    before = [m for m in report.modes if m.name.startswith("cx per grid column")][0]
+    assert slope.posterior_sigma < FIXED * before.posterior_sigma
+    cols = np.array([truth.grid.offset(v)[1] for v in range(truth.num_views)], dtype=float)
+    err = np.array([e.cx - t.cx for e, t in zip(pinned.intrinsics, truth.intrinsics, strict=True)])
+    fitted_slope = np.polyfit(cols, err, 1)[0]
+    assert abs(fitted_slope) < HONEST_SIGMAS * slope.posterior_sigma
+    assert abs(zoom_px(pinned) - zoom_px(truth)) < HONEST_SIGMAS * pinned_report.modes[0].posterior_sigma
+
+
+def test_a_board_of_other_squares_is_refused_by_name(truth, scene):
+    with pytest.raises(PinRefused, match=r"pin a board of other squares disagrees with the scene by .* sigma"):
+        pin_scene(scene[1], WIDE_DESIGN, [board_pin(truth, 0.05 * (1 + WRONG_SQUARES))])
+
+
+def test_a_known_view_fixes_the_zoom_and_another_cameras_is_refused(truth, scene):
+    calib, report = scene
+    v = 4
+    sigmas = (0.3, 0.3, 0.5, 0.5, 0.002, 0.005)  # an earlier board calibration's
+    right = ViewPin(v, truth.intrinsics[v], sigmas, name="factory")
+    pinned, pinned_report = pin_scene(report, WIDE_DESIGN, [right])
+    assert pinned_report.pins[0].fixes_zoom
+    assert abs(zoom_px(pinned) - zoom_px(truth)) < HONEST_SIGMAS * pinned_report.modes[0].posterior_sigma
+    other = truth.intrinsics[v]
+    wrong = ViewPin(v, type(other)(other.fx * (1 + WRONG), other.fy * (1 + WRONG), other.cx, other.cy, other.k1),
+                    sigmas, name="another camera")
+    with pytest.raises(PinRefused, match="pin another camera disagrees"):
+        pin_scene(report, WIDE_DESIGN, [wrong])
+
+
+def test_pins_pass_through_calibrate_tracks(truth):
+    tracks = synthetic_tracks(truth, 5, 50, TRACK_NOISE_PX, np.random.default_rng(12), depth_m=DEPTH_M)
+    with pytest.raises(PinRefused, match="a board of other squares"):
+        calibrate_tracks(tracks, WIDE_DESIGN, SelfCalConfig(pins=(board_pin(truth, 0.05 * (1 + WRONG_SQUARES)),)))
+
+
+def test_pins_are_validated(tmp_path, truth):
+    with pytest.raises(PinError, match="corners_px must be"):
+        BoardPin(np.zeros((9, 1, 4)), np.ones((9, 1, 4), bool), np.zeros((4, 3)))
+    with pytest.raises(PinError, match="no view sees the board"):
+        BoardPin(np.zeros((9, 1, 4, 2)), np.ones((9, 1, 4), bool), np.zeros((4, 3)))
+    with pytest.raises(PinError, match="sigma_m must be a positive"):
+        DistancePin(1.0, 0.0, pixels=np.zeros((9, 2, 2)))
+    with pytest.raises(PinError, match="at least two views"):
+        DistancePin(1.0, 0.001, pixels=np.zeros((9, 2, 2)), valid=np.eye(9, 2, dtype=bool))
+    with pytest.raises(PinError, match="marked_px"):
+        DistancePin(1.0, 0.001, view=0, frame=0)
+    with pytest.raises(ValueError, match="one BoardPin"):
+        SelfCalConfig(pins=(board_pin(truth), board_pin(truth)))
+    with pytest.raises(TypeError, match="pins must hold"):
+        SelfCalConfig(pins=("board",))
+    grid = WIDE_DESIGN.grid
+    path = tmp_path / "distance.json"
+    path.write_text(json.dumps({"view": "r00_c00", "frame": 0, "points_px": [[1, 2]], "distance_m": 1.0,
+                                "sigma_m": 0.001}))
+    with pytest.raises(PinError, match=r"distance.json: field points_px"):
+        DistancePin.load(path, grid)
+    path.write_text(json.dumps({"view": "r09_c00", "frame": 0}))
+    with pytest.raises(PinError, match=r"distance.json: missing field\(s\) points_px, distance_m, sigma_m"):
+        DistancePin.load(path, grid)
+    path.write_text(json.dumps({"view": "r09_c00", "frame": 0, "points_px": [[1, 2], [30, 40]], "distance_m": 1.0,
+                                "sigma_m": 0.001}))
+    with pytest.raises(PinError, match="r09_c00"):
+        DistancePin.load(path, grid)
+    path.write_text(json.dumps({"view": "r01_c01", "frame": 2, "points_px": [[1, 2], [30, 40]], "distance_m": 1.5,
+                                "sigma_m": 0.002}))
+    pin = DistancePin.load(path, grid)
+    assert pin.view == 4 and pin.frame == 2 and pin.needs_images and pin.name == "distance distance.json"
+    calib_path = tmp_path / "calib.json"
+    truth.save(calib_path)  # no stored sigmas
+    with pytest.raises(PinError, match="calib.json: field metrics.sigmas is missing"):
+        ViewPin.from_file("r00_c01", calib_path, grid)
