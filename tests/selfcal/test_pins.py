@@ -172,3 +172,67 @@ def test_pins_are_validated(tmp_path, truth):
     truth.save(calib_path)  # no stored sigmas
     with pytest.raises(PinError, match="calib.json: field metrics.sigmas is missing"):
         ViewPin.from_file("r00_c01", calib_path, grid)
+
+
+FOLLOW_PX = 0.5  # a marked point followed into the other views lies this close to its true projection
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """The six rendered frames of test_selfcal's 2x2 array, written as a capture folder."""
+    from tests.selfcal.test_selfcal import SMALL, render_small
+
+    root = tmp_path_factory.mktemp("scenes")
+    return (*render_small(SMALL, root), root)
+
+
+@pytest.mark.slow
+def test_marked_points_are_followed_to_their_true_projections(rendered):
+    import cv2
+
+    from lfgraph.datasets.scene import SceneConfig, make_scene, render_scene_depth
+    from tests.selfcal.test_selfcal import BANDS_M
+
+    truth, frames, _ = rendered
+    f = 2  # as render_small drew it
+    near, far = BANDS_M[f % 3]
+    scene = make_scene(SceneConfig(depth_m=(near, far), background_depth_m=far * 1.4, objects=6),
+                       np.random.default_rng([11, f]))
+    depth = render_scene_depth(scene, truth.intrinsics[0], truth.image_size_px, truth.view_T_ref(0))
+    marks = cv2.goodFeaturesToTrack(frames[f][0], 40, 0.01, 10).reshape(-1, 2)
+    d = depth[np.rint(marks[:, 1]).astype(int), np.rint(marks[:, 0]).astype(int)]
+    from lfgraph.selfcal.pins import follow_marks
+
+    pixels, valid = follow_marks(frames[f], truth.grid, 0, marks)
+    xy = truth.intrinsics[0].undistort(marks)
+    points = np.column_stack([xy, np.ones(len(xy))]) * d[:, None]
+    true = np.stack([project_world(truth.intrinsics[v], truth.view_T_ref(v), points) for v in range(4)])
+    err = np.linalg.norm(pixels - true, axis=2)[:, valid.all(axis=0)]
+    assert valid.all(axis=0).mean() > 0.5
+    assert np.median(err) < FOLLOW_PX / 2 and np.mean(err < FOLLOW_PX) > 0.8  # depth edges aside
+
+
+@pytest.mark.slow
+def test_cli_takes_a_view_pin_and_refuses_another_cameras_writing_nothing(rendered, tmp_path, capsys):
+    from lfgraph.cli import main
+
+    truth, _, root = rendered
+    sigmas = [{"fx_px": 0.3, "fy_px": 0.3, "cx_px": 0.5, "cy_px": 0.5, "k1": 0.002, "k2": 0.005,
+               "rotation_deg": [0.01] * 3, "position_mm": [0.1] * 3}] * 4
+    truth.replace(metrics={"sigmas": sigmas}).save(tmp_path / "factory.json")
+    i = truth.intrinsics[1]
+    other = type(i)(i.fx * 1.1, i.fy * 1.1, i.cx, i.cy, i.k1)
+    truth.replace(intrinsics=(truth.intrinsics[0], other, *truth.intrinsics[2:]),
+                  metrics={"sigmas": sigmas}).save(tmp_path / "other.json")
+    args = ["calibrate-scene", str(root), "--grid", "2x2", "--pitch-mm", "30", "--focal-px", "280", "--quiet",
+            "--no-rectify"]
+    out, report = tmp_path / "c.json", tmp_path / "r.json"
+    assert main([*args, "--pin-view", f"r00_c01={tmp_path / 'other.json'}", "-o", str(out),
+                 "--report-json", str(report)]) == 1
+    assert "pin view r00_c01=other.json disagrees with the scene by" in capsys.readouterr().err
+    assert not out.exists() and not report.exists()
+    assert main([*args, "--pin-view", f"r00_c01={tmp_path / 'factory.json'}", "-o", str(out),
+                 "--report-json", str(report)]) == 0
+    doc = json.loads(report.read_text())
+    assert doc["pins"][0]["name"] == "view r00_c01=factory.json" and doc["zoom_from"] == "pin view r00_c01=factory.json"
+    assert Calibration.load(out).metrics["zoom_from"] == doc["zoom_from"]
