@@ -48,8 +48,7 @@ def _refine(args: argparse.Namespace) -> int:
 
     try:
         chosen = None if args.tracker == DEFAULT_TRACKER else tracker_by_name(args.tracker)
-        inner = chosen or tracker_by_name(DEFAULT_TRACKER)
-        tracker = chosen if args.outliers is None else OutlierTracker.parse(args.outliers, inner=inner,
+        tracker = chosen if args.outliers is None else OutlierTracker.parse(args.outliers, inner=chosen,
                                                                             seed=args.outliers_seed)
         config = RefineConfig(stages=args.stages, robust=args.robust, max_frames=args.max_frames,
                               target_rms_px=args.target_rms, triangulation_filter=args.triangulation_filter,
