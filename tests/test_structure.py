@@ -124,3 +124,32 @@ def test_tests_mirror_the_package():
     packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()} | {"benchmarks"}
     folders = {p.name for p in (ROOT / "tests").iterdir() if p.is_dir() and p.name not in ("data", "__pycache__")}
     assert folders <= packages, f"test folders naming no package: {sorted(folders - packages)}"
+
+
+MAX_FILES_NAMING_A_LENS = 3  # outside the lens package, interop (file formats name models) and cli (their flags)
+LENS_EDGES = ("lenses", "interop", "cli")
+
+
+def _names_a_lens(path: Path, names: set[str], identifiers: set[str]) -> bool:
+    """Whether the module names a lens model: its name or its GTSAM class as a string, an attribute (``gtsam.Cal3DS2``)
+    or one of the models' name constants (``RADTAN``)."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in names:
+            return True
+        if isinstance(node, ast.Attribute) and (node.attr in names or node.attr in identifiers):
+            return True
+        if isinstance(node, ast.Name | ast.alias) and getattr(node, "id", getattr(node, "name", None)) in identifiers:
+            return True
+    return False
+
+
+def test_a_lens_model_is_named_in_few_files():
+    """Adding a lens is one module in `lfgraph.lenses` and one registration line: the rest asks the registry. Only a
+    few places choose among models by name (the lens choice, a wide-board detector's rough fisheye, a named scene)."""
+    from lfgraph.lenses import lens_model, lens_names
+
+    names = set(lens_names()) | {lens_model(n).gtsam_name for n in lens_names()}
+    identifiers = {n.upper() for n in lens_names()}
+    naming = sorted(str(p.relative_to(ROOT)) for p in PACKAGE.rglob("*.py")
+                    if p.relative_to(PACKAGE).parts[0] not in LENS_EDGES and _names_a_lens(p, names, identifiers))
+    assert len(naming) <= MAX_FILES_NAMING_A_LENS, naming

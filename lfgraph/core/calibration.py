@@ -13,10 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from lfgraph.core.camera import DISTORTION_KEYS, LENSES, RADTAN, Intrinsics
+from lfgraph.core.camera import DISTORTION_KEYS, LENSES, Intrinsics
 from lfgraph.core.files import input_problem, write_text_atomic
 from lfgraph.core.geometry import invert_T, is_rotation, make_T
 from lfgraph.core.grid import ViewGrid, free_grid
+from lfgraph.lenses import DEFAULT_LENS
 
 FORMAT_NAME = "lfgraph.calibration"  # the file format's name (not a module path: files written since 0.1 carry it)
 FORMAT_VERSION = 1
@@ -331,7 +332,7 @@ class _Reader:
         K = self.matrix(self.get(view, "K", w), (3, 3), f"{w}.K")  # noqa: N806
         if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise self.fail(f"{w}.K", f"must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
-        lens = view.get("lens", RADTAN)
+        lens = view.get("lens", DEFAULT_LENS)
         if lens not in LENSES:
             raise self.fail(f"{w}.lens", f"must be one of {', '.join(LENSES)}, got {lens!r}")
         dist = self.get(view, "distortion", w)

@@ -19,7 +19,6 @@ import numpy as np
 
 from lfgraph.lenses import COEFFICIENTS, DEFAULT_LENS, lens_code, lens_model, lens_names
 
-RADTAN, FISHEYE, UNIFIED = "radtan", "fisheye", "unified"  # the built-in models' names (`lfgraph.lenses`)
 LENSES = lens_names()  # the models known at import (`lfgraph.lenses.lens_names` also sees later registrations)
 # the distortion keys of each model, as calibration.json stores them (OpenCV's names; Kalibr's xi for unified)
 DISTORTION_KEYS = {name: lens_model(name).coefficients for name in LENSES}
@@ -128,13 +127,12 @@ class Intrinsics:
         """fx, fy, cx, cy without distortion (a radtan lens with zero coefficients)."""
         return Intrinsics(self.fx, self.fy, self.cx, self.cy)
 
-    def to_gtsam(self) -> gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified:
-        """The GTSAM calibration of this lens (skew 0): ``Cal3DS2``, ``Cal3Fisheye`` or ``Cal3Unified``."""
+    def to_gtsam(self) -> gtsam.Cal3:
+        """The GTSAM calibration of this lens (skew 0), of its model's class (`LensModel.gtsam_name`)."""
         return self.model.to_gtsam(self)
 
     @classmethod
-    def from_gtsam(cls, cal: gtsam.Cal3DS2 | gtsam.Cal3Fisheye | gtsam.Cal3Unified,
-                   max_skew_px: float = 1e-12) -> Intrinsics:
+    def from_gtsam(cls, cal: gtsam.Cal3, max_skew_px: float = 1e-12) -> Intrinsics:
         """From a GTSAM calibration of a registered model; raises if its skew exceeds ``max_skew_px`` (these
         models have none; an optimiser that held it at 0 by a prior leaves round-off: pass that bound)."""
         if abs(cal.skew()) > max_skew_px:

@@ -14,12 +14,13 @@ import numpy as np
 from lfgraph.lenses import fisheye, radtan, unified
 from lfgraph.lenses.model import COEFFICIENTS, HEAD, LensModel
 
-__all__ = ["COEFFICIENTS", "DEFAULT_LENS", "HEAD", "LensModel", "lens_coefficient_jacobian", "lens_distort",
-           "lens_model", "lens_names", "register"]
+__all__ = ["COEFFICIENTS", "DEFAULT_LENS", "FISHEYE", "HEAD", "RADTAN", "UNIFIED", "LensModel",
+           "lens_coefficient_jacobian", "lens_distort", "lens_model", "lens_names", "register"]
 
 _BUILT_IN = (radtan.MODEL, fisheye.MODEL, unified.MODEL)  # one line per model, in code order (never reordered)
 _MODELS: dict[str, LensModel] = {}
 DEFAULT_LENS = radtan.MODEL.name  # a view whose lens is not said (files before lens models; Intrinsics(...))
+RADTAN, FISHEYE, UNIFIED = radtan.MODEL.name, fisheye.MODEL.name, unified.MODEL.name  # the built-in models' names
 
 
 def register(model: LensModel) -> None:

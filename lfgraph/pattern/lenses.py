@@ -12,11 +12,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
 from lfgraph.core.grid import ViewGrid
 from lfgraph.detect.detections import BoardObservations
-from lfgraph.lenses import lens_names
+from lfgraph.lenses import FISHEYE, RADTAN, UNIFIED, lens_model, lens_names
 from lfgraph.pattern.config import AUTO_LENS, CalibrateConfig, parse_lens_spec
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.pose_fit import board_pose
@@ -78,6 +78,12 @@ def _view_points(obs: BoardObservations, v: int, frames: Sequence[int]) -> tuple
     objs = [obj[obs.valid[v, f]].astype(np.float64) for f in frames]
     imgs = [obs.corners_px[v, f][obs.valid[v, f]].astype(np.float64) for f in frames]
     return objs, imgs
+
+
+def fitter_name(lens: str) -> str:
+    """What calibrates one view of model ``lens`` alone (`fit_mono`), for messages."""
+    return {"pinhole": "OpenCV's calibrateCamera", "fisheye": "OpenCV's fisheye.calibrate"}.get(
+        lens_model(lens).opencv, f"the {lens} one-view graph")
 
 
 def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | None = None,

@@ -13,7 +13,7 @@ import numpy as np
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T
 from lfgraph.detect.detections import MIN_CORNERS_PER_BOARD, BoardObservations
-from lfgraph.lenses import DEFAULT_LENS, lens_model
+from lfgraph.lenses import DEFAULT_LENS
 from lfgraph.pattern.initial import (
     MIN_FRAMES_PER_VIEW,
     CalibrationInputError,
@@ -24,7 +24,7 @@ from lfgraph.pattern.initial import (
     relative_poses,
     weak_views,
 )
-from lfgraph.pattern.lenses import FIT_ERRORS, MonoFit, fit_mono
+from lfgraph.pattern.lenses import FIT_ERRORS, MonoFit, fit_mono, fitter_name
 
 
 @dataclass(frozen=True)
@@ -94,9 +94,8 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
         try:
             fit = (mono or {}).get((int(v), lenses[v])) or fit_mono(obs, int(v), lenses[v])
         except FIT_ERRORS as exc:
-            what = {"pinhole": "OpenCV's calibrateCamera", "fisheye": "OpenCV's fisheye.calibrate"}.get(
-                lens_model(lenses[v]).opencv, f"the {lenses[v]} one-view graph")
-            raise CalibrationInputError(f"{obs.describe(v)}: {what} failed ({getattr(exc, 'err', exc)})") from None
+            raise CalibrationInputError(f"{obs.describe(v)}: {fitter_name(lenses[v])} failed "
+                                        f"({getattr(exc, 'err', exc)})") from None
         known[int(v)] = fit.intrinsics
         for f, pose in fit.view_T_board.items():
             view_T_board[v, f] = pose

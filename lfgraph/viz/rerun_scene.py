@@ -19,7 +19,7 @@ import numpy as np
 import rerun as rr
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.camera import RADTAN, Intrinsics, pinhole_to_view_px, view_to_pinhole_px
+from lfgraph.core.camera import Intrinsics, pinhole_to_view_px, view_to_pinhole_px
 from lfgraph.viz.blueprint import (
     CHANGE_ARROW_BASELINE_SHARE,
     CHANGE_COLOUR,
@@ -102,7 +102,7 @@ class SceneLog:
     def _shown_px(self, v: int, px: np.ndarray, intr: Intrinsics | None = None) -> np.ndarray:
         """(N, 2) pixels of view ``v`` where its 2-D view shows them (module docstring: a wide view's pinhole)."""
         intr = intr or (self._shown_lenses[v] if v < len(self._shown_lenses) else None)
-        if intr is None or intr.lens == RADTAN or len(px) == 0:
+        if intr is None or not intr.model.wide or len(px) == 0:
             return px
         return view_to_pinhole_px(px, intr.K, np.eye(3), intr)
 
@@ -135,7 +135,7 @@ class SceneLog:
 
     def _shown_image(self, v: int, image: np.ndarray) -> np.ndarray:
         """View ``v``'s image as its 2-D view shows it: a wide view's resampled into the pinhole of its K."""
-        if v >= len(self._shown_lenses) or self._shown_lenses[v].lens == RADTAN:
+        if v >= len(self._shown_lenses) or not self._shown_lenses[v].model.wide:
             return image
         intr, (h, w) = self._shown_lenses[v], image.shape[:2]
         cache = self._pinhole_maps

@@ -5,7 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lfgraph.core.camera import FISHEYE, RADTAN, UNIFIED, Intrinsics, undistort_views
+from lfgraph.core.camera import Intrinsics, undistort_views
+from lfgraph.lenses import FISHEYE, RADTAN, UNIFIED
 
 MATCH_PX = 1e-9  # our projection vs GTSAM's / OpenCV's, pixels (both double precision)
 ROUND_TRIP = 1e-10  # undistort(project(x)) - x, normalised units
