@@ -159,6 +159,13 @@ class ProjectionProblem:
             jp[:, :, 3:] = -jpc
         return e, jl, jp
 
+    def observation_jacobians(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+        """Per observation at ``state``, as `system` sums them: the whitened residual (M, 2) and its Jacobians by the
+        landmark (M, 2, 3) and by the view's pose (M, 2, 6; None with fixed poses), robust weights applied; None when a
+        landmark is behind a camera. (A posterior robust to errors correlated within a track needs each track's own
+        share of the camera gradient: `lfgraph.refinement.scatter`.)"""
+        return self._residuals(state, True)
+
     def error(self, state) -> float:
         """Cost at ``state``: the observations' noise-model error plus the other factors' GTSAM error; inf when a
         landmark is behind a camera."""
