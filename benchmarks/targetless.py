@@ -29,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 import targetless_data as data  # noqa: E402
+import targetless_pins as pinning  # noqa: E402
 
 from lfgraph.cli.tables import format_table  # noqa: E402
 from lfgraph.core.calibration import Calibration  # noqa: E402
@@ -41,9 +42,11 @@ from lfgraph.selfcal import (  # noqa: E402
     SelfCalConfig,
     SelfCalibrationError,
     calibrate_tracks,
+    pin_scene,
     pool_tracks,
 )  # noqa: E402
 from lfgraph.selfcal.defaults import TRACKS_PER_FRAME  # noqa: E402
+from lfgraph.selfcal.pinned import PinRefused  # noqa: E402
 from lfgraph.selfcal.retrack import Patches  # noqa: E402
 
 CORNER_SIGMA_PX = 0.1  # the checkerboard peer's corner noise (a good detector on sharp images)
@@ -161,6 +164,55 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
     return errors(calib, truth)
 
 
+PIN_KINDS = ("board", "distance")
+PIN_SEEDS = 3
+HONEST_Z = (0.5, 2.0)  # the pinned zoom's error / sigma, RMS over seeds, should lie in this range
+
+
+def zoom_px(calib: Calibration) -> float:
+    """The common zoom: the mean of every view's fx and fy."""
+    return float(np.mean([[i.fx, i.fy] for i in calib.intrinsics]))
+
+
+def pinned(rig: str, frames: int, truth: Calibration, design: Design, report, config: SelfCalConfig, seeds: int,
+           rig_seed: int) -> tuple[list[list], list[str], dict]:
+    """Each pin kind added to the unpinned fit ``report`` for ``seeds`` pin seeds (`targetless_pins`): rows of the
+    worst fx error over seeds, the zoom's error and sigma (%) and error / sigma; then a distance 5 % wrong, which
+    must be refused. Returns (rows, failures, the worst fx error per kind)."""
+    rows, failures, worst = [], [], {}
+    true_zoom = zoom_px(truth)
+    for kind in PIN_KINDS:
+        fx, z, sig = [], [], []
+        for s in range(seeds):
+            pin = pinning.board_pin(rig, truth, s) if kind == "board" else \
+                pinning.distance_pin(rig, truth, frames, rig_seed, s)
+            try:
+                est, rep = pin_scene(report, design, [pin], config)
+            except PinRefused as exc:
+                failures.append(f"{rig}, {frames} frames: a right {kind} pin refused: {exc}")
+                continue
+            fx.append(errors(est, truth)["fx_px"])
+            sig.append(rep.modes[0].posterior_sigma)
+            z.append((zoom_px(est) - true_zoom) / sig[-1])
+            print(f"{rig} {frames} frames, {pin.name}: " + rep.pins[0].text(), flush=True)
+        if not fx:
+            continue
+        worst[kind] = max(fx)
+        z_rms = float(np.sqrt(np.mean(np.square(z))))
+        rows.append(["", frames, f"+ {kind} pin (worst of {len(fx)})", f"{max(fx):.4g}",
+                     f"{100 * max(np.abs(np.array(z) * sig)) / true_zoom:.3g}", f"{100 * max(sig) / true_zoom:.3g}",
+                     f"{min(np.abs(z)):.2f}-{max(np.abs(z)):.2f} (rms {z_rms:.2f})"])
+    wrong = pinning.distance_pin(rig, truth, frames, rig_seed, 0, error=pinning.MISMEASURED)
+    try:
+        pin_scene(report, design, [wrong], config)
+        rows.append(["", frames, "distance 5 % wrong", "ACCEPTED", "", "", ""])
+        failures.append(f"{rig}, {frames} frames: a distance {100 * pinning.MISMEASURED:g} % wrong was accepted")
+    except PinRefused as exc:
+        print(f"{rig} {frames} frames: refused as it should: {exc}", flush=True)
+        rows.append(["", frames, "distance 5 % wrong", "refused", "", "", ""])
+    return rows, failures, worst
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rigs", nargs="+", default=["paper-4x4", "paper-5x5"], choices=data.RIGS)
@@ -171,13 +223,15 @@ def main() -> int:
     parser.add_argument("--one-stage", action="store_true",
                         help="free everything at once from the design values (to measure what the stages buy)")
     parser.add_argument("--no-peer", action="store_true", help="skip the checkerboard calibration")
+    parser.add_argument("--pin-seeds", type=int, default=PIN_SEEDS,
+                        help="pin seeds per pin kind (one board frame, one known distance); 0: no pinned rows")
     parser.add_argument("--no-retrack", action="store_true",
                         help="keep the chain KLT tracks (no re-tracking with the calibrated local maps)")
     args = parser.parse_args()
     config = SelfCalConfig(tracks_per_frame=args.tracks_per_frame, retrack=not args.no_retrack)
     if args.one_stage:
         config = dataclasses.replace(config, stages=(config.stages[-1],))
-    rows, failures, z_rows, g_rows = [], [], [], []
+    rows, failures, z_rows, g_rows, pin_rows = [], [], [], [], []
     for rig in args.rigs:
         truth = data.truth_rig(rig, args.seed)
         design = design_of(rig)
@@ -209,6 +263,15 @@ def main() -> int:
                         + ["", ""])
             ratios = {m: mine[m] / board[m] for m in METRICS}
             rows.append(["", frames, "ratio"] + [f"{ratios[m]:.2g}" for m in METRICS] + ["", ""])
+            if args.pin_seeds:
+                more, missed, worst = pinned(rig, frames, truth, design, report, config, args.pin_seeds, args.seed)
+                pin_rows += [[rig, frames, "self-cal, no pin", f"{mine['fx_px']:.4g}",
+                              f"{100 * abs(zoom_px(est) - zoom_px(truth)) / zoom_px(truth):.3g}",
+                              f"{100 * report.modes[0].posterior_sigma / zoom_px(truth):.3g}", ""],
+                             ["", frames, f"checkerboard {frames} boards", f"{board['fx_px']:.4g}", "", "", ""],
+                             *more]
+                failures += missed + [f"{rig}, {frames} frames: fx with one {k} pin {v / board['fx_px']:.2g}x the "
+                                      "checkerboard's" for k, v in worst.items() if v > TARGET_RATIO * board["fx_px"]]
             if frames == TARGET_FRAMES:
                 missed = [m for m in METRICS if ratios[m] > TARGET_RATIO]
                 if missed:
@@ -224,6 +287,12 @@ def main() -> int:
     print("the self-calibration's errors split into the near-gauges (common zoom; common principal-point shift and "
           "slope per grid step) and the rest, px")
     print(format_table(["rig", "frames", *GAUGE_PARTS], g_rows))
+    if pin_rows:
+        print("pins (one board frame; one distance of ~1 m known to 1 mm): the absolute fx error (RMS over views, "
+              "worst "
+              "over pin seeds), the common zoom's error and posterior sigma (%, worst) and error / sigma over seeds")
+        print(format_table(["rig", "frames", "method", "fx px", "zoom error %", "zoom sigma %", "error / sigma"],
+                           pin_rows))
     print("targets missed: " + ("; ".join(failures) if failures else "none"))
     return 1 if failures else 0
 

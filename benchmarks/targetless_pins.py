@@ -1,0 +1,98 @@
+"""The pins of `benchmarks/targetless.py`: one board frame, or one known distance, added to a self-calibration.
+
+- Board: one frame of the rig's checkerboard (the peer's board) at a random place in the reference view, tilted by
+  at least `MIN_TILT_DEG` (a board facing the array squarely sees the scale, which the pitch fixes, not the zoom),
+  corners = true projections + `CORNER_SIGMA_PX` Gaussian noise, seen by every view that sees it whole; its corner
+  noise is left for the pin to measure.
+- Distance: two points marked in the reference view of one rendered frame (Shi–Tomasi corners on flat texture, the
+  pair about `DISTANCE_M` apart with the most depth between them, among the marks the KLT follows into every view),
+  their true positions from the exact depth of the rendered scene, their distance measured with a 1-sigma of
+  `SIGMA_PER_M` per metre; the marks are followed into the other views by `DistancePin.followed` as
+  `calibrate_scene` does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import targetless_data as data
+
+from lfgraph.core.calibration import Calibration
+from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
+from lfgraph.datasets.scene import make_scene, render_scene_depth
+from lfgraph.io.capture import open_capture
+from lfgraph.selfcal import BoardPin, DistancePin
+from lfgraph.selfcal.pins import follow_marks
+
+CORNER_SIGMA_PX = 0.1  # the pin board's corner noise (as the checkerboard peer's)
+MIN_TILT_DEG = 30.0  # the pin board is held at least this tilted to the reference view
+MAX_TILT_DEG = 50.0
+DISTANCE_M = 1.0  # the known distance: about 1 m ...
+SIGMA_PER_M = 1e-3  # ... measured to 1 mm per metre (1 sigma)
+MISMEASURED = 0.05  # the refusal case: a distance 5 % wrong
+FLAT_WINDOW_PX = 9  # a marked point's depth varies by less than FLAT_DEPTH of itself over this window
+FLAT_DEPTH = 0.01
+MARK_CANDIDATES = 400
+
+
+def tilt_deg(ref_T_board: np.ndarray) -> float:  # noqa: N803
+    """Angle between the board's normal and the reference view's optical axis."""
+    return float(np.degrees(np.arccos(min(1.0, abs(ref_T_board[2, 2])))))
+
+
+def board_pin(rig: str, truth: Calibration, seed: int) -> BoardPin:
+    """One tilted board frame of the rig's checkerboard (seeded)."""
+    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=1, max_tilt_deg=MAX_TILT_DEG)
+    for attempt in range(200):
+        board = make_checkerboard_truth(truth, cfg, np.random.default_rng([seed, 43, attempt]))
+        if tilt_deg(board.ref_T_board[0]) >= MIN_TILT_DEG and board.board_visible[:, 0].sum() >= 1:
+            break
+    corners, valid = make_corner_observations(board, CORNER_SIGMA_PX, np.random.default_rng([seed, 47]))
+    return BoardPin(corners, valid, cfg.board.object_points(),
+                    name=f"1 board frame (tilt {tilt_deg(board.ref_T_board[0]):.0f} deg, seed {seed})")
+
+
+def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """Shi–Tomasi corners of the reference image on flat surfaces and their true 3-D points (reference frame)."""
+    feats = cv2.goodFeaturesToTrack(image, MARK_CANDIDATES, 0.01, 8).reshape(-1, 2)
+    r = FLAT_WINDOW_PX // 2
+    h, w = depth.shape
+    ok = []
+    for u, v in np.rint(feats).astype(int):
+        win = depth[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1]
+        ok.append(u >= r and v >= r and u < w - r and v < h - r and np.all(np.isfinite(win))
+                  and np.ptp(win) < FLAT_DEPTH * np.nanmedian(win))
+    feats = feats[np.array(ok, dtype=bool)]
+    inv = cv2.remap((1.0 / depth).astype(np.float32), feats[:, 0].astype(np.float32),
+                    feats[:, 1].astype(np.float32), cv2.INTER_LINEAR).ravel()  # inverse depth is linear on a plane
+    ref = truth.grid.reference
+    xy = truth.intrinsics[ref].undistort(feats)
+    return feats, np.column_stack([xy, np.ones(len(xy))]) / inv[:, None]
+
+
+def distance_pin(rig: str, truth: Calibration, frames: int, rig_seed: int, seed: int,
+                 error: float = 0.0) -> DistancePin:
+    """Two marked points about `DISTANCE_M` apart in one frame, their distance measured (``error``: relative
+    mistake added), followed into every view."""
+    rng = np.random.default_rng([seed, 53])
+    root = data.dataset_dir(rig, rig_seed)
+    frame = int(rng.integers(frames))
+    scene = make_scene(data.frame_scene_config(rig, frame), np.random.default_rng([rig_seed, 23, frame]))
+    ref = truth.grid.reference
+    depth = render_scene_depth(scene, truth.intrinsics[ref], truth.image_size_px, truth.view_T_ref(ref))
+    images = open_capture(root, truth.grid).load_frame(frame)
+    feats, points = _marks(images[ref], depth, truth)
+    seen = follow_marks(images, truth.grid, ref, feats)[1].all(axis=0)  # marks every view sees (not occluded)
+    feats, points = feats[seen], points[seen]
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    dz = np.abs(points[:, None, 2] - points[None, :, 2])
+    score = np.where(np.abs(d / DISTANCE_M - 1.0) < 0.2, dz / np.maximum(d, 1e-9), -np.abs(d - DISTANCE_M))
+    a, b = np.unravel_index(int(np.argmax(np.triu(score, 1) + np.tril(np.full_like(score, -np.inf)))), d.shape)
+    true_m = float(d[a, b])
+    sigma = SIGMA_PER_M * true_m
+    measured = true_m * (1.0 + error) + (sigma * float(rng.standard_normal()) if error == 0.0 else 0.0)
+    pin = DistancePin(measured, sigma, view=ref, frame=frame, marked_px=feats[[a, b]],
+                      name=f"distance {true_m:.3f} m{f' {100 * error:+.0f} %' if error else ''} (seed {seed})")
+    return pin.followed(images, truth.grid)
