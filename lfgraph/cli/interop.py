@@ -17,10 +17,11 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from lfgraph.cli.args import EXIT_OK, check_output_file, grid_size, view_index
+from lfgraph.cli.args import EXIT_OK, UsageError, check_output_file, grid_size, view_index
 
-# the format names as lfgraph.interop defines them (tests/interop/test_interop.py checks they agree), here so that
-# building the parser does not import the format modules (OpenCV, GTSAM)
+# the built-in formats as lfgraph.interop registers them (tests/interop/test_interop.py checks they agree), for the
+# help text without importing the format modules (OpenCV, GTSAM) to build the parser; a name is checked against the
+# registry when the command runs (`lfgraph.interop.register_format` adds one)
 EXPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "ros", "mrcal")
 IMPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "middlebury", "hci")
 
@@ -28,9 +29,11 @@ IMPORT_FORMATS = ("opencv-yaml", "kalibr", "colmap", "json", "middlebury", "hci"
 def cmd_export(args: argparse.Namespace) -> int:
     """Read ``args.calibration`` (calibration.json) and write it as ``args.fmt`` to ``args.output``."""
     from lfgraph.core.calibration import Calibration
-    from lfgraph.interop import FILE_FORMATS, export_calibration
+    from lfgraph.interop import export_calibration, export_formats, file_format
 
-    check_output_file(args.output, (args.calibration,), is_folder=args.fmt not in FILE_FORMATS)
+    if args.fmt not in export_formats():
+        raise UsageError(f"--to: unknown export format {args.fmt!r}; valid formats: {', '.join(export_formats())}")
+    check_output_file(args.output, (args.calibration,), is_folder=not file_format(args.fmt).one_file)
     calib = Calibration.load(args.calibration)
     out = export_calibration(calib, args.fmt, args.output)
     print(f"wrote {out} ({args.fmt}: {calib.num_views} views, {calib.grid} grid, reference view "
@@ -46,8 +49,10 @@ def cmd_import(args: argparse.Namespace) -> int:
             or cannot be written (`check_output`), or a bad input file (the message names the file and the key).
     """
     from lfgraph.core.grid import ViewGrid
-    from lfgraph.interop import import_calibration, input_paths
+    from lfgraph.interop import import_calibration, import_formats, input_paths
 
+    if args.fmt not in import_formats():
+        raise UsageError(f"--from: unknown import format {args.fmt!r}; valid formats: {', '.join(import_formats())}")
     check_output_file(args.output, input_paths(args.source, args.fmt), is_folder=False)
     grid: Any = args.grid
     if args.reference is not None:
@@ -70,7 +75,8 @@ def add_parsers(sub: Any) -> None:
                                     "of ROS camera_info YAML files or a folder of mrcal .cameramodel files (one per "
                                     "view).")
     ex.add_argument("calibration", type=Path, metavar="CALIB.json", help="lfgraph calibration.json")
-    ex.add_argument("--to", dest="fmt", required=True, choices=EXPORT_FORMATS, help="output format")
+    ex.add_argument("--to", dest="fmt", required=True, metavar="FORMAT",
+                    help=f"output format: {', '.join(EXPORT_FORMATS)} (or one registered from Python)")
     ex.add_argument("-o", "--output", type=Path, required=True, metavar="PATH",
                     help="output file (a folder for colmap, ros and mrcal)")
     ex.set_defaults(func=cmd_export)
@@ -81,7 +87,8 @@ def add_parsers(sub: Any) -> None:
                                     "parameters.cfg and save it as calibration.json.")
     im.add_argument("source", type=Path, metavar="PATH",
                     help="input file (colmap: the model folder; middlebury, hci: the file or its scene folder)")
-    im.add_argument("--from", dest="fmt", required=True, choices=IMPORT_FORMATS, help="input format")
+    im.add_argument("--from", dest="fmt", required=True, metavar="FORMAT",
+                    help=f"input format: {', '.join(IMPORT_FORMATS)} (or one registered from Python)")
     im.add_argument("--grid", type=grid_size, metavar="RxC",
                     help="view grid ROWSxCOLS, views row-major; required for kalibr (and colmap models not written "
                          "by lfgraph), otherwise checked against the file")

@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from lfgraph.core.camera import DISTORTION_KEYS, LENSES, Intrinsics
+from lfgraph.core.camera import Intrinsics
 from lfgraph.core.files import input_problem, write_text_atomic
 from lfgraph.core.geometry import invert_T, is_rotation, make_T
 from lfgraph.core.grid import ViewGrid, free_grid
-from lfgraph.lenses import DEFAULT_LENS
+from lfgraph.lenses import DEFAULT_LENS, lens_model, lens_names
 
 FORMAT_NAME = "lfgraph.calibration"  # the file format's name (not a module path: files written since 0.1 carry it)
 FORMAT_VERSION = 1
@@ -333,14 +333,14 @@ class _Reader:
         if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise self.fail(f"{w}.K", f"must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
         lens = view.get("lens", DEFAULT_LENS)
-        if lens not in LENSES:
-            raise self.fail(f"{w}.lens", f"must be one of {', '.join(LENSES)}, got {lens!r}")
+        if not isinstance(lens, str) or lens not in lens_names():  # the registry now: a model registered later too
+            raise self.fail(f"{w}.lens", f"must be one of {', '.join(lens_names())}, got {lens!r}")
+        keys = lens_model(lens).coefficients
         dist = self.get(view, "distortion", w)
-        coeffs = {k: self.number(self.get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}")
-                  for k in DISTORTION_KEYS[lens]}
-        extra = sorted(set(dist) - set(DISTORTION_KEYS[lens]))
+        coeffs = {k: self.number(self.get(dist, k, f"{w}.distortion"), f"{w}.distortion.{k}") for k in keys}
+        extra = sorted(set(dist) - set(keys))
         if extra:
-            raise self.fail(f"{w}.distortion", f"a {lens} lens has {', '.join(DISTORTION_KEYS[lens])}, not "
+            raise self.fail(f"{w}.distortion", f"a {lens} lens has {', '.join(keys)}, not "
                                                f"{', '.join(map(str, extra))}")
         try:
             intrinsics = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], **coeffs, lens=lens)

@@ -22,23 +22,40 @@ GAUGE_SIGMA = 1e-8  # rad and m: the reference view's pose is the identity by de
 # Cal3DS2 tangent order (its vector()): fx, fy, s, u0, v0, k1, k2, p1, p2
 CAL3DS2_FIELDS = ("fx", "fy", "s", "cx", "cy", "k1", "k2", "p1", "p2")
 
-_KERNELS: dict[str, Callable[[float], object]] = {
-    "huber": gtsam.noiseModel.mEstimator.Huber.Create,
-    "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
-    "tukey": gtsam.noiseModel.mEstimator.Tukey.Create,
-    "gm": gtsam.noiseModel.mEstimator.GemanMcClure.Create,
-    "gemanmcclure": gtsam.noiseModel.mEstimator.GemanMcClure.Create,
-    "dcs": gtsam.noiseModel.mEstimator.DCS.Create,
-    "welsch": gtsam.noiseModel.mEstimator.Welsch.Create,
-    "fair": gtsam.noiseModel.mEstimator.Fair.Create,
-}
+# name -> (GTSAM M-estimator from a threshold in whitened units, the usual threshold in measurement sigmas)
+_KERNELS: dict[str, tuple[Callable[[float], gtsam.noiseModel.mEstimator.Base], float]] = {}
+DEFAULT_THRESHOLDS: dict[str, float] = {}  # the usual thresholds by name (as registered)
+
+
+def register_kernel(name: str, create: Callable[[float], gtsam.noiseModel.mEstimator.Base], usual: float) -> None:
+    """Make a robust kernel known by ``name`` (a new name, lower case) to `RobustKernel` and every ``--robust``:
+    ``create(threshold)`` builds GTSAM's M-estimator for a threshold in whitened units (measurement sigmas), and
+    ``usual`` is the threshold a bare name takes."""
+    if not isinstance(name, str) or name != name.strip().lower() or name in ("", "none") or name in _KERNELS:
+        raise ValueError(f"a robust kernel needs a new lower-case name, got {name!r}")
+    if not usual > 0:
+        raise ValueError(f"robust kernel {name}: the usual threshold must be positive, got {usual!r}")
+    _KERNELS[name] = (create, float(usual))
+    DEFAULT_THRESHOLDS[name] = float(usual)
+
+
+def kernel_names() -> tuple[str, ...]:
+    """``none`` and every registered kernel's name."""
+    return ("none", *_KERNELS)
+
+
 # the usual tuning constants, in measurement sigmas: 95 % efficiency on Gaussian noise (GTSAM's default Cauchy is 0.1;
 # Geman–McClure's and DCS's 1.0 had 44 % and 64 %: their constants here are computed from GTSAM's own weights in
 # tests/engine/test_bulk_noise.py). A DCS threshold is a distance as every other: GTSAM's parameter is its square.
-DEFAULT_THRESHOLDS = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685, "gm": 3.787, "gemanmcclure": 3.787, "dcs": 1.898,
-                      "welsch": 2.985, "fair": 1.3998}
+_M = gtsam.noiseModel.mEstimator
+for _name, _create, _usual in (("huber", _M.Huber.Create, 1.345), ("cauchy", _M.Cauchy.Create, 2.385),  # one line each
+                               ("tukey", _M.Tukey.Create, 4.685), ("gm", _M.GemanMcClure.Create, 3.787),
+                               ("gemanmcclure", _M.GemanMcClure.Create, 3.787),
+                               ("dcs", lambda t: _M.DCS.Create(t * t), 1.898),
+                               ("welsch", _M.Welsch.Create, 2.985), ("fair", _M.Fair.Create, 1.3998)):
+    register_kernel(_name, _create, _usual)
 KERNEL_UNITS = ("px", "sigma")
-KERNEL_NAMES = ("none", *_KERNELS)
+KERNEL_NAMES = kernel_names()  # the built-in ones (`kernel_names` also sees later registrations)
 # thresholds outside this make every residual an outlier or none (GTSAM's solve then becomes indeterminate)
 KERNEL_THRESHOLD_RANGE = (1e-3, 1e3)
 
@@ -125,8 +142,8 @@ class RobustKernel:
         if not isinstance(self.name, str):
             raise TypeError(f"RobustKernel name must be a string such as 'huber', got {type(self.name).__name__}")
         name = self.name.strip().lower()
-        if name not in KERNEL_NAMES:
-            raise ValueError(f"unknown robust kernel {self.name!r}; choose from {', '.join(KERNEL_NAMES)} "
+        if name not in kernel_names():
+            raise ValueError(f"unknown robust kernel {self.name!r}; choose from {', '.join(kernel_names())} "
                              f"(optionally NAME:THRESHOLD in px, or NAME:THRESHOLDsigma, e.g. huber:0.5)")
         if self.unit not in KERNEL_UNITS:
             raise ValueError(f"RobustKernel unit must be one of {', '.join(KERNEL_UNITS)}, got {self.unit!r}")
@@ -183,7 +200,7 @@ class RobustKernel:
         if self.name == "none":
             return None
         threshold = self.sigmas(sigma_px)
-        return _KERNELS[self.name](threshold * threshold if self.name == "dcs" else threshold)
+        return _KERNELS[self.name][0](threshold)
 
     def __str__(self) -> str:
         if self.threshold is None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,38 +40,83 @@ __all__ = [
     "COLMAP_PIXEL_OFFSET_PX",
     "EXPORT_FORMATS",
     "IMPORT_FORMATS",
+    "FileFormat",
     "KALIBR_DISTORTION_MODELS",
     "MAX_IMPORT_VIEWS",
     "MM_PER_M",
     "FILE_FORMATS",
     "RECTIFICATION_FORMATS",
     "export_calibration",
+    "export_formats",
+    "file_format",
     "import_calibration",
+    "import_formats",
     "input_paths",
+    "register_format",
 ]
 
-_WRITERS: dict[str, Callable[[Calibration, Path], None]] = {
-    "opencv-yaml": opencv_yaml.write,
-    "kalibr": kalibr.write,
-    "colmap": colmap.write,
-    "json": json_format.write,
-    "ros": ros.write,
-    "mrcal": mrcal.write,
-}
-_READERS: dict[str, Callable[[Path, GridLike], Calibration]] = {
-    "opencv-yaml": opencv_yaml.read,
-    "kalibr": kalibr.read,
-    "colmap": colmap.read,
-    "json": json_format.read,
-    "middlebury": middlebury.read,
-    "hci": hci.read,
-}
-EXPORT_FORMATS: tuple[str, ...] = tuple(_WRITERS)
-IMPORT_FORMATS: tuple[str, ...] = tuple(_READERS)
-FILE_FORMATS: tuple[str, ...] = ("opencv-yaml", "kalibr", "json")  # exports that write one file (colmap: a folder)
-# exports that write a stored rectification (ros: as each camera_info's R and P, not read back); the others have no
-# place for one, and an export to them says so
-RECTIFICATION_FORMATS: tuple[str, ...] = ("opencv-yaml", "json", "ros")
+@dataclass(frozen=True)
+class FileFormat:
+    """One format: its name, its writer ``write(calib, path)`` and reader ``read(path, grid) -> Calibration`` (either
+    may be None: export-only or import-only), whether an export is one file (else a folder), whether it keeps a
+    stored rectification, and ``inputs(path)``: every path an import of ``path`` reads (None: ``path`` alone)."""
+
+    name: str
+    write: Callable[[Calibration, Path], None] | None = None
+    read: Callable[[Path, GridLike], Calibration] | None = None
+    one_file: bool = True
+    rectification: bool = False
+    inputs: Callable[[Path], tuple[Path, ...]] | None = None
+
+
+_FORMATS: dict[str, FileFormat] = {}
+
+
+def register_format(fmt: FileFormat) -> None:
+    """Make a format known to `export_calibration`, `import_calibration` and ``lfgraph export/import`` by its name (a
+    new name only)."""
+    if fmt.name in _FORMATS:
+        raise ValueError(f"a format named {fmt.name!r} is registered already")
+    if fmt.write is None and fmt.read is None:
+        raise ValueError(f"format {fmt.name!r}: give a writer, a reader or both")
+    _FORMATS[fmt.name] = fmt
+
+
+for _fmt in (FileFormat("opencv-yaml", opencv_yaml.write, opencv_yaml.read, rectification=True),  # one line each
+             FileFormat("kalibr", kalibr.write, kalibr.read),
+             FileFormat("colmap", colmap.write, colmap.read, one_file=False,
+                        inputs=lambda p: (p, *(p / name for name in sorted(COLMAP_MODEL_FILES)))),
+             FileFormat("json", json_format.write, json_format.read, rectification=True),
+             # ros: a stored rectification as each camera_info's R and P (not read back)
+             FileFormat("ros", ros.write, None, one_file=False, rectification=True),
+             FileFormat("mrcal", mrcal.write, None, one_file=False),
+             FileFormat("middlebury", None, middlebury.read,
+                        inputs=lambda p: tuple(dict.fromkeys((p, in_folder(p, middlebury.CALIB_FILE))))),
+             FileFormat("hci", None, hci.read,
+                        inputs=lambda p: tuple(dict.fromkeys((p, in_folder(p, hci.PARAMETERS_FILE)))))):
+    register_format(_fmt)
+
+
+def export_formats() -> tuple[str, ...]:
+    """The names of every registered format that can be written."""
+    return tuple(name for name, f in _FORMATS.items() if f.write is not None)
+
+
+def import_formats() -> tuple[str, ...]:
+    """The names of every registered format that can be read."""
+    return tuple(name for name, f in _FORMATS.items() if f.read is not None)
+
+
+def file_format(name: str) -> FileFormat | None:
+    """The registered format called ``name`` (None: unknown)."""
+    return _FORMATS.get(name)
+
+
+EXPORT_FORMATS: tuple[str, ...] = export_formats()  # the built-in ones (`export_formats` also sees registrations)
+IMPORT_FORMATS: tuple[str, ...] = import_formats()
+FILE_FORMATS: tuple[str, ...] = tuple(n for n in EXPORT_FORMATS if _FORMATS[n].one_file)  # colmap, ros, mrcal: folders
+# exports that write a stored rectification; the others have no place for one, and an export to them says so
+RECTIFICATION_FORMATS: tuple[str, ...] = tuple(n for n in EXPORT_FORMATS if _FORMATS[n].rectification)
 
 
 def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
@@ -91,16 +137,16 @@ def export_calibration(calib: Calibration, fmt: str, path: PathLike) -> Path:
             that holds other files, or a calibration that contradicts its grid (its import would be refused).
         OSError: the output cannot be written.
     """
-    writer = _WRITERS.get(fmt)
-    if writer is None:
-        raise ValueError(f"unknown export format {fmt!r}; valid formats: {', '.join(EXPORT_FORMATS)}")
+    spec = _FORMATS.get(fmt)
+    if spec is None or spec.write is None:
+        raise ValueError(f"unknown export format {fmt!r}; valid formats: {', '.join(export_formats())}")
     out = Path(path)
     errors, _ = grid_problems(calib.grid, calib.ref_T_view, strict=True)  # what an import of it would refuse
     if errors:
         raise ValueError(f"{out}: not written: the calibration contradicts its grid, and its import would be "
                          f"refused: {'; '.join(errors)}")
-    writer(calib, out)
-    if calib.rectification is not None and fmt not in RECTIFICATION_FORMATS:
+    spec.write(calib, out)
+    if calib.rectification is not None and not spec.rectification:
         logging.getLogger("lfgraph").warning(
             "%s: %s has no place for a rectification: the stored one is not written (an import of this file has "
             "none; `lfgraph rectify` computes it again; opencv-yaml and json keep it)", out, fmt)
@@ -128,10 +174,10 @@ def import_calibration(path: PathLike, fmt: str, grid: GridLike = None) -> Calib
             whose shape or view count does not match the file, more than `MAX_IMPORT_VIEWS` views, a rectification
             that is incomplete or does not rectify the file's calibration (``opencv-yaml``).
     """
-    reader = _READERS.get(fmt)
-    if reader is None:
-        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
-    calib = reader(Path(path), grid)
+    spec = _FORMATS.get(fmt)
+    if spec is None or spec.read is None:
+        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(import_formats())}")
+    calib = spec.read(Path(path), grid)
     errors, _ = grid_problems(calib.grid, calib.ref_T_view, strict=True)  # the file's poses against its grid
     if errors:
         raise fail(path, "grid", "; ".join(errors))
@@ -159,13 +205,7 @@ def input_paths(path: PathLike, fmt: str) -> tuple[Path, ...]:
     Raises:
         ValueError: unknown format.
     """
-    if fmt not in _READERS:
-        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(IMPORT_FORMATS)}")
-    source = Path(path)
-    if fmt == "colmap":
-        return (source, *(source / name for name in sorted(COLMAP_MODEL_FILES)))
-    if fmt == "middlebury":
-        return tuple(dict.fromkeys((source, in_folder(source, middlebury.CALIB_FILE))))
-    if fmt == "hci":
-        return tuple(dict.fromkeys((source, in_folder(source, hci.PARAMETERS_FILE))))
-    return (source,)
+    spec = _FORMATS.get(fmt)
+    if spec is None or spec.read is None:
+        raise ValueError(f"unknown import format {fmt!r}; valid formats: {', '.join(import_formats())}")
+    return (Path(path),) if spec.inputs is None else spec.inputs(Path(path))

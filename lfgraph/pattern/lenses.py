@@ -96,23 +96,24 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
             decide what that means; `FIT_ERRORS` holds both).
     """
     frames = [int(f) for f in (np.nonzero(obs.seen[v])[0] if frames is None else frames)]
-    if lens == UNIFIED:
+    opencv = lens_model(lens).opencv  # what fits it alone: OpenCV's pinhole or fisheye calibration, else a graph
+    if opencv is None:
         return _fit_unified(obs, v, frames, guess)
     objs, imgs = _view_points(obs, v, frames)
     size = obs.size_of(v)
     use_guess = guess is not None and guess.lens == lens
-    if lens == FISHEYE:
+    if opencv == "fisheye":
         _, K, D, rvecs, tvecs = cv2.fisheye.calibrate(  # noqa: N806
             [o.reshape(1, -1, 3) for o in objs], [i.reshape(1, -1, 2) for i in imgs], size,
             guess.K if use_guess else None, guess.dist_cv.copy() if use_guess else None,
             flags=FISHEYE_FLAGS | (cv2.CALIB_USE_INTRINSIC_GUESS if use_guess else 0), criteria=FISHEYE_CRITERIA)
-        intr = Intrinsics.from_opencv(K, D.ravel(), lens=FISHEYE)
+        intr = Intrinsics.from_opencv(K, D.ravel(), lens=lens)
     else:
         _, K, dist, rvecs, tvecs = cv2.calibrateCamera(  # noqa: N806
             [o.astype(np.float32) for o in objs], [i.astype(np.float32) for i in imgs], size,
             guess.K if use_guess else None, guess.dist_cv.copy() if use_guess else None,
             flags=MONO_FLAGS | (cv2.CALIB_USE_INTRINSIC_GUESS if use_guess else 0))
-        intr = Intrinsics.from_opencv(K, np.concatenate([dist.ravel()[:4], [0.0]]))
+        intr = Intrinsics.from_opencv(K, np.concatenate([dist.ravel()[:4], [0.0]]), lens=lens)
     poses = {f: make_T(rotation_from_rotvec(np.ravel(r)), np.ravel(t)) for f, r, t in zip(frames, rvecs, tvecs,
                                                                                             strict=True)}
     sq = [np.sum((intr.project(o @ T[:3, :3].T + T[:3, 3]) - i) ** 2, axis=1) for o, i, T in

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from lfgraph.cli import main as cli_main
+from lfgraph.cli.args import UsageError
 from lfgraph.cli.interop import add_parsers
 from lfgraph.core.calibration import Calibration, CalibrationFileError
 from lfgraph.core.geometry import invert_T, make_T
@@ -653,9 +654,13 @@ def test_cli_errors(tmp_path, calib):
     with pytest.raises(ValueError, match=r"missing\.json: file: does not exist"):
         args.func(args)
     assert not (tmp_path / "o.json").exists() and not (tmp_path / "o").exists()
-    for argv in (["export", "in.json", "--to", "middlebury", "-o", "x"],
-                 ["import", "x", "--from", "bogus", "-o", "y"],
-                 ["import", "x", "--from", "json", "--grid", "2by3", "-o", "y"],
+    for argv, message in ((["export", "in.json", "--to", "middlebury", "-o", "x"], "--to: unknown export format "
+                           "'middlebury'; valid formats: opencv-yaml, kalibr"),
+                          (["import", "x", "--from", "bogus", "-o", "y"], "--from: unknown import format 'bogus'")):
+        args = parser.parse_args(argv)  # the format registry is asked when the command runs (plugins register)
+        with pytest.raises(UsageError, match=message):
+            args.func(args)
+    for argv in (["import", "x", "--from", "json", "--grid", "2by3", "-o", "y"],
                  ["import", "x", "--from", "json", "--grid", "2x3", "--reference", "-1", "-o", "y"],
                  ["export", "in.json", "--to", "json"]):
         with pytest.raises(SystemExit):

@@ -97,7 +97,9 @@ def test_noisy_joint_errors_match_marginals_and_beat_the_paper_route():
     assert report.e_mono_px == pytest.approx(paper_report.e_mono_px)  # both start from the same Zhang stage
 
 
-SAME_COVARIANCE = 1e-8  # relative: the reduced system's inverse vs GTSAM's Marginals of the same graph
+# relative: the reduced system's inverse vs GTSAM's Marginals of the same graph, two floating-point inversions of an
+# information matrix whose corner priors (1 um) outweigh the pixels by ~1e12: they agree to ~1e-8 (1.3e-8 measured)
+SAME_COVARIANCE = 1e-7
 
 
 def test_the_joint_graphs_sigmas_are_gtsams_marginals(monkeypatch):
