@@ -294,6 +294,9 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     several = frame_of is not None and len(np.unique(frame_of)) >= 2  # folds of whole frames
     fold_calibs, fold_tests = fold_refits(calib, fit, px, ok, frame_of[fit.keep] if several else None, config)
     factors = np.ones((n, 4))
+    if post is not None and post.bending is not None and np.any(post.bending > 1.0):
+        observer.log(f"the tracks' own scatter is up to {np.sqrt(post.bending.max()):.1f}x the graph's marginals along "
+                     f"the rig's bending modes (views turned in proportion to their offset): sigmas widened")
     if post is not None:
         post, factors = inflate(post, calib, fold_calibs)
         if np.any(factors > 1.0):

@@ -12,6 +12,7 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.geometry import make_T, rotation_from_rotvec, to_pose3
 from lfgraph.engine.optimize import gtsam_quiet
 from lfgraph.engine.schur import CameraMarginals
+from lfgraph.engine.schur_system import camera_block, schur_layout
 from lfgraph.factors.groups import DRIFT_GROUPS, VIEW_DIRECTIONS, Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import measurement_noise
@@ -19,6 +20,13 @@ from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_ga
 from lfgraph.judge.evaluation import reference_pixels
 from lfgraph.refinement.config import RefineConfig, Stage
 from lfgraph.refinement.priors import ViewPriors, view_priors
+from lfgraph.refinement.scatter import (
+    bending_functionals,
+    prior_information,
+    track_scores_bulk,
+    track_scores_graph,
+    widen_bending,
+)
 from lfgraph.refinement.stages import stage_graph, stage_problem
 
 GROUPS = {g: VIEW_DIRECTIONS[g] for g in DRIFT_GROUPS}  # of the 10 directions (`lfgraph.factors.groups`)
@@ -26,6 +34,7 @@ ROTATION = VIEW_DIRECTIONS[Group.ROTATION]  # also tested jointly: a tilt and a 
 #                                            can be clear together
 TRANSFER_SAMPLES = 7  # reference pixels per axis for the predicted transfer error at infinity
 JACOBIAN_STEP = 1e-6  # rad and px: numerical derivative of the transfer at infinity
+INTRINSIC_COLUMNS = (0, 1, 3, 4)  # fx, fy, cx, cy in a calibration variable's tangent (skew at 2, then the lens)
 
 
 def chi2_sigma(d2: float, dof: int) -> float:
@@ -46,7 +55,9 @@ class Posterior:
     ``intrinsics_free``: whether the graph freed fx, fy, cx, cy;
     ``held``: (V, 10) which of rotation x, y, z, position x, y, z, fx, fy, cx, cy the graph held by its structure
     (the reference view, held views, gauges, intrinsics a stage does not free: `held_directions`) —
-    never inferred from the size of a sigma, which mixes rad, m and px and shrinks as data improve."""
+    never inferred from the size of a sigma, which mixes rad, m and px and shrinks as data improve;
+    ``bending``: the variance factors by which the tracks' scatter widened the rig's bending modes
+    (`lfgraph.refinement.scatter`; ones: the graph's marginals kept)."""
 
     pose_cov: np.ndarray
     intr_cov: np.ndarray
@@ -54,6 +65,7 @@ class Posterior:
     intrinsics_free: bool
     sigma_px: float
     held: np.ndarray | None = None
+    bending: np.ndarray | None = None
 
     def held_mask(self, v: int) -> np.ndarray:
         """(10,) directions of view v held by structure (all intrinsics when the graph did not free them)."""
@@ -89,39 +101,49 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
 
 
 def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors | None = None) -> Posterior | None:
-    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran);
+    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran), the
+    bending modes widened to the tracks' own scatter where that is larger (`lfgraph.refinement.scatter`);
     ``priors`` replaces the config's (as the fit had them)."""
     n = calib.num_views
-    pose_cov = np.zeros((n, 6, 6))
-    intr_cov = np.zeros((n, 4, 4))
-    cross = np.zeros((n, 6, 4))
     if fit.last_stage is None or fit.valid.shape[1] == 0:
         return None
     if priors is None and config.priors:
         priors = view_priors(calib, config.drift)
     model = measurement_noise(config.noise, fit.sigma_px)
     intr_free = fit.last_stage.frees_intrinsics
-    idx = [0, 1, 3, 4]
+
+    def build(projections: bool = True):
+        return stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
+                           config.scale_sigma_mm, fit.held, priors, projections)
+
     try:
         with gtsam_quiet():
             bulk = stage_problem(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
                                  config.scale_sigma_mm, fit.held, priors)
-
-            def build():
-                return stage_graph(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
-                                   config.scale_sigma_mm, fit.held, priors)
-
             graph, values = (None, None) if bulk is not None else build()
             marginals = CameraMarginals(graph, values, LANDMARK_CHAR, *(bulk or (None, None)), build=build)
-            for v in range(n):
-                pose_cov[v] = marginals.block(view_pose_key(v))
-                if intr_free:
-                    intr_cov[v] = marginals.block(calib_key(v))[np.ix_(idx, idx)]
-                    cross[v] = marginals.block(view_pose_key(v), calib_key(v))[:, idx]
+            if bulk is not None:
+                layout, scores = bulk[0].layout, track_scores_bulk(*bulk)
+                values = bulk[1][0]
+            else:
+                layout = schur_layout(values, LANDMARK_CHAR)
+                scores = track_scores_graph(graph, values, layout)
+            keys = [int(k) for k, lm in zip(layout.keys, layout.landmark, strict=True) if not lm]
+            cov = marginals.joint(keys)
+            prior_info = prior_information(bulk[0].graph if bulk is not None else build(False)[0], values, layout)
     except RuntimeError:  # an indeterminate system: report no posterior rather than a wrong one
         return None
-    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px,
-                     held_directions(calib, fit.last_stage, fit.held, priors))
+    held = held_directions(calib, fit.last_stage, fit.held, priors)
+    cov, factors = widen_bending(cov, bending_functionals(calib, layout, ~held[:, :3]), scores, prior_info)
+    pose_cov, intr_cov, cross = np.zeros((n, 6, 6)), np.zeros((n, 4, 4)), np.zeros((n, 6, 4))
+    for v in range(n):
+        p = camera_block(layout, view_pose_key(v))
+        pose_cov[v] = cov[p, p]
+        if intr_free:
+            c = camera_block(layout, calib_key(v)).start + np.array(INTRINSIC_COLUMNS)
+            intr_cov[v] = cov[np.ix_(c, c)]
+            cross[v] = cov[p][:, c]
+    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px, held, factors)
 
 
 def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray | tuple[np.ndarray, ...]:
