@@ -116,6 +116,18 @@ def test_a_radtan_rig_keeps_radtan():
     _, obs = _synthetic("radtan")
     est, _ = calibrate(obs)
     assert [i.lens for i in est.intrinsics] == ["radtan"] * 3
+    # radtan left no radial structure: no fisheye fit was made (issue 39: the lens choice's cost)
+    choice = est.metrics["lens_choice"]
+    assert all(x is None for x in choice["fit_px"]["fisheye"])
+    assert all(x is not None for x in choice["fit_px"]["radtan"])
+
+
+def test_the_radial_pretest_sees_a_wide_lens_fitted_as_radtan():
+    """A fisheye lens fitted with radtan leaves rings of radial residual far beyond chance: the fisheye fit is made."""
+    from lfgraph.pattern.lenses import RADTAN, _radial_structure, fit_mono
+
+    _, obs = _synthetic("fisheye")
+    assert all(_radial_structure(obs, v, fit_mono(obs, v, RADTAN)) for v in range(obs.num_views))
 
 
 def test_lens_spec_per_view_and_its_errors():
