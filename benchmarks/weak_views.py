@@ -1,0 +1,214 @@
+"""Weakly seen views of a long line: does the robust screen drop good view-frames, and do the end views predict held-out
+board positions as well as their own uncertainty says they should?
+
+A rendered look-alike of a long real line array (1920x1200 views on one line, a board shown at a few *positions*
+spread along the line, several hand-held frames at each: the board jittered by ~1 cm and ~1.5 deg), so that the views
+at the ends see only 2-3 of the positions. Corners are the true projections plus Gaussian noise (corner-only: no
+rendering, so the truth and the noise are exact).
+
+**Leave one position out** (LOPO): every position whose removal leaves each view at least one frame is held out in
+turn; the rig is calibrated from the other positions (lfgraph's default route, radtan lens, with and without the
+robust screen) and each held-out view-frame is predicted from the rest: its board pose fitted through the frame's
+*other* views with the rig held fixed, its corners projected into the view. Per view: the RMS of the held-out
+corners, and the RMS the Cramér–Rao prediction gives for them (`lfgraph.pattern.prediction`: the view's marginal
+covariance of intrinsics and pose from the calibration's own graph, the board pose's uncertainty from its fit and the
+true corner noise). Leave-one-*frame*-out hides the weak views' trouble: a held-out frame always has jittered twins at
+its position in the fit.
+
+Printed per setting: the view-frames the screen dropped; per weak view (one seeing at most `WEAK_POSITIONS`
+positions) the held-out RMS with the screen, without, and the predicted RMS; and the worst ratio of held-out to
+predicted over the weak views (the target: within `TARGET_RATIO`).
+
+Usage: ``python benchmarks/weak_views.py [--views 20 12 30] [--sigma 0.1 0.3] [--seeds 0 1]``. Exit code 1 when a
+setting misses the target or the default is worse than ``--no-screen`` on a weak view by more than `NOISE_TOLERANCE`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+
+import numpy as np
+
+import lfgraph as lf
+from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
+from lfgraph.datasets.board_render import CheckerboardConfig
+from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
+from lfgraph.datasets.rig import RigConfig, make_rig
+from lfgraph.detect.board import BoardSpec
+from lfgraph.detect.detections import BoardObservations, observations_from_arrays
+from lfgraph.pattern.initial import initial_board_T_ref, pnp_all
+from lfgraph.pattern.prediction import frame_jacobians, predict_view_frame, rig_marginals
+from lfgraph.pattern.scoring import fit_board_poses
+
+IMAGE_SIZE_PX = (1920, 1200)
+FOCAL_PX = 1600.0
+PITCH_M = 0.06
+BOARD = BoardSpec(11, 8, 0.05)  # 12x9 squares of 5 cm: a 0.6 x 0.45 m board
+DISTANCE_M = 1.5  # the board positions' mean distance
+POSITIONS = 5
+FRAMES_PER_POSITION = 4
+FRAME_JITTER_M = 0.01  # a hand-held board: each frame of a position moved by ~1 cm ...
+FRAME_JITTER_DEG = 1.5  # ... and turned by ~1.5 deg
+POSITION_TILT_DEG = 25.0  # each position turned by up to this much (its own side of the board to the line)
+TANGENTIAL_SIGMA = 2e-3  # each true lens decentred: p1, p2 drawn with this std, which the default model holds at 0 (a
+# real lens's misfit: without it the screen never drops a good view-frame of Gaussian corners)
+WEAK_POSITIONS = 3  # a view seeing at most this many positions is weak
+TARGET_RATIO = 1.5  # weak views' held-out RMS within this factor of their predicted RMS
+NOISE_TOLERANCE = 0.05  # the default may be worse than --no-screen on a weak view by this share (the fits' noise)
+CONFIG = lf.CalibrateConfig(lens="radtan", marginals=False)
+
+
+def line_rig(views: int, seed: int, tangential: float = TANGENTIAL_SIGMA) -> lf.Calibration:
+    """A 1 x ``views`` line of 1920x1200 views 6 cm apart (reference: view 0, one end), lenses decentred by
+    ``tangential`` (std of p1, p2; default `TANGENTIAL_SIGMA`)."""
+    config = RigConfig(rows=1, cols=views, pitch_m=PITCH_M, image_size_px=IMAGE_SIZE_PX, focal_px=FOCAL_PX,
+                       k1=-0.12, k2=0.05, focal_jitter_px=10.0, principal_jitter_px=10.0, rot_jitter_deg=0.5,
+                       trans_jitter_mm=1.0)
+    calib = make_rig(config, np.random.default_rng(seed))
+    rng = np.random.default_rng([seed, 7])
+    return calib.replace(intrinsics=tuple(dataclasses.replace(i, p1=p1, p2=p2) for i, (p1, p2) in zip(
+        calib.intrinsics, tangential * rng.standard_normal((views, 2)), strict=True)))
+
+
+def board_poses(calib: lf.Calibration, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 4, 4) ``ref_T_board`` and (F,) position index: `POSITIONS` positions spread along the line (the outer ones
+    beyond its ends), `FRAMES_PER_POSITION` jittered frames each."""
+    span = (calib.num_views - 1) * PITCH_M
+    centre_b = np.array([(BOARD.cols - 1) * BOARD.square_m / 2, (BOARD.rows - 1) * BOARD.square_m / 2, 0.0])
+    poses, labels = [], []
+    xs = span / 2 + np.linspace(-0.8, 0.8, POSITIONS) * (span / 2 + 0.3)
+    for p, x in enumerate(xs):
+        tilt = np.radians(POSITION_TILT_DEG) * rng.uniform(-1, 1, 2)
+        centre = np.array([x, rng.uniform(-0.1, 0.1), DISTANCE_M * rng.uniform(0.85, 1.15)])
+        for _ in range(FRAMES_PER_POSITION):
+            rot = rotation_from_rotvec([*tilt, 0.0]) @ rotation_from_rotvec(
+                np.radians(FRAME_JITTER_DEG) * rng.standard_normal(3))
+            c = centre + FRAME_JITTER_M * rng.standard_normal(3)
+            poses.append(make_T(rot, c - rot @ centre_b))
+            labels.append(p)
+    return np.stack(poses), np.array(labels)
+
+
+@dataclasses.dataclass(frozen=True)
+class Line:
+    calib: lf.Calibration
+    obs: BoardObservations
+    position: np.ndarray  # (F,) board position of every frame
+    sigma_px: float
+
+    def positions_seen(self) -> np.ndarray:
+        """(V,) how many positions each view sees."""
+        return np.array([len(set(self.position[self.obs.seen[v]])) for v in range(self.obs.num_views)])
+
+
+def make_line(views: int, sigma_px: float, seed: int, tangential: float = TANGENTIAL_SIGMA) -> Line:
+    calib = line_rig(views, seed, tangential)
+    rng = np.random.default_rng([seed, 1])
+    poses, labels = board_poses(calib, rng)
+    config = CheckerboardConfig(board=BOARD, frames=len(poses), margin_px=3.0)
+    truth = make_checkerboard_truth(calib, config, rng, ref_T_board=poses)
+    corners, valid = make_corner_observations(truth, sigma_px, rng)
+    obs = observations_from_arrays(BOARD, calib.grid, calib.image_size_px, corners, valid)
+    keep = obs.seen.any(axis=0)
+    return Line(calib, obs.subset_frames(np.nonzero(keep)[0]), labels[keep], sigma_px)
+
+
+def dropped(report) -> list[str]:
+    return [w for w in report.warnings if "dropped from the calibration" in w]
+
+
+def held_out(line: Line, p: int, screen: bool) -> tuple[dict[int, tuple[float, float, int]], list[str]]:
+    """Position ``p`` held out: per view seeing it, (sum of squared held-out RMS, sum of squared predicted RMS,
+    view-frames), and the screen's drops."""
+    obs = line.obs
+    train, test = np.nonzero(line.position != p)[0], np.nonzero(line.position == p)[0]
+    train_obs = obs.subset_frames(train)
+    calib, report = lf.calibrate(train_obs, dataclasses.replace(CONFIG, screen=screen))
+    marg = rig_marginals(train_obs, calib.intrinsics, calib.ref_T_view, report.board_T_ref,
+                         BOARD.object_points(), CONFIG)
+    test_obs = obs.subset_frames(test)
+    starts = initial_board_T_ref(pnp_all(test_obs, calib.intrinsics), calib.ref_T_view, test_obs.valid.sum(axis=2))
+    out: dict[int, tuple[float, float, int]] = {}
+    for f in range(test_obs.num_frames):
+        seeing = [int(h) for h in np.nonzero(test_obs.seen[:, f])[0]]
+        if len(seeing) < 2:
+            continue
+        board = fit_board_poses(calib.intrinsics, calib.ref_T_view, test_obs.subset_frames([f]), starts[f:f + 1])[0]
+        jac = frame_jacobians(test_obs, calib.intrinsics, calib.ref_T_view, f, seeing, invert_T(board))
+        for v in seeing:
+            helpers = [h for h in seeing if h != v]
+            pred = predict_view_frame(test_obs, calib.intrinsics, calib.ref_T_view, marg, v, f, helpers,
+                                      report.noise_sigma_px, starts[f], jac)
+            a, b, n = out.get(v, (0.0, 0.0, 0))
+            out[v] = (a + pred.rms_px**2, b + pred.predicted_rms_px**2, n + 1)
+    return out, dropped(report)
+
+
+def lopo(line: Line, screen: bool) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(V,) held-out RMS and predicted RMS per view over every position that can be held out, and the drops."""
+    sums = np.zeros((line.obs.num_views, 3))
+    drops: list[str] = []
+    for p in np.unique(line.position):
+        rest = line.obs.seen[:, line.position != p]
+        if not np.all(rest.sum(axis=1) >= 1):
+            continue
+        per_view, d = held_out(line, int(p), screen)
+        drops += [f"position {p}: {w.split(':')[0]}" for w in d]
+        for v, (a, b, n) in per_view.items():
+            sums[v] += (a, b, n)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(sums[:, 0] / sums[:, 2]), np.sqrt(sums[:, 1] / sums[:, 2]), drops
+
+
+def run(views: int, sigma_px: float, seed: int, tangential: float) -> tuple[float, float, bool]:
+    line = make_line(views, sigma_px, seed, tangential)
+    seen = line.positions_seen()
+    weak = np.nonzero(seen <= WEAK_POSITIONS)[0]
+    print(f"\n## 1x{views}, corner noise {sigma_px} px, p1 p2 std {tangential:g}, seed {seed}: "
+          f"{line.obs.num_frames} frames; positions seen "
+          f"per view {seen.tolist()}; weak views {weak.tolist()}", flush=True)
+    t0 = time.perf_counter()
+    res = {s: lopo(line, s) for s in (True, False)}
+    print(f"({time.perf_counter() - t0:.0f} s)")
+    for s, (_, _, drops) in res.items():
+        print(f"screen {'on ' if s else 'off'}: {len(drops)} view-frames dropped" + (": " + "; ".join(drops[:8])
+                                                                                    if drops else ""))
+    print("| view | positions | held-out px, screen | no screen | predicted px | ratio (screen) |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for v in weak:
+        print(f"| {v} | {seen[v]} | {res[True][0][v]:.3f} | {res[False][0][v]:.3f} | {res[True][1][v]:.3f} | "
+              f"{res[True][0][v] / res[True][1][v]:.2f} |")
+    on, off, pred = res[True][0][weak], res[False][0][weak], res[True][1][weak]
+    ok = np.isfinite(on) & np.isfinite(off)
+    worst = float(np.max(on[ok] / pred[ok])) if ok.any() else float("nan")
+    worse = float(np.max(on[ok] / off[ok])) if ok.any() else float("nan")
+    all_ratio = res[True][0] / res[True][1]
+    print(f"weak views: worst held-out / predicted {worst:.2f} (target {TARGET_RATIO}); worst screen / no screen "
+          f"{worse:.3f}; all views: held-out / predicted {np.nanmin(all_ratio):.2f}-{np.nanmax(all_ratio):.2f}")
+    return worst, worse, worst <= TARGET_RATIO and worse <= 1 + NOISE_TOLERANCE
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--views", type=int, nargs="+", default=[20])
+    parser.add_argument("--sigma", type=float, nargs="+", default=[0.1])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--tangential", type=float, default=TANGENTIAL_SIGMA, help="std of the true p1, p2")
+    args = parser.parse_args()
+    missed = []
+    for views in args.views:
+        for sigma in args.sigma:
+            for seed in args.seeds:
+                worst, worse, ok = run(views, sigma, seed, args.tangential)
+                if not ok:
+                    missed.append(f"1x{views} sigma {sigma} seed {seed}: ratio {worst:.2f}, screen/no screen "
+                                  f"{worse:.3f}")
+    print("targets missed: " + ("; ".join(missed) if missed else "none"))
+    return 1 if missed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
