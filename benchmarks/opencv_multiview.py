@@ -74,7 +74,7 @@ def opencv(obs: lf.BoardObservations, models: list[str]) -> tuple[float, list[np
     flags = np.array([[cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW if m == "fisheye"
                        else cv2.CALIB_RATIONAL_MODEL] for m in models], np.int32)
     t0 = time.perf_counter()
-    out = cv2.calibrateMultiview(obj, img, [obs.size_of(v) for v in range(n_views)], mask, kinds, None, None, None,
+    out = cv2.calibrateMultiview(obj, img, [obs.image_size(v) for v in range(n_views)], mask, kinds, None, None, None,
                                  None, flagsForIntrinsics=flags)
     seconds = time.perf_counter() - t0
     rms, Ks, dists, Rs, Ts = out[:5]  # noqa: N806
@@ -198,7 +198,7 @@ def mono_focal_gap_px(obs: lf.BoardObservations, models: list[str], Ks: list) ->
             continue
         frames = [f for f in range(obs.num_frames) if obs.seen[v, f]]
         img = [obs.corners_px[v, f].astype(np.float32) for f in frames]
-        K = cv2.calibrateCamera([OBJ.astype(np.float32)] * len(frames), img, obs.size_of(v), None, None,  # noqa: N806
+        K = cv2.calibrateCamera([OBJ.astype(np.float32)] * len(frames), img, obs.image_size(v), None, None,  # noqa: N806
                                 flags=cv2.CALIB_RATIONAL_MODEL)[1]
         Km = np.asarray(Ks[v])  # noqa: N806
         gaps.append(np.max(np.abs(K[[0, 1, 0, 1], [0, 1, 2, 2]] - Km[[0, 1, 0, 1], [0, 1, 2, 2]])))

@@ -79,7 +79,7 @@ def mixed_capture(tmp_path_factory):
 def test_mixed_capture_calibrates_from_its_images_and_rectifies(mixed_capture, tmp_path, capsys):
     capture_dir, truth = mixed_capture
     capture = open_capture(capture_dir, truth.grid)
-    assert capture.sizes_px == truth.view_image_sizes_px
+    assert capture.image_sizes == truth.view_image_sizes_px
     assert [img.shape for img in capture.load_frame(0)] == [(480, 640), (240, 320), (240, 320), (480, 640)]
     calib_path = tmp_path / "calibration.json"
     assert main(["calibrate", str(capture_dir), "--grid", "2x2", "--board", "7x5", "--square-mm", "15", "--quiet",
@@ -201,6 +201,6 @@ def test_the_canvas_maps_each_view_to_the_reference_scale_and_back():
     np.testing.assert_allclose(back.points_px[0, :2], in_big, atol=1e-9)
     np.testing.assert_allclose(back.points_px[1, :2], in_ref, atol=1e-9)
     assert back.valid[:, :2].all() and not back.valid[:, 2].any()
-    images = [np.full((h, w), v * 40, dtype=np.uint8) for v, (w, h) in enumerate(canvas.view_sizes_px)]
+    images = [np.full((h, w), v * 40, dtype=np.uint8) for v, (w, h) in enumerate(canvas.view_image_sizes_px)]
     warped = canvas.warp(images)
     assert warped.shape == (4, 240, 320) and warped[1].tolist() == images[1].tolist()

@@ -227,7 +227,7 @@ def process_camera(item: FleetItem) -> list[dict[str, Any]]:
     try:
         calib, _ = free_when_not_parallel(Calibration.load(item.calibration))  # a ring stored as a row: its poses'
         capture = open_capture(item.capture, calib.grid, item.layout)
-        check_compatible(calib, capture.grid, capture.sizes_px, str(item.capture))
+        check_compatible(calib, capture.grid, capture.image_sizes, str(item.capture))
         config = RefineConfig(max_frames=item.max_frames, tolerance_px=item.tolerance_px)
         report = check(calib, capture.frames(item.max_frames), config=config)
         row.update(rms_before_px=report.rms_px, frames=report.frames)

@@ -137,7 +137,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         capture = open_capture(args.input, grid, args.layout or "auto", missing=args.missing_view or "error")
         check_output_file(args.output, inputs=capture.all_paths())
         check_side_outputs(args, inputs=capture.all_paths(), outputs=[args.output])
-        sizes = ", ".join(dict.fromkeys(f"{w}x{h}" for w, h in capture.sizes_px))
+        sizes = ", ".join(dict.fromkeys(f"{w}x{h}" for w, h in capture.image_sizes))
         say(f"{args.input}: {capture.layout} layout, {len(capture)} frames x {grid.num_views} views of {sizes} px; "
               f"board {board}")
         for note in capture.notes:

@@ -59,7 +59,7 @@ def _rectify(args: argparse.Namespace) -> int:
     capture = open_capture(args.input, calib.grid, args.layout)
     for note in capture.notes:
         print(f"note: {note}")
-    check_compatible(calib, capture.grid, capture.sizes_px, str(args.input))
+    check_compatible(calib, capture.grid, capture.image_sizes, str(args.input))
     logging = check_rerun(args)
     check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[out])
     rect = compute_rectification(calib, args.crop)
@@ -112,7 +112,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     capture = open_capture(args.input, calib.grid, args.layout)
     for note in capture.notes:
         print(f"note: {note}")
-    check_compatible(calib, capture.grid, capture.sizes_px, str(args.input))
+    check_compatible(calib, capture.grid, capture.image_sizes, str(args.input))
     report = check(calib, capture.frames(args.max_frames), config=config)
     verdict = report.verdict
     if args.json:

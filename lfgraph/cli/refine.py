@@ -70,7 +70,7 @@ def _refine(args: argparse.Namespace) -> int:
         print(f"note: {note}")
     check_output_file(args.output, inputs=capture.all_paths())
     check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[args.output])
-    check_compatible(calib, capture.grid, capture.sizes_px, str(args.input))
+    check_compatible(calib, capture.grid, capture.image_sizes, str(args.input))
     n = len(capture) if args.max_frames is None else min(len(capture), args.max_frames)
     if not args.json:
         print(f"{args.input}: {capture.layout} layout, {len(capture)} frames; stages {schedule_name(config.stages)}, "

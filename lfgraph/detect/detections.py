@@ -104,12 +104,12 @@ class BoardObservations:
     Attributes:
         board: the board (checkerboard or ChArUco), or a `PointBoard` for points detected by another tool.
         grid: the view grid.
-        image_size_px: (width, height) of the views (of every view unless ``view_sizes_px`` says otherwise).
+        image_size_px: (width, height) of the views (of every view unless ``view_image_sizes_px`` says otherwise).
         corners_px: (V, F, C, 2) corner positions in pixels, NaN where not observed.
         valid: (V, F, C) which corners were observed.
         frame_names: (F,) one name per frame (for messages).
         sources: (F,) per frame the files it came from (for messages); may be empty for synthetic corners.
-        view_sizes_px: (V,) (width, height) per view for rigs of mixed image sizes; None: all ``image_size_px``.
+        view_image_sizes_px: (V,) (width, height) per view for rigs of mixed image sizes; None: all ``image_size_px``.
     """
 
     board: BoardSpec | PointBoard
@@ -119,19 +119,25 @@ class BoardObservations:
     valid: np.ndarray
     frame_names: tuple[str, ...]
     sources: tuple[tuple[str, ...], ...] = ()
-    view_sizes_px: tuple[tuple[int, int], ...] | None = None
+    view_image_sizes_px: tuple[tuple[int, int], ...] | None = None
 
-    def size_of(self, view: int) -> tuple[int, int]:
+    def image_size(self, view: int) -> tuple[int, int]:
         """(width, height) of one view's images."""
-        return self.image_size_px if self.view_sizes_px is None else self.view_sizes_px[view]
+        return self.image_size_px if self.view_image_sizes_px is None else self.view_image_sizes_px[view]
+
+    @property
+    def image_sizes(self) -> tuple[tuple[int, int], ...]:
+        """(V,) (width, height) of every view's images."""
+        return tuple(self.image_size(v) for v in range(self.grid.num_views))
 
     def __post_init__(self) -> None:
         v, c = self.grid.num_views, self.board.num_corners
-        if self.view_sizes_px is not None:
-            sizes = tuple((int(w), int(h)) for w, h in self.view_sizes_px)
+        if self.view_image_sizes_px is not None:
+            sizes = tuple((int(w), int(h)) for w, h in self.view_image_sizes_px)
             if len(sizes) != v or any(w <= 0 or h <= 0 for w, h in sizes):
-                raise ValueError(f"view_sizes_px must hold {v} positive (width, height), got {self.view_sizes_px}")
-            object.__setattr__(self, "view_sizes_px", None if len(set(sizes)) == 1 and sizes[0] == tuple(
+                raise ValueError(f"view_image_sizes_px must hold {v} positive (width, height), got "
+                                 f"{self.view_image_sizes_px}")
+            object.__setattr__(self, "view_image_sizes_px", None if len(set(sizes)) == 1 and sizes[0] == tuple(
                 self.image_size_px) else sizes)
         corners = np.asarray(self.corners_px, dtype=np.float64)
         if corners.ndim != 4 or corners.shape[0] != v or corners.shape[2:] != (c, 2):
@@ -191,7 +197,7 @@ class BoardObservations:
         idx = np.asarray(frames, dtype=int)
         return BoardObservations(self.board, self.grid, self.image_size_px, self.corners_px[:, idx],
                                  self.valid[:, idx], tuple(self.frame_names[i] for i in idx),
-                                 tuple(self.sources[i] for i in idx) if self.sources else (), self.view_sizes_px)
+                                 tuple(self.sources[i] for i in idx) if self.sources else (), self.view_image_sizes_px)
 
 
 def observations_from_arrays(board: BoardSpec | PointBoard, grid: ViewGrid, image_size_px: tuple[int, int],
@@ -233,7 +239,7 @@ def _wide_pass(capture: CaptureSet, board: BoardSpec, corners: np.ndarray, jobs:
                progress: bool) -> np.ndarray:
     """The second pass of wide views (`lfgraph.detect.wide_boards`) on the process pool, one frame per task; says what
     it found."""
-    wide = wide_models(corners, board, capture.sizes_px)
+    wide = wide_models(corners, board, capture.image_sizes)
     if not wide.wide_views:
         return corners
     tasks = [(capture, f, board, wide, corners[:, f]) for f in range(len(capture))]
@@ -350,5 +356,5 @@ def detect_capture(capture: CaptureSet, board: BoardSpec, jobs: int | None = Non
     valid = np.all(np.isfinite(corners), axis=-1)
     sources = tuple(tuple("(missing)" if p is None else str(p) for p in files) for files in capture.files)
     obs = BoardObservations(board, capture.grid, capture.image_size_px, corners, valid, capture.frame_names, sources,
-                            capture.view_sizes_px)
+                            capture.view_image_sizes_px)
     return obs, from_cache

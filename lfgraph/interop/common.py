@@ -215,13 +215,13 @@ def check_view_count(num_views: int, path: PathLike, key: str) -> None:
 
 def build(path: PathLike, key: str, grid: ViewGrid, image_size_px: tuple[int, int],
           views: Sequence[Intrinsics], ref_T_view: np.ndarray,  # noqa: N803
-          view_sizes_px: Sequence[tuple[int, int]] | None = None) -> Calibration:
-    """The `Calibration` an import read (poses in metres, relative to the reference; ``view_sizes_px`` each view's
+          view_image_sizes_px: Sequence[tuple[int, int]] | None = None) -> Calibration:
+    """The `Calibration` an import read (poses in metres, relative to the reference; ``view_image_sizes_px`` each view's
     image size where the file gives one per view); what the constructor refuses is a `CalibrationFileError` naming
     ``path`` and ``key``."""
     try:
         return Calibration(grid, image_size_px, tuple(views), ref_T_view,
-                           view_image_sizes_px=None if view_sizes_px is None else tuple(view_sizes_px))
+                           view_image_sizes_px=None if view_image_sizes_px is None else tuple(view_image_sizes_px))
     except ValueError as exc:
         raise fail(path, key, str(exc)) from None
 

@@ -90,8 +90,8 @@ class CaptureSet:
             ``video``); None for a view image missing from its frame (only with ``missing="unseen"``).
         image_size_px: (width, height) of the first view, from the first frame.
         notes: what the user should know about the input (videos of different lengths, missing view images).
-        view_sizes_px: (V,) (width, height) per view for a rig of mixed image sizes (from each view's first image);
-            None when every view is ``image_size_px``.
+        view_image_sizes_px: (V,) (width, height) per view for a rig of mixed image sizes (from each view's first
+            image); None when every view is ``image_size_px``.
     """
 
     root: Path
@@ -101,31 +101,31 @@ class CaptureSet:
     files: tuple[tuple[Path | None, ...], ...]
     image_size_px: tuple[int, int]
     notes: tuple[str, ...] = ()
-    view_sizes_px: tuple[tuple[int, int], ...] | None = None
+    view_image_sizes_px: tuple[tuple[int, int], ...] | None = None
 
     def __post_init__(self) -> None:
-        if self.view_sizes_px is not None and len(set(self.view_sizes_px)) == 1:
-            object.__setattr__(self, "view_sizes_px", None)
+        if self.view_image_sizes_px is not None and len(set(self.view_image_sizes_px)) == 1:
+            object.__setattr__(self, "view_image_sizes_px", None)
         for v in range(self.grid.num_views):
-            w, h = self.size_of(v)
+            w, h = self.image_size(v)
             if min(w, h) < MIN_IMAGE_SIDE_PX:
                 first = next((p for views in self.files for p in views if p is not None), self.root)
                 raise CaptureError(f"{first}: the views are {w}x{h} px; a view needs at least {MIN_IMAGE_SIDE_PX} px "
                                    f"on each side to show a board or a scene")
 
-    def size_of(self, view: int) -> tuple[int, int]:
+    def image_size(self, view: int) -> tuple[int, int]:
         """(width, height) of one view's images, px."""
-        return self.image_size_px if self.view_sizes_px is None else self.view_sizes_px[view]
+        return self.image_size_px if self.view_image_sizes_px is None else self.view_image_sizes_px[view]
 
     @property
-    def sizes_px(self) -> tuple[tuple[int, int], ...]:
+    def image_sizes(self) -> tuple[tuple[int, int], ...]:
         """(V,) (width, height) of every view, px."""
-        return tuple(self.size_of(v) for v in range(self.grid.num_views))
+        return tuple(self.image_size(v) for v in range(self.grid.num_views))
 
     def require_one_size(self, what: str) -> None:
         """Refuse a rig of mixed image sizes for work that needs (V, H, W) frames (tracking), naming the sizes."""
-        if self.view_sizes_px is not None:
-            kinds = ", ".join(f"{self.grid.name(v)} {w}x{h}" for v, (w, h) in enumerate(self.view_sizes_px))
+        if self.view_image_sizes_px is not None:
+            kinds = ", ".join(f"{self.grid.name(v)} {w}x{h}" for v, (w, h) in enumerate(self.view_image_sizes_px))
             raise CaptureError(f"{self.root}: the views have different image sizes ({kinds}); {what} needs views of "
                                f"one size (calibrate, rectify and refine take mixed rigs)")
 
@@ -151,7 +151,7 @@ class CaptureSet:
 
     def load_frame(self, frame: int, grayscale: bool = True) -> np.ndarray | list[np.ndarray]:
         """(V, H, W) uint8 grayscale (or (V, H, W, 3) BGR) images of one frame; checks every size. A rig of mixed
-        image sizes (`view_sizes_px`) gives a list of V arrays, each its view's size."""
+        image sizes (`view_image_sizes_px`) gives a list of V arrays, each its view's size."""
         if self.layout == "mosaic":
             path = self.files[frame][0]
             views = split_mosaic(_read(path, grayscale), self.grid, path)
@@ -161,7 +161,7 @@ class CaptureSet:
                                    f"{self.image_size_px[0]}x{self.image_size_px[1]}")
             return views
         views = [self.load_view(frame, v, grayscale) for v in range(self.grid.num_views)]
-        return views if self.view_sizes_px is not None else np.stack(views)
+        return views if self.view_image_sizes_px is not None else np.stack(views)
 
     def is_missing(self, frame: int, view: int) -> bool:
         """The frame has no image of this view (``missing="unseen"``): its board counts as not seen."""
@@ -172,7 +172,7 @@ class CaptureSet:
         if self.layout == "mosaic":
             return self.load_frame(frame, grayscale)[view]
         path = self.files[frame][view]
-        w, h = self.size_of(view)
+        w, h = self.image_size(view)
         if path is None:
             return np.zeros((h, w) if grayscale else (h, w, 3), np.uint8)
         if self.layout == "video":
@@ -182,9 +182,9 @@ class CaptureSet:
         else:
             img = _read(path, grayscale)
         h, w = img.shape[:2]
-        if (w, h) != self.size_of(view):
+        if (w, h) != self.image_size(view):
             what = f"frame {frame} is" if self.layout == "video" else "image is"
-            want = self.size_of(view)
+            want = self.image_size(view)
             first = next(files[view] for files in self.files if files[view] is not None)
             raise CaptureError(f"{path}: {what} {w}x{h} px but view {self.grid.name(view)} is {want[0]}x{want[1]} px "
                                f"in {first}; a view keeps one size (one of the two images is not this view's)")

@@ -43,7 +43,7 @@ def _relative_scatter_deg(view_T_board: np.ndarray, ref: int, v: int) -> float: 
 def _mirrored(obs: BoardObservations, v: int) -> BoardObservations:
     """View ``v``'s corners as the un-mirrored image shows them: x -> width - 1 - x, and each board row's labels
     reversed (the detector labelled the mirrored board by its own rule)."""
-    w = obs.size_of(v)[0]
+    w = obs.image_size(v)[0]
     cols, rows = obs.board.cols, obs.board.rows
     order = (np.arange(rows)[:, None] * cols + (cols - 1 - np.arange(cols))[None]).ravel()
     corners, valid = obs.corners_px.copy(), obs.valid.copy()
@@ -99,7 +99,7 @@ def view_order(obs: BoardObservations, names: Sequence[str]) -> BoardObservation
     stream was captured (every view once), e.g. ``["r00_c01", "r00_c00", "r01_c00", "r01_c01"]`` for a 2x2 whose
     first two cables were swapped."""
     perm = order_permutation(obs.grid, names)
-    sizes = None if obs.view_sizes_px is None else tuple(obs.view_sizes_px[p] for p in perm)
+    sizes = None if obs.view_image_sizes_px is None else tuple(obs.view_image_sizes_px[p] for p in perm)
     sources = tuple(tuple(s[p] for p in perm) if len(s) == obs.num_views else s for s in obs.sources)
-    return dataclasses.replace(obs, corners_px=obs.corners_px[perm], valid=obs.valid[perm], view_sizes_px=sizes,
+    return dataclasses.replace(obs, corners_px=obs.corners_px[perm], valid=obs.valid[perm], view_image_sizes_px=sizes,
                                sources=sources)

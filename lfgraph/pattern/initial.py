@@ -68,7 +68,7 @@ def borrowed_intrinsics(obs: BoardObservations, view: int, known: dict[int, Intr
             fields = np.mean([[getattr(same[n], k) for k in _BORROWED] for n in pool], axis=0)
             return (Intrinsics(**dict(zip(_BORROWED, (float(x) for x in fields), strict=True)), lens=lens),
                     f"{source} ({', '.join(obs.grid.name(n) for n in pool)})")
-    w, h = obs.size_of(view)
+    w, h = obs.image_size(view)
     f = float(max(w, h))
     return (Intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0).with_distortion(lens),
             "design values (focal length = the larger image side)")
@@ -264,7 +264,7 @@ def design_initial(obs: BoardObservations, focal_px: float | None = None,
     Returns:
         intrinsics, ``ref_T_view`` (V, 4, 4) and ``view_T_board`` (V, F, 4, 4) from PnP.
     """
-    sizes = [obs.size_of(v) for v in range(obs.num_views)]
+    sizes = [obs.image_size(v) for v in range(obs.num_views)]
     intrinsics = tuple(Intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0) for w, h in sizes
                        for f in [float(focal_px) if focal_px is not None else float(max(w, h))])
     view_T_board = pnp_all(obs, intrinsics)  # noqa: N806

@@ -85,7 +85,7 @@ def _priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings
     board_graph.add_corner_priors(graph, obs.board.object_points(), board_sigma_m)
     board_graph.add_gauge_prior(graph, obs.grid.reference)
     board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs),
-                                   [obs.size_of(v)[0] for v in range(obs.num_views)])
+                                   [obs.image_size(v)[0] for v in range(obs.num_views)])
     return graph
 
 

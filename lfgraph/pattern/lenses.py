@@ -104,7 +104,7 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
     if opencv is None:
         return _fit_unified(obs, v, frames, guess)
     objs, imgs = _view_points(obs, v, frames)
-    size = obs.size_of(v)
+    size = obs.image_size(v)
     use_guess = guess is not None and guess.lens == lens
     if opencv == "fisheye":
         _, K, D, rvecs, tvecs = cv2.fisheye.calibrate(  # noqa: N806
@@ -137,7 +137,7 @@ def _fit_unified(obs: BoardObservations, v: int, frames: list[int], guess: Intri
                            xi=UNIFIED_START_XI, lens=UNIFIED)
     keep = np.zeros(obs.num_frames, dtype=bool)
     keep[frames] = True
-    one = BoardObservations(obs.board, ViewGrid(1, 1, 0), obs.size_of(v), obs.corners_px[v:v + 1],
+    one = BoardObservations(obs.board, ViewGrid(1, 1, 0), obs.image_size(v), obs.corners_px[v:v + 1],
                             obs.valid[v:v + 1] & keep[None, :, None], obs.frame_names)
     board_T_ref = np.full((obs.num_frames, 4, 4), np.nan)  # noqa: N806
     for fr, pose in fish.view_T_board.items():

@@ -144,7 +144,7 @@ def coverage_map(obs: BoardObservations, cells: int = COVERAGE_CELLS) -> np.ndar
     """(V, cells, cells) bool: which image cells hold at least one observed corner."""
     out = np.zeros((obs.num_views, cells, cells), dtype=bool)
     for v in range(obs.num_views):
-        w, h = obs.size_of(v)
+        w, h = obs.image_size(v)
         pts = obs.corners_px[v][obs.valid[v]]
         cx = np.clip((pts[:, 0] + 0.5) / w * cells, 0, cells - 1).astype(int)
         cy = np.clip((pts[:, 1] + 0.5) / h * cells, 0, cells - 1).astype(int)

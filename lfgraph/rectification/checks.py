@@ -75,7 +75,7 @@ def check_rectifiable(calib: Calibration) -> None:
 def check_compatible(calib: Calibration, grid: ViewGrid,
                      image_size_px: tuple[int, int] | Sequence[tuple[int, int]], source: str) -> None:
     """Refuse a capture the calibration does not describe (grid, image sizes). ``image_size_px``: the capture's one
-    (width, height) or (V,) per-view sizes (`CaptureSet.sizes_px`), px."""
+    (width, height) or (V,) per-view sizes (`CaptureSet.image_sizes`), px."""
     if (calib.grid.rows, calib.grid.cols) != (grid.rows, grid.cols):
         raise RectificationError(f"{source}: the capture is a {grid} grid but the calibration is {calib.grid}")
     sizes = np.broadcast_to(np.asarray(image_size_px, dtype=np.int64).reshape(-1, 2), (grid.num_views, 2))

@@ -35,7 +35,7 @@ class ViewCanvas:
     def __init__(self, calib: Calibration):
         ref = calib.intrinsics[calib.grid.reference]
         self.size_px = tuple(calib.image_size(calib.grid.reference))
-        self.view_sizes_px = list(calib.image_sizes)
+        self.view_image_sizes_px = list(calib.image_sizes)
         self.scale = np.array([[ref.fx / i.fx, ref.fy / i.fy] for i in calib.intrinsics])
         centres = np.array([[i.cx, i.cy] for i in calib.intrinsics])
         self.offset = np.array([ref.cx, ref.cy]) - self.scale * centres  # canvas = scale * view + offset
@@ -57,7 +57,7 @@ class ViewCanvas:
         """The tracks in each view's own pixels; a track outside a view's image is not seen there."""
         pts = (tracks.points_px - self.offset[:, None, :]) / self.scale[:, None, :]
         valid = tracks.valid.copy()
-        for v, (w, h) in enumerate(self.view_sizes_px):
+        for v, (w, h) in enumerate(self.view_image_sizes_px):
             x, y = pts[v, :, 0], pts[v, :, 1]
             with np.errstate(invalid="ignore"):
                 valid[v] &= (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)

@@ -232,7 +232,7 @@ def coverage_figure(obs: Any, stem: str | os.PathLike) -> list[Path]:
     fig, axes = _grid_axes(obs.grid, "coverage: detected corners per image cell (white: none)")
     counts = []
     for v in range(obs.num_views):
-        w, h = obs.size_of(v)
+        w, h = obs.image_size(v)
         px = obs.corners_px[v][obs.valid[v]]
         c, _, _ = np.histogram2d(px[:, 0], px[:, 1], bins=COVERAGE_BINS, range=[[0, w], [0, h]])
         counts.append(c.T)
@@ -241,7 +241,7 @@ def coverage_figure(obs: Any, stem: str | os.PathLike) -> list[Path]:
         r, c = obs.grid.position(v)
         ax = axes[r, c]
         shown = np.ma.masked_equal(counts[v], 0)  # white: no corner in that cell
-        w, h = obs.size_of(v)
+        w, h = obs.image_size(v)
         im = ax.imshow(shown, extent=(0, w, h, 0), cmap="viridis", vmin=1, vmax=vmax, interpolation="nearest")
         ax.set_title(obs.grid.name(v), fontsize=9)
         ax.tick_params(labelsize=7)
@@ -256,7 +256,7 @@ def residual_figure(obs: Any, residuals_px: np.ndarray, stem: str | os.PathLike)
     nx, ny = COVERAGE_BINS
     fig, axes = _grid_axes(obs.grid, "")
     maps = []
-    sizes = [obs.size_of(v) for v in range(obs.num_views)]  # (width, height) per view, px
+    sizes = [obs.image_size(v) for v in range(obs.num_views)]  # (width, height) per view, px
     for v, (w, h) in enumerate(sizes):
         m = obs.valid[v] & np.all(np.isfinite(residuals_px[v]), axis=-1)
         px, res = obs.corners_px[v][m], residuals_px[v][m]

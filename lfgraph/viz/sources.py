@@ -35,7 +35,7 @@ def frames_from_sources(obs) -> Callable[[int], np.ndarray] | None:
     else:
         return None
     capture = CaptureSet(present[0].parent, layout, obs.grid, tuple(obs.frame_names), files,
-                         tuple(obs.image_size_px), view_sizes_px=obs.view_sizes_px)
+                         tuple(obs.image_size_px), view_image_sizes_px=obs.view_image_sizes_px)
 
     def load(f: int) -> np.ndarray | list[np.ndarray] | None:
         try:

@@ -84,7 +84,7 @@ def test_images_of_different_sizes(tmp_path):
     cv2.imwrite(str(tmp_path / "000" / "r01_c01.png"), np.zeros((20, 32), np.uint8))
     cv2.imwrite(str(tmp_path / "001" / "r01_c01.png"), np.zeros((20, 32), np.uint8))
     mixed = open_capture(tmp_path, GRID)  # a rig of mixed sizes: each view keeps its first image's size
-    assert mixed.sizes_px[3] == (32, 20) and mixed.sizes_px[0] == (32, 24)
+    assert mixed.image_sizes[3] == (32, 20) and mixed.image_sizes[0] == (32, 24)
     assert [img.shape for img in mixed.load_frame(1)][2:] == [(24, 32), (20, 32)]
     with pytest.raises(CaptureError, match=r"r00_c00 32x24, .*r01_c01 32x20\); refine needs views of one size"):
         mixed.require_one_size("refine")

@@ -153,7 +153,7 @@ def test_bad_video_inputs(rendered, videos, tmp_path):
     writer = cv2.VideoWriter(str(odd / "cam_3.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
     writer.write(np.zeros((48, 64, 3), np.uint8))
     writer.release()
-    assert open_capture(odd, (2, 2)).sizes_px[3] == (64, 48)  # a rig of mixed sizes: each video keeps its own
+    assert open_capture(odd, (2, 2)).image_sizes[3] == (64, 48)  # a rig of mixed sizes: each video keeps its own
     (odd / "cam_3.avi").write_bytes(b"not a video")
     with pytest.raises(CaptureError, match=r"cam_3\.avi: cannot"):
         open_capture(odd, (2, 2))
