@@ -4,7 +4,6 @@ the rig fixed, so inconsistency between views cannot hide in per-view figures)."
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Any
 
@@ -42,13 +41,7 @@ from lfgraph.pattern.scoring import (
     rig_residuals,
     rms_px,
 )
-
-SCREEN_KERNEL = RobustKernel("cauchy", 1.0)  # the screening fit's kernel, threshold in px (corner sigma 1 px)
-OUTLIER_VIEW_FRAME_FACTOR = 5.0  # a view-frame the robust rig misses by this many times the median view-frame RMS ...
-OUTLIER_VIEW_FRAME_MIN_PX = 1.0  # ... and by at least this much is dropped
-SCREEN_MAX_SHARE = 0.25  # ... unless that view would lose more than this share of its view-frames: then the misfit is
-# systematic (caliscope's webcams: view 1 missed in 25+ of its ~49 frames, its frames up to 20 ms out of sync), not a
-# swapped or mis-detected image; dropping them moved camera 1's fx 11 % and the held-out error 1.272 -> 1.354 px
+from lfgraph.pattern.screen import screen_view_frames
 
 
 def _without_copies(obs: BoardObservations, say: Observer) -> tuple[BoardObservations, list[str]]:
@@ -73,41 +66,6 @@ def _lens_choice(obs: BoardObservations, config: CalibrateConfig, say: Observer)
     choice = choose_lenses(obs, requested)
     say.log(choice.table(obs.grid))
     return choice
-
-
-def screen_view_frames(obs: BoardObservations, intrinsics: tuple, ref_T_view: np.ndarray,  # noqa: N803
-                       board_T_ref: np.ndarray, config: CalibrateConfig, say: Observer  # noqa: N803
-                       ) -> tuple[BoardObservations, tuple, np.ndarray, np.ndarray, list[str]]:
-    """The robust screening fit (`SCREEN_KERNEL`, no marginals) and the view-frames it cannot explain.
-
-    Returns:
-        the observations without those view-frames, the robust fit's intrinsics, poses and board poses (NaN for
-        frames no view sees any more) as the start of the final fit, and one warning per dropped view-frame.
-    """
-    screen = calibrate_joint(obs, intrinsics, ref_T_view, board_T_ref,
-                             dataclasses.replace(config, robust=SCREEN_KERNEL, marginals=False))
-    res = rig_residuals(screen.intrinsics, screen.ref_T_view, screen.board_T_ref, obs, screen.object_points_m)
-    vf = np.asarray(rms_px(res, axis=2))
-    with np.errstate(invalid="ignore"):
-        bad = vf > max(OUTLIER_VIEW_FRAME_FACTOR * float(np.nanmedian(vf)), OUTLIER_VIEW_FRAME_MIN_PX)
-    systematic = bad.sum(axis=1) > SCREEN_MAX_SHARE * obs.seen.sum(axis=1)
-    messages = [f"{obs.describe(int(v))}: the robust rig misses its board in {int(bad[v].sum())} of "
-                f"{int(obs.seen[v].sum())} frames by more than {OUTLIER_VIEW_FRAME_FACTOR:g}x the median view-frame: a "
-                f"systematic misfit (frames out of sync, a rolling shutter, a lens model that does not fit), not bad "
-                f"images: kept" for v in np.nonzero(systematic)[0]]
-    bad[systematic] = False
-    pairs = [(int(v), int(f)) for v, f in zip(*np.nonzero(bad), strict=True)]
-    messages += [f"{obs.describe(v, f)}: the rig misses its board by {vf[v, f]:.2f} px RMS (the median view-frame: "
-                 f"{np.nanmedian(vf):.2f} px): dropped from the calibration (a swapped or mis-detected image?)"
-                 for v, f in pairs]
-    for m in messages:
-        say.log(m)
-    boards = screen.board_T_ref.copy()
-    if pairs:
-        obs = drop_view_frames(obs, pairs)
-        check_observations(obs)
-        boards[~obs.seen.any(axis=0)] = np.nan
-    return obs, screen.intrinsics, screen.ref_T_view, boards, messages
 
 
 def _board_order(obs: BoardObservations, say: Observer) -> tuple[BoardObservations, list[str]]:
