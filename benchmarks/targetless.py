@@ -107,7 +107,7 @@ def honesty(est: Calibration, truth: Calibration, report) -> dict[str, float]:
     pos_sig = np.sqrt(np.sum(p.position_mm**2, axis=1))
     non_ref = np.arange(truth.num_views) != truth.grid.reference
     return {"fx": z(e.intrinsics[:, 0], p.intrinsics[:, 0]), "cx": z(e.intrinsics[:, 2], p.intrinsics[:, 2]),
-            "k1": z(e.intrinsics[:, 4], p.intrinsics[:, 4]),
+            "k1": z(e.intrinsics[:, 4], p.distortion["k1"]),
             "rot": z(e.rotation_deg[non_ref], rot_sig[non_ref]),
             "pos": z(np.linalg.norm(e.position_mm, axis=1)[non_ref], pos_sig[non_ref])}
 

@@ -17,6 +17,7 @@ from lfgraph.core.camera import Intrinsics
 from lfgraph.core.files import input_problem, write_text_atomic
 from lfgraph.core.geometry import invert_T, is_rotation, make_T
 from lfgraph.core.grid import ViewGrid, free_grid
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.lenses import DEFAULT_LENS, lens_model, lens_names
 
 FORMAT_NAME = "lfgraph.calibration"  # the file format's name (not a module path: files written since 0.1 carry it)
@@ -37,21 +38,6 @@ class CalibrationFileError(ValueError):
         self.field = field
         where = f"{self.path}: " if self.path else ""
         super().__init__(f"{where}{field}: {problem}")
-
-
-@dataclass(frozen=True)
-class ViewSigmas:
-    """One view's posterior 1-sigma as ``calibrate`` and ``calibrate-scene`` store it (``metrics["sigmas"]``):
-    fx, fy, cx, cy (px), k1, k2, and rotation (deg) and position (mm) about / along the view's axes (3 each)."""
-
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    k1: float
-    k2: float
-    rotation_deg: tuple[float, float, float]
-    position_mm: tuple[float, float, float]
 
 
 def image_size_checked(size: object, name: str) -> tuple[int, int]:
@@ -136,22 +122,16 @@ class Calibration:
         return self.grid.num_views
 
     @property
-    def sigmas(self) -> tuple[ViewSigmas, ...] | None:
-        """Each view's stored posterior 1-sigma (``metrics["sigmas"]``: a list with one entry per view, or the
-        ``{"views": [...]}`` that calibrate-scene wrote before), or None where absent, short or not finite."""
-        stored = (self.metrics or {}).get("sigmas")
-        stored = stored.get("views") if isinstance(stored, Mapping) else stored
-        if not isinstance(stored, list | tuple) or len(stored) != self.num_views:
-            return None
-        try:
-            out = tuple(ViewSigmas(*(float(s[k]) for k in ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2")),
-                                   *(tuple(float(x) for x in s[k][:3]) for k in ("rotation_deg", "position_mm")))
-                        for s in stored)
-        except (KeyError, TypeError, ValueError, IndexError):
-            return None
-        ok = all(np.all(np.isfinite([*s.rotation_deg, *s.position_mm, s.fx_px, s.fy_px, s.cx_px, s.cy_px]))
-                 and len(s.rotation_deg) == 3 == len(s.position_mm) for s in out)
-        return out if ok else None
+    def lenses(self) -> tuple[str, ...]:
+        """Each view's lens model."""
+        return tuple(i.lens for i in self.intrinsics)
+
+    @property
+    def sigmas(self) -> Sigmas | None:
+        """Each view's stored posterior 1-sigma (``metrics["sigmas"]``, `Sigmas.from_metrics`: what calibrate and
+        calibrate-scene write, also calibrate-scene's older ``{"views": [...]}``), or None where absent, short or
+        not finite."""
+        return Sigmas.from_metrics((self.metrics or {}).get("sigmas"), self.num_views)
 
     def view_T_ref(self, view: int) -> np.ndarray:  # noqa: N802
         """(4, 4) OpenCV extrinsics of a view relative to the reference: ``x_view = R x_ref + t``."""

@@ -14,6 +14,7 @@ import gtsam
 import numpy as np
 
 from lfgraph.core.camera import Intrinsics
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.detect.detections import BoardObservations
 from lfgraph.engine.board_problem import BoardProblem
 from lfgraph.engine.optimize import IterationCallback, OptimizationResult, OptimizerSettings, gtsam_quiet, optimize
@@ -34,7 +35,6 @@ from lfgraph.factors.values import (
     read_intrinsics,
     read_view_poses,
 )
-from lfgraph.lenses import lens_model
 from lfgraph.pattern.config import CalibrateConfig
 from lfgraph.pattern.initial import weak_views
 from lfgraph.pattern.scoring import rig_residuals
@@ -54,26 +54,6 @@ class JointResult:
     optimization: OptimizationResult
     noise_sigma_px: float
     sigmas: tuple[dict[str, Any], ...] | None
-
-
-def _marginal_sigmas(marginals: CameraMarginals, n_views: int, scale: float,
-                     lenses: tuple[str, ...]) -> tuple[dict[str, Any], ...]:
-    out = []
-    for v in range(n_views):
-        kc = np.sqrt(np.maximum(np.diag(marginals.block(calib_key(v))), 0.0)) * scale
-        # Pose3's covariance is in the body frame (rotation first): about / along the view's own axes, the frame
-        # `ViewSigmas` documents, calibrate-scene stores and refine's priors (Pose3 tangents) read
-        pc = marginals.block(view_pose_key(v)) * scale**2
-        pos_cov, rot_cov = pc[3:, 3:], pc[:3, :3]
-        tangent = lens_model(lenses[v]).tangent  # k1, k2 (and a unified lens's xi) in its GTSAM tangent order
-        out.append({
-            "fx_px": float(kc[0]), "fy_px": float(kc[1]), "cx_px": float(kc[3]), "cy_px": float(kc[4]),
-            "k1": float(kc[5]), "k2": float(kc[6]), **({"xi": float(kc[5 + tangent.index("xi")])} if "xi" in tangent
-                                                         else {}),
-            "position_mm": [float(x) for x in 1e3 * np.sqrt(np.maximum(np.diag(pos_cov), 0.0))],
-            "rotation_deg": [float(x) for x in np.degrees(np.sqrt(np.maximum(np.diag(rot_cov), 0.0)))],
-        })
-    return tuple(out)
 
 
 def _priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings: CalibrateConfig
@@ -170,7 +150,10 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
             with gtsam_quiet():
                 marginals = CameraMarginals(problem=problem, state=est, build=lambda: build(est)) \
                     if problem is not None else CameraMarginals(*build(est), BOARD_CORNER_CHAR)
-            sigmas = _marginal_sigmas(marginals, n_views, scale, lenses)
+            # Pose3's covariance is in the body frame: about / along each view's own axes, as `Sigmas` keeps them
+            sigmas = tuple(Sigmas.from_marginals(marginals, [calib_key(v) for v in range(n_views)],
+                                                 [view_pose_key(v) for v in range(n_views)], lenses, scale,
+                                                 settings.tangential).to_metrics())
         except RuntimeError:  # GTSAM: an indeterminate system (e.g. a unified lens whose xi the board cannot fix)
             logging.getLogger("lfgraph").warning(
                 "the calibration's uncertainties cannot be computed: some parameters are not determined by these "

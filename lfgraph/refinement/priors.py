@@ -30,11 +30,7 @@ class ViewPriors:
 def input_sigmas(calib: Calibration) -> tuple[np.ndarray, np.ndarray] | None:
     """(V, 6) pose and (V, 4) intrinsics sigmas stored by ``calibrate`` (rad, m, px), or None when absent/unusable."""
     stored = calib.sigmas
-    if stored is None:
-        return None
-    pose = np.array([[*np.radians(s.rotation_deg), *(1e-3 * np.asarray(s.position_mm))] for s in stored])
-    intr = np.array([[s.fx_px, s.fy_px, s.cx_px, s.cy_px] for s in stored])
-    return pose, intr
+    return None if stored is None else (stored.pose, stored.intrinsics)
 
 
 def view_priors(calib: Calibration, drift: DriftModel) -> ViewPriors:

@@ -188,7 +188,7 @@ def disagreement(scene: SceneFit, values: np.ndarray, cov: np.ndarray) -> float:
 
 def _result(scene: SceneFit, pin: Pin, k: int, fit, distortion: bool) -> PinResult:
     calib, _, graph, values, fragments = fit
-    joint = posterior(graph, values, calib.num_views)[1]
+    joint = posterior(graph, values, calib.lenses)[1]
     zoom, sigma = zoom_of(calib, joint, scene.sigmas, distortion)
     return PinResult(pin.name, pin_kind(pin), pin.describe(), scene.zoom_px, scene.zoom_sigma_px, zoom, sigma,
                      disagreement(scene, *weak_modes(calib, joint)), _residual(pin, k, calib, values, fragments[k]))

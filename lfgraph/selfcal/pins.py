@@ -327,10 +327,9 @@ class ViewPin:
         if sig is None:
             raise PinError(f"{p}: field metrics.sigmas is missing: a pinned view needs its calibration's sigmas "
                            f"(lfgraph calibrate and calibrate-scene store them)")
-        s = sig[src]
-        k2 = s.k2 if np.isfinite(s.k2) else 0.0
-        return cls(v, calib.intrinsics[src], (s.fx_px, s.fy_px, s.cx_px, s.cy_px, s.k1, k2),
-                   name=f"view {name}={p.name}")
+        k1, k2 = (float(sig.distortion.get(k, np.full(calib.num_views, np.nan))[src]) for k in ("k1", "k2"))
+        return cls(v, calib.intrinsics[src], (*sig.intrinsics[src], k1 if np.isfinite(k1) else 0.0,
+                                              k2 if np.isfinite(k2) else 0.0), name=f"view {name}={p.name}")
 
     def factors(self, calib: Calibration, values: gtsam.Values, track_sigma_px: float,
                 first_point: int) -> gtsam.NonlinearFactorGraph:

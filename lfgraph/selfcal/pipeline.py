@@ -11,6 +11,7 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer, resolve
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.refinement.tracks import in_front
@@ -22,7 +23,6 @@ from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, mod
 from lfgraph.selfcal.retrack import retrack
 from lfgraph.selfcal.solve import (
     LANDMARK_ITERATIONS,
-    Posterior,
     drop_outliers,
     initial_landmarks,
     measurement,
@@ -179,12 +179,12 @@ def _final_fit(calib: Calibration, nominal: Calibration, tracks: PooledTracks, p
 
 
 def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               config: SelfCalConfig, say: Observer) -> tuple[Calibration, Posterior, list[Mode], tuple, SceneFit]:
+               config: SelfCalConfig, say: Observer) -> tuple[Calibration, Sigmas, list[Mode], tuple, SceneFit]:
     """The posterior of the scene's final fit, or with ``config.pins`` that of the pinned fit (`_pinned`):
     (calibration, posterior, modes, one `PinResult` per pin, the scene fit with its zoom and sigma)."""
     grid = scene.calib.grid
     distortion = "distortion" in scene.free
-    post, joint = posterior(graph, values, grid.num_views)
+    post, joint = posterior(graph, values, scene.calib.lenses)
     zoom, sigma = zoom_of(scene.calib, joint, scene.sigmas, distortion)
     mode_values, mode_cov = weak_modes(scene.calib, joint)
     scene = dataclasses.replace(scene, zoom_px=zoom, zoom_sigma_px=sigma, modes=mode_values, modes_cov=mode_cov)
@@ -193,14 +193,13 @@ def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam
     return (*_pinned(scene, config, say), scene)
 
 
-def _pinned(scene: SceneFit, config: SelfCalConfig, say: Observer) -> tuple[Calibration, Posterior, list[Mode],
-                                                                             tuple]:
+def _pinned(scene: SceneFit, config: SelfCalConfig, say: Observer) -> tuple[Calibration, Sigmas, list[Mode], tuple]:
     """The pins' fit from the scene's optimum (`fit_pins`: each pin tested against the scene first) and its
     posterior: (calibration, posterior, modes, one `PinResult` per pin)."""
     grid = scene.calib.grid
     distortion = "distortion" in scene.free
     calib, _, graph, values, results = fit_pins(scene, config.pins, distortion, config.graph_hooks, say)
-    post, joint = posterior(graph, values, grid.num_views)
+    post, joint = posterior(graph, values, calib.lenses)
     return calib, post, modes(joint, scene.sigmas.intrinsic_sigmas(), grid, distortion), results
 
 
@@ -235,7 +234,7 @@ def _metrics(design: Design, report: SelfCalReport, noise_px: float, post) -> di
                        "focal_px": design.focal_px},
             "selfcal_rms_px": report.rms_px, "selfcal_noise_px": noise_px, "verdict": report.verdict,
             "zoom_from": report.zoom_from,
-            "sigmas": post.as_dict()["views"]}  # one entry per view, as calibrate writes them (`Calibration.sigmas`)
+            "sigmas": post.to_metrics()}  # the one writer (`Sigmas`), as calibrate writes them
 
 
 def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,

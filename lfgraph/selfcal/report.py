@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfgraph.core.grid import ViewGrid
-from lfgraph.selfcal.solve import Posterior
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.selfcal.tracks import Coverage, PooledTracks
 
 PRIOR_LIMITED = 0.5  # a mode whose posterior sigma is over half its prior sigma was set by the design, not frames
@@ -129,7 +129,7 @@ class SelfCalReport:
     stages: tuple[StageResult, ...]
     noise_px: float
     rms_px: float
-    posterior: Posterior
+    posterior: Sigmas
     modes: tuple[Mode, ...]
     distortion_estimated: bool
     warnings: tuple[str, ...] = ()
@@ -164,7 +164,7 @@ class SelfCalReport:
         return {"verdict": self.verdict, "scale_from": "design pitch", "gauges": list(self.gauges),
                 "coverage": self.coverage.as_dict(), "stages": [s.as_dict() for s in self.stages],
                 "noise_px": self.noise_px, "rms_px": self.rms_px, "distortion_estimated": self.distortion_estimated,
-                "modes": [m.as_dict() for m in self.modes], "posterior_sigmas": self.posterior.as_dict(),
+                "modes": [m.as_dict() for m in self.modes], "posterior_sigmas": {"views": self.posterior.to_metrics()},
                 "warnings": list(self.warnings), "seconds": dict(self.seconds), "retracked": self.retracked,
                 "zoom_from": self.zoom_from, "pins": [p.as_dict() for p in self.pins]}
 
@@ -181,10 +181,11 @@ class SelfCalReport:
         lines.append(f"tracking noise {self.noise_px:.3f} px (from the residuals); final rms {self.rms_px:.3f} px"
                      + (f"; {self.retracked} observations re-tracked with the calibrated local maps"
                         if self.retracked else ""))
-        p = self.posterior.intrinsics
+        post = self.posterior
+        columns = {**dict(zip(("fx", "fy", "cx", "cy"), post.intrinsics.T, strict=True)),
+                   **{k: post.distortion[k] for k in ("k1", "k2") if k in post.distortion}}
         lines.append("posterior 1-sigma, median (max) over views: " + ", ".join(
-            f"{name} {np.median(p[:, i]):.3g} ({np.max(p[:, i]):.3g})"
-            for i, name in enumerate(("fx", "fy", "cx", "cy", "k1", "k2")))
+            f"{name} {np.nanmedian(c):.3g} ({np.nanmax(c):.3g})" for name, c in columns.items())
                      + f", rotation {np.median(self.posterior.rotation_deg):.2g} deg, position "
                        f"{np.median(self.posterior.position_mm):.2g} mm")
         lines.append("weakly seen modes (posterior / design prior sigma):")

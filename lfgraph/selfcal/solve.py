@@ -4,13 +4,13 @@ outlier filter, the measured noise and the marginals."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.camera import Intrinsics
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
 from lfgraph.engine.schur import CameraMarginals
 from lfgraph.engine.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
@@ -29,7 +29,6 @@ from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors,
 # minimum in 4 steps from there, 5 + 3 from the staged start
 LANDMARK_ITERATIONS = 2
 # Cal3DS2 tangent order -> the parameters lfgraph reports
-SIGMA_FIELDS = (("fx_px", 0), ("fy_px", 1), ("cx_px", 3), ("cy_px", 4), ("k1", 5), ("k2", 6))
 
 
 def initial_landmarks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -116,33 +115,12 @@ def drop_outliers(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
     return keep, errors
 
 
-@dataclass(frozen=True)
-class Posterior:
-    """Posterior 1-sigma of every parameter from the graph's marginals (rescaled by nothing: the final stage uses
-    the measured noise).
-
-    Attributes:
-        intrinsics: (V, 6) sigmas of fx, fy, cx, cy (px), k1, k2 (0 for the reference view's gauge pose only).
-        rotation_deg: (V, 3) and position_mm: (V, 3): pose sigmas about / along the view's own axes.
-    """
-
-    intrinsics: np.ndarray
-    rotation_deg: np.ndarray
-    position_mm: np.ndarray
-
-    def as_dict(self) -> dict:
-        """JSON-ready sigmas per view: fx_px, fy_px, cx_px, cy_px, k1, k2, and rotation_deg and position_mm (3 values
-        each)."""
-        fields = [f for f, _ in SIGMA_FIELDS]
-        return {"views": [{**{f: float(self.intrinsics[v, i]) for i, f in enumerate(fields)},
-                           "rotation_deg": self.rotation_deg[v].tolist(), "position_mm": self.position_mm[v].tolist()}
-                          for v in range(len(self.intrinsics))]}
-
-
-def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-              num_views: int) -> tuple[Posterior, np.ndarray]:
-    """Marginal sigmas of every view's calibration and pose at the optimum, and the (DV, DV) joint covariance of
-    every view's calibration (views in order, each in its model's tangent order: D = 9, or 10 for Cal3Unified).
+def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, lenses: tuple[str, ...]
+              ) -> tuple[Sigmas, np.ndarray]:
+    """Marginal sigmas of every view's calibration and pose at the optimum (`Sigmas`, rescaled by nothing: the
+    final stage uses the measured noise; each view's ``lenses`` model says its coefficients), and the (DV, DV) joint
+    covariance of every view's calibration (views in order, each in its model's tangent order: D = 9, or 10 for
+    Cal3Unified).
 
     The covariances are `lfgraph.engine.schur.CameraMarginals` (the one posterior path): the inverse of the reduced
     camera system (the same numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every
@@ -152,19 +130,16 @@ def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     Raises:
         RuntimeError: the system is indeterminate (a parameter without information).
     """
-    cal_keys = [calib_key(v) for v in range(num_views)]
+    cal_keys = [calib_key(v) for v in range(len(lenses))]
     try:
         with gtsam_quiet():
             marginals = CameraMarginals(graph, values, LANDMARK_CHAR)
             joint = marginals.joint(cal_keys)
-            pose_var = np.array([np.diag(marginals.block(view_pose_key(v))) for v in range(num_views)])
+            sigmas = Sigmas.from_marginals(marginals, cal_keys, [view_pose_key(v) for v in range(len(lenses))],
+                                           lenses)
     except RuntimeError as exc:
         raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
-    joint = np.asarray(joint)
-    cal = np.sqrt(np.diag(joint)).reshape(num_views, -1)
-    pose = np.sqrt(pose_var)
-    intr = cal[:, [i for _, i in SIGMA_FIELDS]]
-    return Posterior(intr, np.degrees(pose[:, :3]), 1e3 * pose[:, 3:]), joint
+    return sigmas, np.asarray(joint)
 
 
 def measurement(noise: Noise, sigma_px: float) -> gtsam.noiseModel.Base:

@@ -135,7 +135,9 @@ def test_stored_sigmas_read_in_either_shape_and_refused_when_broken():
             "rotation_deg": [0.01, 0.02, 0.03], "position_mm": [0.1, 0.2, 0.3]}
     listed = calib.replace(metrics={"sigmas": [view, view]}).sigmas
     assert listed == calib.replace(metrics={"sigmas": {"views": [view, view]}}).sigmas  # calibrate-scene's old shape
-    assert listed[1].cy_px == 0.8 and listed[1].position_mm == (0.1, 0.2, 0.3)
+    assert listed.intrinsics[1, 3] == 0.8 and np.allclose(listed.position_mm[1], (0.1, 0.2, 0.3), rtol=1e-15, atol=0)
+    assert listed.distortion["k2"][1] == 2e-3 and np.allclose(listed.pose[1, :3], np.radians([0.01, 0.02, 0.03]))
+    assert calib.replace(metrics={"sigmas": [view, {**view, "note": "ours"}]}).sigmas == listed  # not a coefficient
     for broken in ([view], [view, {**view, "fx_px": "x"}], [view, {**view, "position_mm": [0.1]}],
                    [view, {**view, "cx_px": float("nan")}], "no"):
         assert calib.replace(metrics={"sigmas": broken}).sigmas is None, broken
