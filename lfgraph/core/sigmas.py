@@ -87,9 +87,10 @@ class Sigmas:
     def combined(self, other: Sigmas) -> Sigmas:
         """Root sum of squares with ``other`` (independent uncertainties: a drift and the input's own); a
         coefficient only one of them holds keeps its sigma."""
-        names = dict.fromkeys([*self.distortion, *other.distortion])
-        dist = {k: np.sqrt(np.nansum([self.distortion.get(k, np.nan) ** 2, other.distortion.get(k, np.nan) ** 2],
-                                     axis=0)) for k in names}
+        none = np.full(self.num_views, np.nan)
+        pairs = {k: np.stack([self.distortion.get(k, none), other.distortion.get(k, none)])
+                 for k in dict.fromkeys([*self.distortion, *other.distortion])}
+        dist = {k: np.where(np.isnan(p).all(axis=0), np.nan, np.sqrt(np.nansum(p**2, axis=0))) for k, p in pairs.items()}
         return Sigmas(np.hypot(self.pose, other.pose), np.hypot(self.intrinsics, other.intrinsics), dist)
 
     def view(self, v: int) -> dict[str, Any]:
