@@ -90,7 +90,8 @@ class Sigmas:
         none = np.full(self.num_views, np.nan)
         pairs = {k: np.stack([self.distortion.get(k, none), other.distortion.get(k, none)])
                  for k in dict.fromkeys([*self.distortion, *other.distortion])}
-        dist = {k: np.where(np.isnan(p).all(axis=0), np.nan, np.sqrt(np.nansum(p**2, axis=0))) for k, p in pairs.items()}
+        dist = {k: np.where(np.isnan(p).all(axis=0), np.nan, np.sqrt(np.nansum(p**2, axis=0)))
+                for k, p in pairs.items()}
         return Sigmas(np.hypot(self.pose, other.pose), np.hypot(self.intrinsics, other.intrinsics), dist)
 
     def view(self, v: int) -> dict[str, Any]:
