@@ -57,7 +57,8 @@ class Posterior:
     (the reference view, held views, gauges, intrinsics a stage does not free: `held_directions`) —
     never inferred from the size of a sigma, which mixes rad, m and px and shrinks as data improve;
     ``bending``: the variance factors by which the tracks' scatter widened the rig's bending modes
-    (`lfgraph.refinement.scatter`; ones: the graph's marginals kept)."""
+    (`lfgraph.refinement.scatter`; ones: the graph's marginals kept); ``graph``: the graph's own marginals before
+    that widening (what the verdicts' tests are set on), None when this is them."""
 
     pose_cov: np.ndarray
     intr_cov: np.ndarray
@@ -66,6 +67,7 @@ class Posterior:
     sigma_px: float
     held: np.ndarray | None = None
     bending: np.ndarray | None = None
+    graph: Posterior | None = None
 
     def held_mask(self, v: int) -> np.ndarray:
         """(10,) directions of view v held by structure (all intrinsics when the graph did not free them)."""
@@ -134,16 +136,21 @@ def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors 
     except RuntimeError:  # an indeterminate system: report no posterior rather than a wrong one
         return None
     held = held_directions(calib, fit.last_stage, fit.held, priors)
-    cov, factors = widen_bending(cov, bending_functionals(calib, layout, ~held[:, :3]), scores, prior_info)
-    pose_cov, intr_cov, cross = np.zeros((n, 6, 6)), np.zeros((n, 4, 4)), np.zeros((n, 6, 4))
-    for v in range(n):
-        p = camera_block(layout, view_pose_key(v))
-        pose_cov[v] = cov[p, p]
-        if intr_free:
-            c = camera_block(layout, calib_key(v)).start + np.array(INTRINSIC_COLUMNS)
-            intr_cov[v] = cov[np.ix_(c, c)]
-            cross[v] = cov[p][:, c]
-    return Posterior(pose_cov, intr_cov, cross, intr_free, fit.sigma_px, held, factors)
+    wide, factors = widen_bending(cov, bending_functionals(calib, layout, ~held[:, :3]), scores, prior_info)
+
+    def per_view(c: np.ndarray) -> tuple[np.ndarray, ...]:
+        pose_cov, intr_cov, cross = np.zeros((n, 6, 6)), np.zeros((n, 4, 4)), np.zeros((n, 6, 4))
+        for v in range(n):
+            p = camera_block(layout, view_pose_key(v))
+            pose_cov[v] = c[p, p]
+            if intr_free:
+                k = camera_block(layout, calib_key(v)).start + np.array(INTRINSIC_COLUMNS)
+                intr_cov[v] = c[np.ix_(k, k)]
+                cross[v] = c[p][:, k]
+        return pose_cov, intr_cov, cross
+
+    graph_post = Posterior(*per_view(cov), intr_free, fit.sigma_px, held)
+    return Posterior(*per_view(wide), intr_free, fit.sigma_px, held, factors, graph_post)
 
 
 def infinity_rays(calib: Calibration, samples: int = TRANSFER_SAMPLES) -> np.ndarray | tuple[np.ndarray, ...]:
