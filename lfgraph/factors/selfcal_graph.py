@@ -173,6 +173,22 @@ def distance_pin_factors(first: int, pixels: np.ndarray, valid: np.ndarray, dist
     return graph
 
 
+def plane_depth_factors(first: int, depth_m: float, sigma_m: float,
+                        facing_sigma_m: float) -> gtsam.NonlinearFactorGraph:
+    """A distance pin's plane of known depth: the first point's depth (its z in the reference frame, the rig frame
+    whose reference view is the gauge) is ``depth_m`` +- ``sigma_m``, and the second lies at the same depth to
+    within ``facing_sigma_m`` (how squarely the plane faces the array); x and y are left free (`FREE_SIGMA`). The
+    distance between two points at one known depth is an angle, which a pinhole view sees through its focal length
+    alone: the common zoom, whatever the hidden principal-point gauge does to triangulated depths."""
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPoint3(pin_point_key(first), np.array([0.0, 0.0, float(depth_m)]),
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA, FREE_SIGMA, sigma_m]))))
+    graph.add(gtsam.BetweenFactorPoint3(pin_point_key(first), pin_point_key(first + 1), np.zeros(3),
+                                        gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA, FREE_SIGMA,
+                                                                                   facing_sigma_m]))))
+    return graph
+
+
 def view_pin_factor(view: int, intrinsics: Intrinsics, sigmas: np.ndarray) -> gtsam.NonlinearFactorGraph:
     """A view pin: one view's intrinsics known from a factory or an earlier calibration, a prior on its calibration
     with that calibration's sigmas (``sigmas``: fx, fy, cx, cy (px), k1, k2); the coefficients the self-calibration

@@ -26,6 +26,7 @@ from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.factors.selfcal_graph import DesignSigmas
 from lfgraph.refinement.posterior import chi2_sigma
+from lfgraph.refinement.tracks import in_front
 from lfgraph.selfcal.pins import BoardPin, DistancePin, Pin, PinError, ViewPin
 from lfgraph.selfcal.report import Mode, modes
 from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, run_map_stage
@@ -34,6 +35,8 @@ PIN_DISAGREEMENT_SIGMAS = 3.0  # a pin whose shift of the weak modes is beyond t
 INFORMED_SHARE = 0.1  # the test's directions: those along which the pin removed at least this share of the variance
 FIXES_ZOOM = 0.5  # a pin "fixes the zoom" when the zoom's sigma with it is below this fraction of the scene's alone
 PIN_ITERATIONS = 100  # Levenberg–Marquardt cap of a pinned fit (it starts at the scene's optimum)
+REACH_PASSES = 3  # a pinned fit is run again without the landmarks it pushed out of reach, at most this often
+MIN_ARRAY_DISPARITY_PX = 1.0  # as the scene's final stage: a landmark with less disparity across the array has no depth
 
 
 class PinRefused(PinError):
@@ -116,10 +119,37 @@ class SceneFit:
     modes_cov: np.ndarray | None = None
 
 
+def reachable(calib: Calibration, points: np.ndarray, valid: np.ndarray, focal_px: float) -> np.ndarray:
+    """(N,) landmarks still in front of their views and nearer than the depth at which their disparity across the
+    whole array falls below `MIN_ARRAY_DISPARITY_PX` (as the scene's own final stage keeps them)."""
+    centres = calib.ref_T_view[:, :3, 3]
+    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
+    return in_front(calib, points, valid) & (points[:, 2] < focal_px * span / MIN_ARRAY_DISPARITY_PX)
+
+
 def _fit(scene: SceneFit, pins: Sequence[Pin], max_iterations: int, hooks: tuple[Callable, ...],
          say: Observer):
     """The scene's final graph with ``pins``' factors, from the scene's optimum: (calibration, landmarks, graph,
-    values, the pins' fragments)."""
+    values, the pins' fragments).
+
+    A pin moves the near-gauges within what the scene allows, and the hidden principal-point gauge shifts every
+    landmark's inverse depth: the farthest can be pushed to infinity and beyond, where they hold nothing and leave
+    the system indeterminate. Those are dropped (`reachable`) and the fit is run again from the scene's optimum
+    without them, as the scene's own final stage drops them."""
+    tracks, points = scene.tracks, scene.points
+    focal = float(np.mean([i.fx for i in scene.nominal.intrinsics]))
+    for _ in range(REACH_PASSES):
+        fit = _fit_once(scene, tracks, points, pins, max_iterations, hooks, say)
+        keep = reachable(fit[0], fit[1], tracks.valid, focal)
+        if keep.all():
+            break
+        say.log(f"self-calibration: {int((~keep).sum())} landmark(s) pushed out of reach by the pins dropped")
+        tracks, points = tracks.subset(keep), points[keep]
+    return fit
+
+
+def _fit_once(scene: SceneFit, tracks, points: np.ndarray, pins: Sequence[Pin], max_iterations: int,
+              hooks: tuple[Callable, ...], say: Observer):
     fragments: list[gtsam.NonlinearFactorGraph] = []
 
     def add_pins(ctx) -> None:
@@ -130,7 +160,7 @@ def _fit(scene: SceneFit, pins: Sequence[Pin], max_iterations: int, hooks: tuple
             ctx.graph.push_back(fragment)
 
     calib, points, graph, values, _ = run_map_stage(
-        scene.calib, scene.nominal, scene.tracks.pixels, scene.tracks.valid, scene.points, scene.free, scene.sigmas,
+        scene.calib, scene.nominal, tracks.pixels, tracks.valid, points, scene.free, scene.sigmas,
         measurement(RobustKernel("none"), scene.noise_px), max_iterations, FINAL_RELATIVE_TOL, say.iteration,
         (*hooks, add_pins), hold_gauges=False, landmark_iterations=LANDMARK_ITERATIONS)
     return calib, points, graph, values, list(fragments)
@@ -139,9 +169,11 @@ def _fit(scene: SceneFit, pins: Sequence[Pin], max_iterations: int, hooks: tuple
 def _residual(pin: Pin, k: int, calib: Calibration, values: gtsam.Values, fragment: gtsam.NonlinearFactorGraph) -> str:
     """The pin's own fit, in words."""
     if isinstance(pin, DistancePin):
-        d = pin.fitted_distance_m(values, 2 * k)
+        d, z = pin.fitted_distance_m(values, 2 * k)
+        depth = "" if pin.depth_m is None else \
+            f", fitted depth {z:.4f} m vs {pin.depth_m:.4f} m ({(z - pin.depth_m) / pin.depth_sigma_m:+.2f} sigma)"
         return (f"fitted distance {d:.4f} m vs {pin.distance_m:.4f} m measured "
-                f"({(d - pin.distance_m) / pin.sigma_m:+.2f} sigma)")
+                f"({(d - pin.distance_m) / pin.sigma_m:+.2f} sigma){depth}")
     if isinstance(pin, ViewPin):
         fx = calib.intrinsics[pin.view].fx
         return (f"fitted fx {fx:.2f} px vs {pin.intrinsics.fx:.2f} px pinned "
@@ -222,10 +254,10 @@ def fit_pins(scene: SceneFit, pins: Sequence[Pin], distortion: bool, hooks: tupl
         fit = _fit(scene, [pin], PIN_ITERATIONS, hooks, say)
         try:
             result = _result(scene, pin, 0, fit, distortion)
-        except RuntimeError as exc:  # the marginals: the pin was met only by pushing landmarks out of reach
-            raise PinRefused(f"pin {pin.name} cannot be fitted with the scene: meeting it left the system "
-                             f"indeterminate (landmarks pushed beyond any depth); check the pin's measurement "
-                             f"({pin.describe()}); nothing was written") from exc
+        except RuntimeError as exc:  # GTSAM's marginals: not a disagreement (that is the test below), a failure
+            raise PinError(f"pin {pin.name}: the scene and the pin leave the calibration's uncertainty indeterminate "
+                           f"(GTSAM: {exc}); check the pin's measurement ({pin.describe()}); nothing was "
+                           f"written") from exc
         say.log(f"self-calibration: {result.text()}")
         _refuse(result)
         results.append(result)

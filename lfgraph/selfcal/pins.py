@@ -32,15 +32,13 @@ from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.values import insert_board_corners, insert_board_poses
 from lfgraph.refinement.triangulate import triangulate_dlt
+from lfgraph.selfcal.marks import follow_marks
 from lfgraph.selfcal.retrack import Patches, cut_patches, retrack
 
 MIN_PIN_CORNERS = 6  # a pin frame seen by a view with fewer corners than this is not used in that view
 CORNER_NOISE_FLOOR_PX = 0.01  # a board pin's estimated corner noise is never taken below this
-# a marked point is followed from its view through the grid by pyramidal KLT (as the chain tracker does, with the
-# self-calibration's deeper pyramid) and then re-tracked from the reference view like every track
-MARK_KLT_WINDOW_PX = 21
-MARK_KLT_LEVELS = 5
-MARK_FORWARD_BACKWARD_PX = 0.5
+FACING_DEG = 0.5  # a known depth's plane faces the reference view to within this (its marks' depths differ by at most
+# this tilt times their distance, 1 sigma): e.g. a wall the array was squared to
 
 
 class PinError(ValueError):
@@ -140,7 +138,7 @@ class BoardPin:
 
 @dataclass(frozen=True)
 class DistancePin:
-    """Two scene points and their distance.
+    """Two scene points and their distance; optionally the known depth of the plane they lie on.
 
     Either marked in one view of one frame (``view``, ``frame``, ``marked_px``: `calibrate_scene` follows them into
     every view of that frame and re-tracks them as it does every track) or given in every view (``pixels``,
@@ -148,6 +146,11 @@ class DistancePin:
 
     Attributes:
         distance_m, sigma_m: the measured distance and its 1-sigma (metres).
+        depth_m, depth_sigma_m: optionally, the depth of the plane both points lie on (a wall facing the reference
+            view to within `FACING_DEG`: its distance along the reference view's optical axis) and its 1-sigma.
+            With it the pin is the angle the distance subtends at that depth, which every pinhole view sees through
+            its focal length alone; without it, a distance fixes one combination of the zoom and the hidden
+            principal-point gauge (`lfgraph.selfcal.pinned`).
         view, frame, marked_px: the view (index), the frame (index among the frames read) and the (2, 2) pixels.
         pixels: (V, 2, 2) the two points in every view; valid: (V, 2).
         patches: the image patches around them (for the re-tracking; set when followed from the images).
@@ -163,9 +166,13 @@ class DistancePin:
     valid: np.ndarray | None = None
     patches: Patches | None = field(default=None, repr=False)
     name: str = "distance"
+    depth_m: float | None = None
+    depth_sigma_m: float | None = None
 
     def __post_init__(self) -> None:
-        for what in ("distance_m", "sigma_m"):
+        if (self.depth_m is None) != (self.depth_sigma_m is None):
+            raise PinError(f"pin {self.name}: a plane's depth needs both depth_m and depth_sigma_m")
+        for what in ("distance_m", "sigma_m") + (("depth_m", "depth_sigma_m") if self.depth_m is not None else ()):
             value = getattr(self, what)
             if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
                 raise PinError(f"pin {self.name}: {what} must be a positive number of metres, got {value!r}")
@@ -210,6 +217,8 @@ class DistancePin:
         if not isinstance(doc, dict):
             raise PinError(f"{p}: a distance file holds one JSON object, got {type(doc).__name__}")
         missing = [k for k in ("view", "frame", "points_px", "distance_m", "sigma_m") if k not in doc]
+        missing += [k for k in ("depth_m", "depth_sigma_m") if ("depth_m" in doc or "depth_sigma_m" in doc)
+                    and k not in doc]
         if missing:
             raise PinError(f"{p}: missing field(s) {', '.join(missing)}")
         view = grid.find(doc["view"], f"{p}: field view", PinError)
@@ -223,7 +232,8 @@ class DistancePin:
         if marked is None or marked.shape != (2, 2):
             raise PinError(f"{p}: field points_px must be [[u, v], [u, v]], got {doc['points_px']!r}")
         try:
-            return cls(doc["distance_m"], doc["sigma_m"], view, frame, marked, name=f"distance {p.name}")
+            return cls(doc["distance_m"], doc["sigma_m"], view, frame, marked, name=f"distance {p.name}",
+                       depth_m=doc.get("depth_m"), depth_sigma_m=doc.get("depth_sigma_m"))
         except PinError as exc:
             raise PinError(f"{p}: {exc}") from None
 
@@ -269,18 +279,24 @@ class DistancePin:
             raise PinError(f"pin {self.name}: its points do not triangulate in front of the views")
         for k in range(2):
             values.insert(pin_point_key(first_point + k), points[k])
-        return selfcal_graph.distance_pin_factors(first_point, self.pixels, self.valid, self.distance_m, self.sigma_m,
-                                                  track_sigma_px, [i.lens for i in calib.intrinsics])
+        graph = selfcal_graph.distance_pin_factors(first_point, self.pixels, self.valid, self.distance_m, self.sigma_m,
+                                                   track_sigma_px, [i.lens for i in calib.intrinsics])
+        if self.depth_m is not None:
+            graph.push_back(selfcal_graph.plane_depth_factors(first_point, self.depth_m, self.depth_sigma_m,
+                                                              np.tan(np.radians(FACING_DEG)) * self.distance_m))
+        return graph
 
-    def fitted_distance_m(self, values: gtsam.Values, first_point: int) -> float:
-        """The two points' distance in ``values``."""
+    def fitted_distance_m(self, values: gtsam.Values, first_point: int) -> tuple[float, float]:
+        """The two points' distance and the first one's depth in ``values``."""
         a, b = (np.asarray(values.atPoint3(pin_point_key(first_point + k))) for k in range(2))
-        return float(np.linalg.norm(a - b))
+        return float(np.linalg.norm(a - b)), float(a[2])
 
     def describe(self) -> str:
         """One line: the distance and its sigma."""
         where = "" if self.frame is None else f" (frame {self.frame})"
-        return f"{self.distance_m:g} m +- {1e3 * self.sigma_m:g} mm between two scene points{where}"
+        plane = "" if self.depth_m is None else \
+            f" on a plane {self.depth_m:g} m +- {1e3 * self.depth_sigma_m:g} mm deep"
+        return f"{self.distance_m:g} m +- {1e3 * self.sigma_m:g} mm between two scene points{plane}{where}"
 
 
 @dataclass(frozen=True)
@@ -347,37 +363,3 @@ class ViewPin:
 
 Pin = BoardPin | DistancePin | ViewPin
 PIN_TYPES = (BoardPin, DistancePin, ViewPin)
-
-
-def follow_marks(images: np.ndarray, grid: ViewGrid, view: int, marked_px: np.ndarray) -> tuple[np.ndarray,
-                                                                                                  np.ndarray]:
-    """(K, 2) points of one view followed into every view of a frame's (V, H, W) images by pyramidal KLT along the
-    grid's chain from that view, each step started at the step before, with a forward-backward check.
-
-    Returns:
-        (V, K, 2) pixels (NaN where lost) and (V, K) valid.
-    """
-    images = np.asarray(images)
-    n_views, k = grid.num_views, len(marked_px)
-    pixels = np.full((n_views, k, 2), np.nan)
-    pixels[view] = marked_px
-    win, criteria = (MARK_KLT_WINDOW_PX,) * 2, (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
-    chain = ViewGrid(grid.rows, grid.cols, view).chain()
-    for a, b in chain:
-        ok = np.all(np.isfinite(pixels[a]), axis=1)
-        if not ok.any():
-            continue
-        p0 = pixels[a, ok].astype(np.float32).reshape(-1, 1, 2)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(images[a], images[b], p0, p0.copy(), winSize=win,
-                                             maxLevel=MARK_KLT_LEVELS, criteria=criteria,
-                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        back, st_b, _ = cv2.calcOpticalFlowPyrLK(images[b], images[a], p1, p0.copy(), winSize=win,
-                                                 maxLevel=MARK_KLT_LEVELS, criteria=criteria,
-                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        good = (st.ravel() == 1) & (st_b.ravel() == 1) & \
-            (np.linalg.norm((back - p0).reshape(-1, 2), axis=1) <= MARK_FORWARD_BACKWARD_PX)
-        out = np.full((int(ok.sum()), 2), np.nan)
-        out[good] = p1.reshape(-1, 2)[good]
-        pixels[b, ok] = out
-    valid = np.all(np.isfinite(pixels), axis=2)
-    return pixels, valid
