@@ -9,6 +9,9 @@
   their true positions from the exact depth of the rendered scene, their distance measured with a 1-sigma of
   `SIGMA_PER_M` per metre; the marks are followed into the other views by `DistancePin.followed` as
   `calibrate_scene` does.
+- Distance on a plane of known depth: two marks on the background wall (a plane facing the array) of a frame of the
+  nearest depth band, as far apart as the marks every view sees allow, their distance and the wall's depth each
+  measured with a 1-sigma of `SIGMA_PER_M` per metre.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.scene import make_scene, render_scene_depth
 from lfgraph.io.capture import open_capture
+from lfgraph.refinement.triangulate import triangulate_dlt
 from lfgraph.selfcal import BoardPin, DistancePin
 from lfgraph.selfcal.pins import follow_marks
 
@@ -35,6 +39,7 @@ MISMEASURED = 0.05  # the refusal case: a distance 5 % wrong
 FLAT_WINDOW_PX = 9  # a marked point's depth varies by less than FLAT_DEPTH of itself over this window
 FLAT_DEPTH = 0.01
 MARK_CANDIDATES = 400
+FOLLOWED_DEPTH = 0.02  # a mark whose followed pixels triangulate (true cameras) further off its true depth is dropped
 
 
 def tilt_deg(ref_T_board: np.ndarray) -> float:  # noqa: N803
@@ -72,20 +77,53 @@ def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration) -> tuple[np
     return feats, np.column_stack([xy, np.ones(len(xy))]) / inv[:, None]
 
 
-def distance_pin(rig: str, truth: Calibration, frames: int, rig_seed: int, seed: int,
-                 error: float = 0.0) -> DistancePin:
-    """Two marked points about `DISTANCE_M` apart in one frame, their distance measured (``error``: relative
-    mistake added), followed into every view."""
-    rng = np.random.default_rng([seed, 53])
+def _frame_marks(rig: str, truth: Calibration, rig_seed: int, frame: int):
+    """A frame's images, its marks every view sees and their true points."""
     root = data.dataset_dir(rig, rig_seed)
-    frame = int(rng.integers(frames))
     scene = make_scene(data.frame_scene_config(rig, frame), np.random.default_rng([rig_seed, 23, frame]))
     ref = truth.grid.reference
     depth = render_scene_depth(scene, truth.intrinsics[ref], truth.image_size_px, truth.view_T_ref(ref))
     images = open_capture(root, truth.grid).load_frame(frame)
     feats, points = _marks(images[ref], depth, truth)
-    seen = follow_marks(images, truth.grid, ref, feats)[1].all(axis=0)  # marks every view sees (not occluded)
-    feats, points = feats[seen], points[seen]
+    pixels, valid = follow_marks(images, truth.grid, ref, feats)
+    seen = valid.all(axis=0)  # marks every view sees (not occluded) ...
+    # ... and followed onto their own surface: through the true cameras they triangulate near their true depth (a
+    # mark beside a depth edge is followed on the nearer surface; a user marks points that are clearly one thing)
+    tri = triangulate_dlt(truth, pixels, valid)
+    seen &= np.abs(tri[:, 2] / points[:, 2] - 1.0) < FOLLOWED_DEPTH
+    return images, feats[seen], points[seen]
+
+
+def plane_pin(rig: str, truth: Calibration, frames: int, rig_seed: int, seed: int, error: float = 0.0) -> DistancePin:
+    """Two marks on the background wall of a near frame, their distance (``error``: relative mistake added) and the
+    wall's depth measured, followed into every view."""
+    rng = np.random.default_rng([seed, 59])
+    near = np.arange(0, frames, data.DEPTH_BANDS)  # frames of the nearest band: the wall nearest the array
+    frame = int(near[rng.integers(len(near))])
+    wall_m = data.frame_scene_config(rig, frame).background_depth_m
+    images, feats, points = _frame_marks(rig, truth, rig_seed, frame)
+    on_wall = np.abs(points[:, 2] / wall_m - 1.0) < 1e-3
+    feats, points = feats[on_wall], points[on_wall]
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    a, b = np.unravel_index(int(np.argmax(d)), d.shape)
+    true_m = float(d[a, b])
+    noise = rng.standard_normal(2) * SIGMA_PER_M
+    measured = true_m * (1.0 + error) + (true_m * noise[0] if error == 0.0 else 0.0)
+    pin = DistancePin(measured, SIGMA_PER_M * true_m, view=truth.grid.reference, frame=frame,
+                      marked_px=feats[[a, b]], depth_m=wall_m * (1.0 + noise[1]), depth_sigma_m=SIGMA_PER_M * wall_m,
+                      name=f"{true_m:.3f} m on a wall {wall_m:.2f} m deep{f' {100 * error:+.0f} %' if error else ''} "
+                           f"(seed {seed})")
+    return pin.followed(images, truth.grid)
+
+
+def distance_pin(rig: str, truth: Calibration, frames: int, rig_seed: int, seed: int,
+                 error: float = 0.0) -> DistancePin:
+    """Two marked points about `DISTANCE_M` apart in one frame, their distance measured (``error``: relative
+    mistake added), followed into every view."""
+    rng = np.random.default_rng([seed, 53])
+    frame = int(rng.integers(frames))
+    ref = truth.grid.reference
+    images, feats, points = _frame_marks(rig, truth, rig_seed, frame)
     d = np.linalg.norm(points[:, None] - points[None], axis=2)
     dz = np.abs(points[:, None, 2] - points[None, :, 2])
     score = np.where(np.abs(d / DISTANCE_M - 1.0) < 0.2, dz / np.maximum(d, 1e-9), -np.abs(d - DISTANCE_M))
