@@ -174,13 +174,12 @@ def input_transfer_sigma_px(calib: Calibration) -> np.ndarray | None:
     """(V,) 1-sigma transfer error at infinity that the calibration's stored marginals predict (rotation and fx,
     fy, cx, cy, as independent), or None when ``calibrate`` stored none."""
     from lfgraph.refinement.posterior import Posterior, infinity_rays, predicted_transfer_px
-    from lfgraph.refinement.priors import input_sigmas
 
-    own = input_sigmas(calib)
+    own = calib.sigmas
     if own is None:
         return None
     n = calib.num_views
-    post = Posterior(np.stack([np.diag(s**2) for s in own[0]]), np.stack([np.diag(s**2) for s in own[1]]),
+    post = Posterior(np.stack([np.diag(s**2) for s in own.pose]), np.stack([np.diag(s**2) for s in own.intrinsics]),
                      np.zeros((n, 6, 4)), True, float("nan"))
     rays = infinity_rays(calib)
     return np.array([0.0 if v == calib.grid.reference else predicted_transfer_px(calib, post, v, rays)

@@ -48,7 +48,7 @@ from lfgraph.refinement.posterior import (
     predicted_transfer_px,
     restricted,
 )
-from lfgraph.refinement.priors import input_sigmas, view_priors
+from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.verdicts import (
     MAX_TRACK_SIGMA_PX,
@@ -194,11 +194,12 @@ def apply_factors(post: Posterior, factors: np.ndarray) -> Posterior:
 def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
     """The covariance of (refined - input): the posterior plus the input's own (calibrate's marginals, when
     stored). A change within what the input calibration itself could not pin down is no drift."""
-    own = input_sigmas(calib)
+    own = calib.sigmas
     if own is None:
         return post
-    pose_cov = post.pose_cov + np.stack([np.diag(s**2) for s in own[0]])
-    intr_cov = post.intr_cov if not post.intrinsics_free else post.intr_cov + np.stack([np.diag(s**2) for s in own[1]])
+    pose_cov = post.pose_cov + np.stack([np.diag(s**2) for s in own.pose])
+    intr_cov = post.intr_cov if not post.intrinsics_free else post.intr_cov + np.stack([np.diag(s**2)
+                                                                                        for s in own.intrinsics])
     return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px, post.held)
 
 
@@ -344,7 +345,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     dec = Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
                     accepted, inconsistent, heldout_before, heldout_after, fit_rms, foreign, outliers)
     written_size = change_size_px(calib, out, significant)
-    own = input_sigmas(calib)
+    own = calib.sigmas
     gauge_sigma = view_priors(calib, config.drift).pose_sigmas
     verdicts = []
     for v in range(n):

@@ -8,6 +8,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.refinement.matching import MatchSettings, Tracker, as_tracker
@@ -141,6 +142,13 @@ class DriftModel:
             return cls(**value)
         raise TypeError(f"drift must be a DriftModel, a text such as 'roll_deg=2' or a mapping such as "
                         f"{{'roll_deg': 2}}; got {type(value).__name__}")
+
+    def sigmas(self, num_views: int) -> Sigmas:
+        """The drift as the one sigma record: pan/tilt about each view's x and y, roll about z, position along each
+        axis, fx fy cx cy, the same for every view."""
+        pan_tilt, roll = np.radians(self.pan_tilt_deg), np.radians(self.roll_deg)
+        return Sigmas.uniform(num_views, (pan_tilt, pan_tilt, roll), 1e-3 * self.position_mm, self.focal_px,
+                              self.principal_px)
 
     @classmethod
     def parse(cls, spec: str | None) -> DriftModel:

@@ -12,6 +12,7 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import SilentObserver
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_tracks, has_kernel, same_track_costs
@@ -176,7 +177,7 @@ class Decision:
 
 
 def view_sigmas(calib: Calibration, post: Posterior | None, v: int, rays: np.ndarray,
-                 own: tuple[np.ndarray, np.ndarray] | None, gauge_sigma: np.ndarray
+                 own: Sigmas | None, gauge_sigma: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """View v's reported 1-sigmas (rotation deg, position mm, intrinsics px) and its predicted transfer at
     infinity (px), from the posterior; intrinsics a stage held report the input's own sigmas, a rotation held as a
@@ -187,7 +188,7 @@ def view_sigmas(calib: Calibration, post: Posterior | None, v: int, rays: np.nda
     s_pos = 1e3 * np.sqrt(np.maximum(np.diag(post.pose_cov[v])[3:], 0.0))
     s_int = np.sqrt(np.maximum(np.diag(post.intr_cov[v]), 0.0))
     if not post.intrinsics_free and own is not None:
-        s_int = own[1][v]
+        s_int = own.intrinsics[v]
     pred = predicted_transfer_px(calib, post, v, rays) if v != calib.grid.reference else 0.0
     gauge_axis = rotation_gauge(calib)
     if gauge_axis is not None and gauge_axis[0] == v and post.held_mask(v)[gauge_axis[1]]:
