@@ -36,6 +36,7 @@ from lfgraph.engine.projections import ProjectionProblem
 from lfgraph.engine.schur import optimize_problem
 from lfgraph.engine.schur_system import NotReducible
 from lfgraph.factors import scene_graph
+from lfgraph.factors.groups import Group
 from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
 from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
 from lfgraph.factors.values import (
@@ -87,6 +88,9 @@ class StagePlan:
         cameras: the views' poses are variables (False: the points stage, landmarks through constant cameras).
         intrinsics: the views' intrinsics are variables too (`scene_graph.sfm_factors`).
         priors: the camera variables' priors and gauges (what pulls the free groups and pins the rest).
+        frees: what the priors leave free of a free view (`lfgraph.factors.groups.Group`: pan/tilt, roll, position,
+            focal, principal, distortion, k1 and their unions); what counts a stage's parameters derives from it.
+            Variables the plan holds are still variables (``cameras``, ``intrinsics``), pinned by ``priors``.
         settings: the optimiser's iterations, tolerance and embedded landmark iterations.
         eliminate_landmarks: GTSAM's graph is solved with the landmarks eliminated first (`lfgraph.engine.schur`);
             False: GTSAM's own Levenberg–Marquardt and ordering.
@@ -101,6 +105,7 @@ class StagePlan:
     intrinsics: bool
     priors: gtsam.NonlinearFactorGraph
     settings: OptimizerSettings
+    frees: frozenset[Group] = frozenset()
     eliminate_landmarks: bool = True
     bulk: bool = False
     keep_distortion: bool = False

@@ -37,3 +37,33 @@ CAL3DS2_INDICES = {Group.FOCAL: (0, 1), Group.PRINCIPAL: (3, 4), Group.DISTORTIO
 POSE_GROUPS = (Group.ROTATION, Group.POSITION)  # what a self-calibration stage frees of a pose
 SELFCAL_GROUPS = (*POSE_GROUPS, *CAL3DS2_INDICES)  # the groups a self-calibration stage may free
 DRIFT_GROUPS = (Group.PAN_TILT, Group.ROLL, Group.POSITION, Group.INTRINSICS)  # a refinement's tested groups
+# how many of a view's parameters each leaf group holds, and what the unions are made of
+LEAF_SIZES = {Group.PAN_TILT: 2, Group.ROLL: 1, Group.POSITION: 3, Group.FOCAL: 2, Group.PRINCIPAL: 2,
+              Group.DISTORTION: 2, Group.K1: 1}
+UNIONS = {Group.ROTATION: (Group.PAN_TILT, Group.ROLL), Group.INTRINSICS: (Group.FOCAL, Group.PRINCIPAL)}
+POSE_LEAVES = frozenset({Group.PAN_TILT, Group.ROLL, Group.POSITION})
+
+
+def leaves(groups) -> frozenset[Group]:
+    """The leaf groups of ``groups`` (unions expanded; ``k1`` inside ``distortion`` counts once, as ``distortion``)."""
+    out = set()
+    for g in map(Group, groups):
+        out.update(UNIONS.get(g, (g,)))
+    if Group.DISTORTION in out:
+        out.discard(Group.K1)
+    return frozenset(out)
+
+
+def frees_pose(groups) -> bool:
+    """Whether ``groups`` free any part of a view's pose."""
+    return bool(leaves(groups) & POSE_LEAVES)
+
+
+def frees_intrinsics(groups) -> bool:
+    """Whether ``groups`` free any intrinsic parameter (focal length, principal point, distortion)."""
+    return bool(leaves(groups) - POSE_LEAVES)
+
+
+def parameters_per_view(groups) -> int:
+    """How many of one view's parameters ``groups`` free."""
+    return sum(LEAF_SIZES[g] for g in leaves(groups))

@@ -9,6 +9,8 @@ from enum import StrEnum
 import numpy as np
 
 from lfgraph.core.sigmas import Sigmas
+from lfgraph.factors import groups
+from lfgraph.factors.groups import Group
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
 from lfgraph.refinement.matching import MatchSettings, Tracker, as_tracker
@@ -25,19 +27,26 @@ class Stage(StrEnum):
     CLEAN = "clean"  # drop outlying tracks, repeat the previous free stage
 
     @property
+    def groups(self) -> frozenset[Group]:
+        """What the stage frees of each free view (`lfgraph.factors.groups`): the pose (``poses``), fx fy cx cy
+        (``intrinsics``), both (``all``), nothing (``points``; ``clean`` repeats the stage before it)."""
+        pose, intrinsics = {Group.ROTATION, Group.POSITION}, {Group.INTRINSICS}
+        return frozenset({Stage.POSES: pose, Stage.INTRINSICS: intrinsics, Stage.ALL: pose | intrinsics}.get(self, ()))
+
+    @property
     def frees_poses(self) -> bool:
         """Whether the stage frees the views' poses (``poses``, ``all``)."""
-        return self in (Stage.POSES, Stage.ALL)
+        return groups.frees_pose(self.groups)
 
     @property
     def frees_intrinsics(self) -> bool:
         """Whether the stage frees fx, fy, cx, cy (``intrinsics``, ``all``)."""
-        return self in (Stage.INTRINSICS, Stage.ALL)
+        return groups.frees_intrinsics(self.groups)
 
     @property
     def free_per_view(self) -> int:
         """Parameters this stage frees per free view: 6 (pose) and/or 4 (fx, fy, cx, cy); 0 for points/clean."""
-        return 6 * self.frees_poses + 4 * self.frees_intrinsics
+        return groups.parameters_per_view(self.groups)
 
 
 class TriangulationFilter(StrEnum):

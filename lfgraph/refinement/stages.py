@@ -61,7 +61,7 @@ def stage_plan(stage: Stage, calib: Calibration, scale_sigma_mm: float | None = 
     return StagePlan(str(stage), "refinement", cameras=stage != Stage.POINTS, intrinsics=stage.frees_intrinsics,
                      priors=graph, settings=OptimizerSettings(max_iterations=max_iterations,
                                                               relative_error_tol=relative_tol),
-                     bulk=True, keep_distortion=True)
+                     frees=stage.groups, bulk=True, keep_distortion=True)
 
 
 def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,

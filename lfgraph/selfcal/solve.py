@@ -15,6 +15,7 @@ from lfgraph.engine.optimize import IterationCallback, OptimizerSettings, gtsam_
 from lfgraph.engine.schur import CameraMarginals
 from lfgraph.engine.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
 from lfgraph.factors import selfcal_graph
+from lfgraph.factors.groups import Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.factors.selfcal_graph import DesignSigmas
@@ -70,7 +71,8 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
     settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol,
                                  landmark_iterations=landmark_iterations or 0)
     plan = StagePlan("+".join(sorted(free)), "selfcal", cameras=True, intrinsics=True, priors=priors,
-                     settings=settings, eliminate_landmarks=landmark_iterations is not None, tangential=False)
+                     settings=settings, frees=frozenset(map(Group, free)),
+                     eliminate_landmarks=landmark_iterations is not None, tangential=False)
     out = run_plan(plan, calib, pixels, valid, points, model, callback, hooks)
     return out.calib, out.points, out.graph, out.values, out.iterations
 
