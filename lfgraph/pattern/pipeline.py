@@ -112,10 +112,11 @@ def _paper_route(obs: BoardObservations, choice: LensChoice, say: Observer,
 def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
                  say: Observer) -> tuple[BoardObservations, Any, list[str]]:
     """The joint graph (`calibrate_joint`), started from the paper route or from design values. Robust by default:
-    a Cauchy fit first finds view-frames the rig cannot explain (swapped or mislabelled images, a mis-detected
-    board), which plain least squares would smear over every view; they are dropped by name and the least-squares
-    fit (the reported one) starts from the robust result. A view the rig misses in more than `SCREEN_MAX_SHARE` of
-    its frames keeps them (a systematic misfit, said). Returns (observations, its result, warnings)."""
+    a Cauchy fit first finds suspect view-frames (swapped or mislabelled images, a mis-detected board, which plain
+    least squares would smear over every view), and those the rest of the rig cannot predict either are dropped by
+    name (`lfgraph.pattern.screen`: a merely weakly constrained view-frame is kept); the least-squares fit (the
+    reported one) starts from the robust result. A view the robust fit misses in more than a quarter of its frames
+    keeps them (a systematic misfit, said). Returns (observations, its result, warnings)."""
     if paper is not None:
         start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
     else:
