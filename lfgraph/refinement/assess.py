@@ -354,7 +354,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         d = pose_change(calib.ref_T_view[v], shown.ref_T_view[v])
         a, b = shown.intrinsics[v], calib.intrinsics[v]
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
-        s_rot, s_pos, s_int, pred = view_sigmas(calib, reported, v, rays, own, gauge_sigma)
+        s_rot, s_pos, s_int, pred = view_sigmas(calib, reported, v, rays, own, gauge_sigma, reported=True)
         tested = view_sigmas(calib, post, v, rays, own, gauge_sigma)[3]  # what the tests judge by
         change_px = float(written_size[v] if applied else size_px[v] if significant.get(v) else proposed_px[v])
         verdict, reason, needs = verdict_of(v, dec, calib, fit, config, change_px, tested, post is not None)

@@ -177,11 +177,13 @@ class Decision:
 
 
 def view_sigmas(calib: Calibration, post: Posterior | None, v: int, rays: np.ndarray,
-                 own: Sigmas | None, gauge_sigma: np.ndarray
+                 own: Sigmas | None, gauge_sigma: np.ndarray, reported: bool = False
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """View v's reported 1-sigmas (rotation deg, position mm, intrinsics px) and its predicted transfer at
     infinity (px), from the posterior; intrinsics a stage held report the input's own sigmas, a rotation held as a
-    gauge its drift prior's (the graph's ~0 is no knowledge)."""
+    gauge its drift prior's (the graph's ~0 is no knowledge). With ``reported`` the predicted transfer includes that
+    held rotation too (a stereo pair's pan: the scene cannot tell it from depth, so it stays as it was, unknown to
+    its drift prior's sigma); without, it is the data's part, what the verdicts' tests judge by."""
     if post is None:
         return np.full(3, np.nan), np.full(3, np.nan), np.full(4, np.nan), float("nan")
     s_rot = np.degrees(np.sqrt(np.maximum(np.diag(post.pose_cov[v])[:3], 0.0)))
@@ -189,10 +191,15 @@ def view_sigmas(calib: Calibration, post: Posterior | None, v: int, rays: np.nda
     s_int = np.sqrt(np.maximum(np.diag(post.intr_cov[v]), 0.0))
     if not post.intrinsics_free and own is not None:
         s_int = own.intrinsics[v]
-    pred = predicted_transfer_px(calib, post, v, rays) if v != calib.grid.reference else 0.0
     gauge_axis = rotation_gauge(calib)
-    if gauge_axis is not None and gauge_axis[0] == v and post.held_mask(v)[gauge_axis[1]]:
-        s_rot[gauge_axis[1]] = np.degrees(gauge_sigma[v, gauge_axis[1]])  # predicted_transfer_px: the data's part
+    held_gauge = gauge_axis is not None and gauge_axis[0] == v and post.held_mask(v)[gauge_axis[1]]
+    if held_gauge and reported:
+        pose_cov = post.pose_cov.copy()
+        pose_cov[v, gauge_axis[1], gauge_axis[1]] += gauge_sigma[v, gauge_axis[1]] ** 2
+        post = dataclasses.replace(post, pose_cov=pose_cov)
+    pred = predicted_transfer_px(calib, post, v, rays) if v != calib.grid.reference else 0.0
+    if held_gauge:
+        s_rot[gauge_axis[1]] = np.degrees(gauge_sigma[v, gauge_axis[1]])
     return s_rot, s_pos, s_int, pred
 
 
