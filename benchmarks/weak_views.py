@@ -10,23 +10,30 @@ rendering, so the truth and the noise are exact).
 turn; the rig is calibrated from the other positions (lfgraph's default route, radtan lens, with and without the
 robust screen) and each held-out view-frame is predicted from the rest: its board pose fitted through the frame's
 *other* views with the rig held fixed, its corners projected into the view. Per view: the RMS of the held-out
-corners, and the RMS the Cramér–Rao prediction gives for them (`lfgraph.pattern.prediction`: the view's marginal
-covariance of intrinsics and pose from the calibration's own graph, the board pose's uncertainty from its fit and the
-true corner noise). Leave-one-*frame*-out hides the weak views' trouble: a held-out frame always has jittered twins at
-its position in the fit.
+corners, and the RMS the Cramér–Rao prediction gives for them (`lfgraph.pattern.prediction`: the joint posterior of
+the view's and the other views' intrinsics and poses from the calibration's own graph, the board pose's uncertainty
+from its fit and the corner noise the fit's residuals give). Leave-one-*frame*-out hides the weak views' trouble: a
+held-out frame always has jittered twins at its position in the fit.
 
 Printed per setting: the view-frames the screen dropped; per weak view (one seeing at most `WEAK_POSITIONS`
 positions) the held-out RMS with the screen, without, and the predicted RMS; and the worst ratio of held-out to
 predicted over the weak views (the target: within `TARGET_RATIO`).
 
-Usage: ``python benchmarks/weak_views.py [--views 20 12 30] [--sigma 0.1 0.3] [--seeds 0 1]``. Exit code 1 when a
-setting misses the target or the default is worse than ``--no-screen`` on a weak view by more than `NOISE_TOLERANCE`.
+Two kinds of true lenses (``--tangential``): radtan k1, k2 that the model fits (0), and lenses decentred by p1, p2 of
+std `TANGENTIAL_SIGMA`, which the default model holds at 0: a real lens's misfit, which is what makes a robust fit
+miss good view-frames of the weak views (with Gaussian corners and a fitting model the screen drops nothing). The
+Cramér–Rao prediction knows the noise, not a misfit: the ratio is a target only where the model fits.
+
+Usage: ``python benchmarks/weak_views.py [--views 20 12 30] [--sigma 0.1 0.3] [--seeds 0 1] [--tangential 0 0.002]``.
+Exit code 1 when a setting misses the target or the default is worse than ``--no-screen`` on a weak view by more than
+`NOISE_TOLERANCE`.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import sys
 import time
 
@@ -39,7 +46,7 @@ from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_o
 from lfgraph.datasets.rig import RigConfig, make_rig
 from lfgraph.detect.board import BoardSpec
 from lfgraph.detect.detections import BoardObservations, observations_from_arrays
-from lfgraph.pattern.initial import initial_board_T_ref, pnp_all
+from lfgraph.pattern.initial import CalibrationInputError, initial_board_T_ref, pnp_all
 from lfgraph.pattern.prediction import frame_jacobians, predict_view_frame, rig_marginals
 from lfgraph.pattern.scoring import fit_board_poses
 
@@ -155,7 +162,11 @@ def lopo(line: Line, screen: bool) -> tuple[np.ndarray, np.ndarray, list[str]]:
         rest = line.obs.seen[:, line.position != p]
         if not np.all(rest.sum(axis=1) >= 1):
             continue
-        per_view, d = held_out(line, int(p), screen)
+        try:
+            per_view, d = held_out(line, int(p), screen)
+        except CalibrationInputError as e:  # e.g. the middle position of a long line links its two halves
+            print(f"position {p} not held out: {str(e)[:80]}...")
+            continue
         drops += [f"position {p}: {w.split(':')[0]}" for w in d]
         for v, (a, b, n) in per_view.items():
             sums[v] += (a, b, n)
@@ -188,7 +199,9 @@ def run(views: int, sigma_px: float, seed: int, tangential: float) -> tuple[floa
     all_ratio = res[True][0] / res[True][1]
     print(f"weak views: worst held-out / predicted {worst:.2f} (target {TARGET_RATIO}); worst screen / no screen "
           f"{worse:.3f}; all views: held-out / predicted {np.nanmin(all_ratio):.2f}-{np.nanmax(all_ratio):.2f}")
-    return worst, worse, worst <= TARGET_RATIO and worse <= 1 + NOISE_TOLERANCE
+    # the Cramér–Rao prediction is of noise alone: with lenses the model cannot fit, their misfit adds a bias it does
+    # not know, so the ratio is a target only where the model fits (tangential 0); the screen's is one everywhere
+    return worst, worse, (worst <= TARGET_RATIO or tangential > 0) and worse <= 1 + NOISE_TOLERANCE
 
 
 def main() -> int:
@@ -196,16 +209,15 @@ def main() -> int:
     parser.add_argument("--views", type=int, nargs="+", default=[20])
     parser.add_argument("--sigma", type=float, nargs="+", default=[0.1])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
-    parser.add_argument("--tangential", type=float, default=TANGENTIAL_SIGMA, help="std of the true p1, p2")
+    parser.add_argument("--tangential", type=float, nargs="+", default=[0.0, TANGENTIAL_SIGMA],
+                        help="std of the true p1, p2 (0: the model fits the lenses)")
     args = parser.parse_args()
     missed = []
-    for views in args.views:
-        for sigma in args.sigma:
-            for seed in args.seeds:
-                worst, worse, ok = run(views, sigma, seed, args.tangential)
-                if not ok:
-                    missed.append(f"1x{views} sigma {sigma} seed {seed}: ratio {worst:.2f}, screen/no screen "
-                                  f"{worse:.3f}")
+    for views, sigma, seed, tangential in itertools.product(args.views, args.sigma, args.seeds, args.tangential):
+        worst, worse, ok = run(views, sigma, seed, tangential)
+        if not ok:
+            missed.append(f"1x{views} sigma {sigma} p1 p2 {tangential:g} seed {seed}: ratio {worst:.2f}, screen / "
+                          f"no screen {worse:.3f}")
     print("targets missed: " + ("; ".join(missed) if missed else "none"))
     return 1 if missed else 0
 
