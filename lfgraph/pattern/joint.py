@@ -56,7 +56,7 @@ class JointResult:
     sigmas: tuple[dict[str, Any], ...] | None
 
 
-def _priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings: CalibrateConfig
+def joint_priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings: CalibrateConfig
             ) -> gtsam.NonlinearFactorGraph:
     """Every factor but the observations: the corners' priors, the gauge and the intrinsics pins."""
     graph = gtsam.NonlinearFactorGraph()
@@ -128,7 +128,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     insert_view_poses(values, ref_T_view)
     insert_board_poses(values, board_T_ref, frames)
     insert_board_corners(values, obj)
-    priors = _priors(obs, intrinsics, settings)
+    priors = joint_priors(obs, intrinsics, settings)
     result, problem, build = _solve(obs, valid, frames, priors, values, settings, lenses, callback)
     est = result.values
     n_views = obs.num_views

@@ -29,7 +29,7 @@ from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.noise import RobustKernel, measurement_noise
 from lfgraph.factors.values import insert_board_corners, insert_board_poses, insert_intrinsics, insert_view_poses
 from lfgraph.pattern.config import CalibrateConfig
-from lfgraph.pattern.joint import _priors
+from lfgraph.pattern.joint import joint_priors
 from lfgraph.pattern.scoring import fit_board_poses
 
 FOCAL_STEP_PX = 1e-3  # central-difference steps of the numeric Jacobians: fx, fy, cx, cy (px) ...
@@ -55,8 +55,8 @@ def rig_marginals(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], re
     insert_board_poses(values, board_T_ref, frames)
     insert_board_corners(values, object_points_m)
     noise = measurement_noise(RobustKernel("none"), config.corner_sigma_px)
-    problem = BoardProblem(_priors(obs, intrinsics, config), values, obs.corners_px[:, frames], valid, frames, noise,
-                           tuple(i.lens for i in intrinsics))
+    problem = BoardProblem(joint_priors(obs, intrinsics, config), values, obs.corners_px[:, frames], valid, frames,
+                           noise, tuple(i.lens for i in intrinsics))
     with gtsam_quiet():
         return CameraMarginals(problem=problem, state=values)
 
