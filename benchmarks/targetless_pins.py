@@ -39,7 +39,9 @@ MISMEASURED = 0.05  # the refusal case: a distance 5 % wrong
 FLAT_WINDOW_PX = 9  # a marked point's depth varies by less than FLAT_DEPTH of itself over this window
 FLAT_DEPTH = 0.01
 MARK_CANDIDATES = 400
-FOLLOWED_DEPTH = 0.02  # a mark whose followed pixels triangulate (true cameras) further off its true depth is dropped
+WALL_DEPTH = 1e-3  # a mark on the wall: its true depth within this share of the wall's
+WALL_SPAN = 0.25  # the wall's marks lie at least this share of its depth apart (a user marks them far apart)
+FOLLOWED_DEPTH = 0.01  # a mark whose followed pixels triangulate (true cameras) further off its true depth is dropped
 
 
 def tilt_deg(ref_T_board: np.ndarray) -> float:  # noqa: N803
@@ -59,9 +61,13 @@ def board_pin(rig: str, truth: Calibration, seed: int) -> BoardPin:
                     name=f"1 board frame (tilt {tilt_deg(board.ref_T_board[0]):.0f} deg, seed {seed})")
 
 
-def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration) -> tuple[np.ndarray, np.ndarray]:
-    """Shi–Tomasi corners of the reference image on flat surfaces and their true 3-D points (reference frame)."""
-    feats = cv2.goodFeaturesToTrack(image, MARK_CANDIDATES, 0.01, 8).reshape(-1, 2)
+def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration,
+           wall_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Shi–Tomasi corners of the reference image on flat surfaces (on the wall ``wall_m`` deep when given) and their
+    true 3-D points (reference frame)."""
+    mask = None if wall_m is None else (np.abs(depth / wall_m - 1.0) < WALL_DEPTH).astype(np.uint8)
+    feats = cv2.goodFeaturesToTrack(image, MARK_CANDIDATES, 0.01, 8, mask=mask)
+    feats = np.zeros((0, 2), np.float32) if feats is None else feats.reshape(-1, 2)
     r = FLAT_WINDOW_PX // 2
     h, w = depth.shape
     ok = []
@@ -77,14 +83,14 @@ def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration) -> tuple[np
     return feats, np.column_stack([xy, np.ones(len(xy))]) / inv[:, None]
 
 
-def _frame_marks(rig: str, truth: Calibration, rig_seed: int, frame: int):
-    """A frame's images, its marks every view sees and their true points."""
+def _frame_marks(rig: str, truth: Calibration, rig_seed: int, frame: int, wall_m: float | None = None):
+    """A frame's images, its marks every view sees (on the wall ``wall_m`` deep when given) and their true points."""
     root = data.dataset_dir(rig, rig_seed)
     scene = make_scene(data.frame_scene_config(rig, frame), np.random.default_rng([rig_seed, 23, frame]))
     ref = truth.grid.reference
     depth = render_scene_depth(scene, truth.intrinsics[ref], truth.image_size_px, truth.view_T_ref(ref))
     images = open_capture(root, truth.grid).load_frame(frame)
-    feats, points = _marks(images[ref], depth, truth)
+    feats, points = _marks(images[ref], depth, truth, wall_m)
     pixels, valid = follow_marks(images, truth.grid, ref, feats)
     seen = valid.all(axis=0)  # marks every view sees (not occluded) ...
     # ... and followed onto their own surface: through the true cameras they triangulate near their true depth (a
@@ -99,11 +105,17 @@ def plane_pin(rig: str, truth: Calibration, frames: int, rig_seed: int, seed: in
     wall's depth measured, followed into every view."""
     rng = np.random.default_rng([seed, 59])
     near = np.arange(0, frames, data.DEPTH_BANDS)  # frames of the nearest band: the wall nearest the array
-    frame = int(near[rng.integers(len(near))])
-    wall_m = data.frame_scene_config(rig, frame).background_depth_m
-    images, feats, points = _frame_marks(rig, truth, rig_seed, frame)
-    on_wall = np.abs(points[:, 2] / wall_m - 1.0) < 1e-3
-    feats, points = feats[on_wall], points[on_wall]
+    first = int(rng.integers(len(near)))
+    best = None  # the seeded near frame, else the next whose wall shows marks far apart, else the widest
+    for f in np.roll(near, -first):
+        wall_m = data.frame_scene_config(rig, int(f)).background_depth_m
+        images, feats, points = _frame_marks(rig, truth, rig_seed, int(f), wall_m)
+        span = float(np.ptp(points[:, :2], axis=0).max()) / wall_m if len(feats) >= 2 else 0.0
+        if best is None or span > best[0]:
+            best = (span, int(f), wall_m, images, feats, points)
+        if span >= WALL_SPAN:
+            break
+    _, frame, wall_m, images, feats, points = best
     d = np.linalg.norm(points[:, None] - points[None], axis=2)
     a, b = np.unravel_index(int(np.argmax(d)), d.shape)
     true_m = float(d[a, b])

@@ -32,7 +32,7 @@ from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.values import insert_board_corners, insert_board_poses
 from lfgraph.refinement.triangulate import triangulate_dlt
-from lfgraph.selfcal.marks import follow_marks
+from lfgraph.selfcal.marks import MARK_FORWARD_BACKWARD_PX, follow_marks
 from lfgraph.selfcal.retrack import Patches, cut_patches, retrack
 
 MIN_PIN_CORNERS = 6  # a pin frame seen by a view with fewer corners than this is not used in that view
@@ -262,7 +262,10 @@ class DistancePin:
         points = triangulate_dlt(calib, self.pixels, self.valid)
         pixels, valid, done, _ = retrack(self.pixels, self.valid, self.patches, calib, points)
         ref_view = np.arange(calib.num_views)[:, None] == calib.grid.reference
-        valid = valid & (done | ref_view)
+        # a re-track that moves a mark further than the following's own forward-backward tolerance disagrees with
+        # the following (a window across a depth edge): that observation is dropped, not trusted
+        moved = np.linalg.norm(np.nan_to_num(pixels - self.pixels), axis=2)
+        valid = valid & (done | ref_view) & (moved <= MARK_FORWARD_BACKWARD_PX)
         if np.any(valid.sum(axis=0) < 2):
             return self
         return replace(self, pixels=pixels, valid=valid, patches=None)
