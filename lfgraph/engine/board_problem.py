@@ -64,6 +64,8 @@ class BoardProblem:
         frames: the frame index of each of the F used frames (their board-pose keys), increasing.
         noise: the measurement noise model of every observation (a 2-D Gaussian, optionally robust).
         lenses: each view's lens model (its ``coefficient_jacobian`` is needed).
+        fixed_corners: (C, 3) the board's corners as constants (then not among ``values``: a pair's relative pose,
+            as ``cv2.stereoCalibrate`` fits it); None: they are variables (with their priors in ``graph``).
 
     Raises:
         NotReducible: a noise model that is not a 2-D Gaussian, a lens without coefficient Jacobian, a factor of
@@ -71,7 +73,8 @@ class BoardProblem:
     """
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, corners_px: np.ndarray,
-                 valid: np.ndarray, frames: Sequence[int], noise: gtsam.noiseModel.Base, lenses: Sequence[str]):
+                 valid: np.ndarray, frames: Sequence[int], noise: gtsam.noiseModel.Base, lenses: Sequence[str],
+                 fixed_corners: np.ndarray | None = None):
         try:
             self.noise = BulkNoise(noise)
         except NotBulk as e:
@@ -82,6 +85,7 @@ class BoardProblem:
         self.graph, self.uv, self.valid = graph, np.asarray(corners_px, dtype=np.float64), np.asarray(valid, bool)
         self.n_views, self.n_frames, self.n_corners = self.valid.shape
         self.frames = [int(f) for f in frames]
+        self.fixed_corners = None if fixed_corners is None else np.asarray(fixed_corners, dtype=np.float64)
         self.models, self.codes = models, np.array([lens_code(m.name) for m in models])
         self.n_coef = max(len(m.tangent) for m in models)
         self.extrapolate = self.noise.kernel is not None and self.noise.kernel.vectorised
@@ -108,8 +112,10 @@ class BoardProblem:
             p = camera_block(lay, view_pose_key(v))
             cam[v, -POSE_DIM:] = np.arange(p.start, p.stop)
         self.cam_idx = cam
-        self.corner_idx = np.array([np.arange(s.start, s.stop) for s in
-                                    (camera_block(lay, board_corner_key(c)) for c in range(self.n_corners))])
+        blocks = () if self.fixed_corners is not None else (camera_block(lay, board_corner_key(c))
+                                                              for c in range(self.n_corners))
+        self.corner_idx = None if self.fixed_corners is not None else np.array(
+            [np.arange(b.start, b.stop) for b in blocks])
 
     def _read(self, values: gtsam.Values) -> tuple[np.ndarray, ...]:
         """(V, 5) fx fy s cx cy, (7, V) coefficients (`COEFFICIENTS`), (V, 4, 4) poses, (F, 4, 4) board poses,
@@ -122,7 +128,8 @@ class BoardProblem:
                 coef[COEFFICIENTS.index(k), v] = float(getattr(c, k)())
         poses = np.stack([values.atPose3(view_pose_key(v)).matrix() for v in range(self.n_views)])
         boards = np.stack([values.atPose3(board_pose_key(f)).matrix() for f in self.frames])
-        corners = np.stack([np.asarray(values.atPoint3(board_corner_key(c))) for c in range(self.n_corners)])
+        corners = self.fixed_corners if self.fixed_corners is not None else np.stack(
+            [np.asarray(values.atPoint3(board_corner_key(c))) for c in range(self.n_corners)])
         return head, coef, poses, boards, corners
 
     def _project(self, values: gtsam.Values):
@@ -238,10 +245,11 @@ def _normal_equations(e: np.ndarray, jc: np.ndarray, jb: np.ndarray, jx: np.ndar
     jx_c = np.moveaxis(jx, 2, 0)  # (C, V, F, 2, 3)
     jc_vc = np.moveaxis(jc, 2, 1)  # (V, C, F, 2, kc)
     H = np.zeros((n + 1, n + 1))  # noqa: N806  (the last row and column collect the padding)
-    blocks = ((cam_idx, cam_idx, _gram(jc.reshape(V, -1, kc), jc.reshape(V, -1, kc))),
-              (cam_idx[:, None], corner_idx[None], _gram(jc_vc.reshape(V, C, -1, kc),
-                                                         np.moveaxis(jx, 2, 1).reshape(V, C, -1, POINT_DIM))),
-              (corner_idx, corner_idx, _gram(*(jx_c.reshape(C, -1, POINT_DIM),) * 2)))
+    blocks = [(cam_idx, cam_idx, _gram(jc.reshape(V, -1, kc), jc.reshape(V, -1, kc)))]
+    if corner_idx is not None:
+        blocks += [(cam_idx[:, None], corner_idx[None], _gram(jc_vc.reshape(V, C, -1, kc),
+                                                              np.moveaxis(jx, 2, 1).reshape(V, C, -1, POINT_DIM))),
+                   (corner_idx, corner_idx, _gram(*(jx_c.reshape(C, -1, POINT_DIM),) * 2))]
     for i, (ri, ci, block) in enumerate(blocks):
         H[ri[..., :, None], ci[..., None, :]] += block
         if i == 1:
@@ -250,13 +258,17 @@ def _normal_equations(e: np.ndarray, jc: np.ndarray, jb: np.ndarray, jx: np.ndar
     cb = _gram(jb.reshape(V, F, -1, POSE_DIM), jc.reshape(V, F, -1, kc))  # (V, F, 6, kc)
     frame = np.arange(F)[None, :, None, None]
     W[frame, np.arange(POSE_DIM)[None, None, :, None], cam_idx[:, None, None, :]] += cb
-    bx = _gram(np.moveaxis(jb_f, 2, 1).reshape(F, C, -1, POSE_DIM), np.moveaxis(jx, 1, 0).swapaxes(1, 2).reshape(
-        F, C, -1, POINT_DIM))  # (F, C, 6, 3)
-    W[np.arange(F)[:, None, None, None], np.arange(POSE_DIM)[None, None, :, None], corner_idx[None, :, None, :]] += bx
+    if corner_idx is not None:
+        bx = _gram(np.moveaxis(jb_f, 2, 1).reshape(F, C, -1, POSE_DIM), np.moveaxis(jx, 1, 0).swapaxes(1, 2).reshape(
+            F, C, -1, POINT_DIM))  # (F, C, 6, 3)
+        frame_c = np.arange(F)[:, None, None, None]
+        W[frame_c, np.arange(POSE_DIM)[None, None, :, None], corner_idx[None, :, None, :]] += bx
     ev = e[..., None]
     g = np.zeros(n + 1)
     np.add.at(g, cam_idx, -_gram(jc.reshape(V, -1, kc), ev.reshape(V, -1, 1))[..., 0])
-    np.add.at(g, corner_idx, -_gram(jx_c.reshape(C, -1, POINT_DIM), np.moveaxis(ev, 2, 0).reshape(C, -1, 1))[..., 0])
+    if corner_idx is not None:
+        g_x = _gram(jx_c.reshape(C, -1, POINT_DIM), np.moveaxis(ev, 2, 0).reshape(C, -1, 1))[..., 0]
+        np.add.at(g, corner_idx, -g_x)
     jbr = jb_f.reshape(F, -1, POSE_DIM)
     return ReducedSystem(_gram(jbr, jbr), W[:, :, :n], -_gram(jbr, np.moveaxis(ev, 1, 0).reshape(F, -1, 1))[..., 0],
                          H[:n, :n], g[:n])

@@ -23,7 +23,7 @@ from lfgraph.engine.schur_system import NotReducible
 from lfgraph.factors import board_graph
 from lfgraph.factors.hooks import GraphContext, run_hooks
 from lfgraph.factors.keys import BOARD_CORNER_CHAR, calib_key, view_pose_key
-from lfgraph.factors.noise import measurement_noise
+from lfgraph.factors.noise import MIN_SIGMA, RobustKernel, measurement_noise
 from lfgraph.factors.values import (
     insert_board_corners,
     insert_board_points,
@@ -40,6 +40,7 @@ from lfgraph.pattern.initial import weak_views
 from lfgraph.pattern.scoring import rig_residuals
 
 SIGMA_FLOOR_PX = 1e-3  # pixel sigma of the measurement model never goes below this (noise-free synthetic data)
+PAIR_MAX_ITERATIONS = 100  # a pair's relative pose (`pair_pose`): as cv2.stereoCalibrate's criteria
 
 
 @dataclass(frozen=True)
@@ -159,3 +160,32 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
                 "the calibration's uncertainties cannot be computed: some parameters are not determined by these "
                 "boards (GTSAM found the system indeterminate); the file has no 1-sigma figures")
     return JointResult(intr, poses, boards, corners, result, noise_sigma, sigmas)
+
+
+def pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics, Intrinsics], frames: list[int],
+              masks: list[np.ndarray], start_ref_T_view: np.ndarray,  # noqa: N803
+              ref_T_board: np.ndarray) -> tuple[np.ndarray, float, float]:  # noqa: N803
+    """View ``v``'s pose relative to the reference with both views' intrinsics held, by Levenberg–Marquardt over the
+    shared ``frames`` (corner ``masks`` seen by both; each frame's board pose free, started at ``ref_T_board``
+    (F', 4, 4), the reference's PnP; the board's corners as printed): ``cv2.stereoCalibrate(CALIB_FIX_INTRINSIC)``'s
+    problem on the engine's bulk board problem, without its per-call setup. Returns (ref_T_view, RMS px of both
+    views' corners, number of residual coordinates)."""
+    corners = np.stack([obs.corners_px[u][frames] for u in (ref, v)])
+    valid = np.stack([np.asarray(masks, dtype=bool)] * 2)
+    local = list(range(len(frames)))
+    values = gtsam.Values()
+    insert_intrinsics(values, pair)
+    insert_view_poses(values, np.stack([np.eye(4), start_ref_T_view]))
+    insert_board_poses(values, np.linalg.inv(np.asarray(ref_T_board)), local)
+    priors = gtsam.NonlinearFactorGraph()
+    board_graph.add_gauge_prior(priors, 0)
+    for u, intr in enumerate(pair):  # both views' intrinsics held, as CALIB_FIX_INTRINSIC holds them
+        priors.add(intr.model.gtsam("PriorFactor")(calib_key(u), intr.to_gtsam(),
+                                                   gtsam.noiseModel.Isotropic.Sigma(intr.model.tangent_size,
+                                                                                    MIN_SIGMA)))
+    problem = BoardProblem(priors, values, corners, valid, local, measurement_noise(RobustKernel("none"), 1.0),
+                           tuple(i.lens for i in pair), fixed_corners=obs.board.object_points())
+    est = optimize_problem(problem, values, PAIR_MAX_ITERATIONS).values
+    e = problem._residuals(est, False)
+    n = int(valid.sum())
+    return read_view_poses(est, 2)[1], float(np.sqrt(np.sum(e[valid] ** 2) / n)), float(n)

@@ -24,6 +24,7 @@ from lfgraph.pattern.initial import (
     relative_poses,
     weak_views,
 )
+from lfgraph.pattern.joint import pair_pose
 from lfgraph.pattern.lenses import FIT_ERRORS, MonoFit, fit_mono, fitter_name
 
 
@@ -42,13 +43,19 @@ class PaperResult:
 
 
 def _pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics, Intrinsics], frames: list[int],
-               masks: list[np.ndarray], start_ref_T_view: np.ndarray) -> tuple[np.ndarray, float, float]:  # noqa: N803
-    """View ``v``'s pose relative to the reference by `cv2.stereoCalibrate` with the intrinsics fixed (the paper's
-    PnP + LM) over the shared ``frames`` (corner ``masks`` seen by both), started from ``start_ref_T_view``; a pair
-    with another lens than radtan is solved on corners undistorted by each view's model, with plain K. Returns
-    (ref_T_view, RMS in px (E_PnP), number of residual coordinates)."""
-    objs = [masked_object_points(obs, m) for m in masks]
+               masks: list[np.ndarray], start_ref_T_view: np.ndarray,  # noqa: N803
+               ref_T_board: np.ndarray) -> tuple[np.ndarray, float, float]:  # noqa: N803
+    """View ``v``'s pose relative to the reference with the intrinsics fixed (the paper's PnP + LM) over the shared
+    ``frames`` (corner ``masks`` seen by both), started from ``start_ref_T_view`` and the reference's per-frame PnP
+    ``ref_T_board`` (F', 4, 4). A pair of pinhole (radtan) views: `lfgraph.pattern.joint.pair_pose`, the problem of
+    ``cv2.stereoCalibrate(CALIB_FIX_INTRINSIC)`` on the engine (the same optimum to ~1e-9 of a pixel's precision,
+    without OpenCV's per-call setup: ~25 ms a pair, whatever its iterations); another lens: `cv2.stereoCalibrate` on
+    corners undistorted by each view's model, with plain K. Returns (ref_T_view, RMS in px (E_PnP), number of
+    residual coordinates)."""
     pinhole = all(i.model.opencv == "pinhole" for i in pair)  # cv2 takes their distortion
+    if pinhole:
+        return pair_pose(obs, ref, v, pair, frames, masks, start_ref_T_view, ref_T_board)
+    objs = [masked_object_points(obs, m) for m in masks]
     ref_pts, view_pts = ([(obs.corners_px[u, f][m] if pinhole else
                            intr.undistort_pixels(obs.corners_px[u, f][m])).astype(np.float32)
                           for f, m in zip(frames, masks, strict=True)] for u, intr in zip((ref, v), pair, strict=True))
@@ -127,9 +134,10 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
             warnings.append(f"{obs.describe(v)} shares no frame with the reference view; its pose is chained "
                             f"through view {parent[v]} and has no E_PnP")
             continue
-        ref_T_view[v], e_pnp[v], pnp_points[v] = _pair_pose(obs, ref, v, (intrinsics[ref], intrinsics[v]),
-                                                            [frames[i] for i in keep], [masks[i] for i in keep],
-                                                            ref_T_view[v])
+        shared = [int(frames[i]) for i in keep]
+        ref_T_view[v], e_pnp[v], pnp_points[v] = _pair_pose(obs, ref, v, (intrinsics[ref], intrinsics[v]), shared,
+                                                            [masks[i] for i in keep], ref_T_view[v],
+                                                            view_T_board[ref, shared])
     mono = np.isfinite(e_mono)  # weak views have no Zhang step
     pooled_mono = float(np.sqrt(np.sum(e_mono[mono] ** 2 * n_points[mono]) / np.sum(n_points[mono])))
     has = np.isfinite(e_pnp)
