@@ -16,13 +16,13 @@ by distortion and the views' small rotations; the posterior sigmas say how much 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.grid import ViewGrid
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.factors.board_graph import RIGID_BOARD_SIGMA_M, add_board_observations, add_corner_priors
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, pin_point_key, view_pose_key
@@ -43,29 +43,14 @@ from lfgraph.factors.prior_table import (
 from lfgraph.lenses import lens_model
 
 
-@dataclass(frozen=True)
-class DesignSigmas:
-    """Design tolerances: the 1-sigma spread of real views about the design values (the MAP priors).
-
-    Attributes:
-        focal_px: fx and fy (pixels).
-        principal_px: cx and cy (pixels).
-        k1, k2: radial distortion.
-        rotation_rad: each view's rotation about each axis.
-        position_m: each view's position along each axis.
-    """
-
-    focal_px: float
-    principal_px: float
-    k1: float
-    k2: float
-    rotation_rad: float
-    position_m: float
-
-    def intrinsic_sigmas(self) -> np.ndarray:
-        """(9,) in Cal3DS2 order; skew and tangential distortion held (not in the model)."""
-        return np.array([self.focal_px, self.focal_px, MIN_SIGMA, self.principal_px, self.principal_px, self.k1,
-                         self.k2, MIN_SIGMA, MIN_SIGMA])
+def design_tangent_sigmas(sigmas: Sigmas) -> np.ndarray:
+    """(V, 9) each view's design tolerances in Cal3DS2's tangent order (fx fy s cx cy k1 k2 p1 p2; the groups' indices
+    are every model's): skew and tangential distortion held (not in the model), k1, k2 as the record holds them."""
+    n = sigmas.num_views
+    k1, k2 = (sigmas.distortion.get(k, np.full(n, MIN_SIGMA)) for k in ("k1", "k2"))
+    fx, fy, cx, cy = sigmas.intrinsics.T
+    held = np.full(n, MIN_SIGMA)
+    return np.stack([fx, fy, held, cx, cy, k1, k2, held, held], axis=1)
 
 
 def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
@@ -83,7 +68,7 @@ def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
     return out
 
 
-def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: DesignSigmas,
+def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: Sigmas,
                           free: frozenset[str],
                           pinned: dict[int, tuple[int, ...]] | None = None) -> gtsam.NonlinearFactorGraph:
     """One calibration prior per view (Cal3DS2, Cal3Fisheye or Cal3Unified, the design's model: the groups'
@@ -95,18 +80,18 @@ def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sig
     mean = now.copy()
     sig = np.full(now.shape, HELD_SIGMA)
     sig[:, [2, 7, 8]] = MIN_SIGMA
-    design_vec, tol = calibration_vectors([design])[0], sigmas.intrinsic_sigmas()
+    design_vec, tol = calibration_vectors([design])[0], design_tangent_sigmas(sigmas)
     for group, idx in CAL3DS2_INDICES.items():  # the groups a stage may free (`lfgraph.factors.groups`)
         if group in free:
             mean[:, list(idx)] = design_vec[list(idx)]
-            sig[:, list(idx)] = tol[list(idx)]
+            sig[:, list(idx)] = tol[:, list(idx)]
     for v, indices in (pinned or {}).items():
         mean[v, list(indices)] = now[v, list(indices)]
         sig[v, list(indices)] = HELD_SIGMA
     return intrinsics_prior_factors(mean, sig, [i.lens for i in current])
 
 
-def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: DesignSigmas,
+def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: Sigmas,
                     free: frozenset[str]) -> gtsam.NonlinearFactorGraph:
     """The reference pose (gauge: the identity); every other view's rotation and position pulled to the design
     grid (parallel views at the nominal pitch) when free, pinned at ``current`` when held.
@@ -120,7 +105,7 @@ def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sig
     others = np.arange(len(current)) != reference
     if Group.ROTATION in free:
         mean[others, :3, :3] = design[others, :3, :3]
-        sig[:, :3] = sigmas.rotation_rad
+        sig[:, :3] = sigmas.pose[:, :3]
     if Group.POSITION in free:
         mean[others, :3, 3] = design[others, :3, 3]
         # Pose3 priors measure the error in the pose's own frame; with near-identity rotations the position sigma
@@ -128,8 +113,8 @@ def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sig
         # z = 0 plane only up to the reference view's own rotation: depth (z) gets that tilt's spread too (measured
         # on paper-5x5, 400 mm across: without it every view was pulled 4-9 mm towards z = 0)
         baseline = np.linalg.norm(design[:, :3, 3] - design[reference, :3, 3], axis=1)
-        sig[:, 3:5] = sigmas.position_m
-        sig[:, 5] = np.hypot(sigmas.position_m, sigmas.rotation_rad * baseline)
+        sig[:, 3:5] = sigmas.pose[:, 3:5]
+        sig[:, 5] = np.hypot(sigmas.pose[:, 5], np.max(sigmas.pose[:, :2], axis=1) * baseline)  # the grid's tilt
     return pose_prior_factors(reference, mean, sig)
 
 

@@ -10,10 +10,10 @@ import numpy as np
 from lfgraph.core.calibration import Calibration, image_size_checked
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.grid import ViewGrid
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.factors.groups import SELFCAL_GROUPS
 from lfgraph.factors.hooks import as_hooks
 from lfgraph.factors.noise import Noise, NoiseSpec, as_noise
-from lfgraph.factors.selfcal_graph import DesignSigmas
 from lfgraph.lenses import DEFAULT_LENS, lens_model, lens_names
 from lfgraph.refinement.matching import ChainTracker, MatchSettings, Tracker, as_tracker
 from lfgraph.selfcal.defaults import (
@@ -240,9 +240,9 @@ class SelfCalConfig:
         """The normalised noise of the early stages (``robust`` after `as_noise`)."""
         return self.robust  # type: ignore[return-value]
 
-    def sigmas(self, design: Design) -> DesignSigmas:
-        """The design tolerances in the graph's units."""
-        return DesignSigmas(focal_px=self.focal_tolerance * design.focal_px,
-                            principal_px=self.principal_tolerance_px, k1=self.k1_tolerance, k2=self.k2_tolerance,
-                            rotation_rad=float(np.radians(self.rotation_tolerance_deg)),
-                            position_m=self.position_tolerance_mm / 1000.0)
+    def sigmas(self, design: Design) -> Sigmas:
+        """The design tolerances as the one sigma record (`lfgraph.core.sigmas.Sigmas`): every view of the design
+        the same, about / along its own axes."""
+        return Sigmas.uniform(design.rows * design.cols, float(np.radians(self.rotation_tolerance_deg)),
+                              self.position_tolerance_mm / 1000.0, self.focal_tolerance * design.focal_px,
+                              self.principal_tolerance_px, {"k1": self.k1_tolerance, "k2": self.k2_tolerance})

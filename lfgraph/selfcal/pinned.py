@@ -22,9 +22,10 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL
 from lfgraph.factors.noise import RobustKernel
-from lfgraph.factors.selfcal_graph import DesignSigmas
+from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.refinement.posterior import chi2_sigma
 from lfgraph.refinement.tracks import in_front
 from lfgraph.selfcal.pins import BoardPin, DistancePin, Pin, PinError, ViewPin
@@ -93,10 +94,10 @@ def pin_kind(pin: Pin) -> str:
     return {BoardPin: "board", DistancePin: "distance", ViewPin: "view"}[type(pin)]
 
 
-def zoom_of(calib: Calibration, joint: np.ndarray, sigmas: DesignSigmas, distortion: bool) -> tuple[float, float]:
+def zoom_of(calib: Calibration, joint: np.ndarray, sigmas: Sigmas, distortion: bool) -> tuple[float, float]:
     """The common zoom (mean of every view's fx and fy, px) and its posterior sigma from the (DV, DV) ``joint``."""
     zoom = float(np.mean([[i.fx, i.fy] for i in calib.intrinsics]))
-    mode: Mode = modes(joint, sigmas.intrinsic_sigmas(), calib.grid, distortion)[0]
+    mode: Mode = modes(joint, design_tangent_sigmas(sigmas)[calib.grid.reference], calib.grid, distortion)[0]
     return zoom, mode.posterior_sigma
 
 
@@ -111,7 +112,7 @@ class SceneFit:
     points: np.ndarray
     tracks: object
     free: frozenset
-    sigmas: DesignSigmas
+    sigmas: Sigmas
     noise_px: float
     zoom_px: float
     zoom_sigma_px: float

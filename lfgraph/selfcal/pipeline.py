@@ -14,6 +14,7 @@ from lfgraph.core.observer import Observer, resolve
 from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
 from lfgraph.factors.noise import RobustKernel
+from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.refinement.tracks import in_front
 from lfgraph.refinement.triangulate import per_coordinate_sigma
 from lfgraph.selfcal.config import Design, SelfCalConfig
@@ -189,7 +190,8 @@ def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam
     mode_values, mode_cov = weak_modes(scene.calib, joint)
     scene = dataclasses.replace(scene, zoom_px=zoom, zoom_sigma_px=sigma, modes=mode_values, modes_cov=mode_cov)
     if not config.pins:
-        return scene.calib, post, modes(joint, scene.sigmas.intrinsic_sigmas(), grid, distortion), (), scene
+        return scene.calib, post, modes(joint, design_tangent_sigmas(scene.sigmas)[grid.reference], grid,
+                                        distortion), (), scene
     return (*_pinned(scene, config, say), scene)
 
 
@@ -200,7 +202,7 @@ def _pinned(scene: SceneFit, config: SelfCalConfig, say: Observer) -> tuple[Cali
     distortion = "distortion" in scene.free
     calib, _, graph, values, results = fit_pins(scene, config.pins, distortion, config.graph_hooks, say)
     post, joint = posterior(graph, values, calib.lenses)
-    return calib, post, modes(joint, scene.sigmas.intrinsic_sigmas(), grid, distortion), results
+    return calib, post, modes(joint, design_tangent_sigmas(scene.sigmas)[grid.reference], grid, distortion), results
 
 
 def pin_scene(report: SelfCalReport, design: Design, pins, config: SelfCalConfig | None = None,

@@ -18,7 +18,6 @@ from lfgraph.factors import selfcal_graph
 from lfgraph.factors.groups import Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
-from lfgraph.factors.selfcal_graph import DesignSigmas
 from lfgraph.lenses import lens_model
 from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 
@@ -48,7 +47,7 @@ def initial_landmarks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray)
 
 
 def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,
-                  free: frozenset[str], sigmas: DesignSigmas, model: gtsam.noiseModel.Base, max_iterations: int,
+                  free: frozenset[str], sigmas: Sigmas, model: gtsam.noiseModel.Base, max_iterations: int,
                   relative_tol: float = INTERMEDIATE_RELATIVE_TOL, callback: IterationCallback | None = None,
                   hooks: tuple[Callable, ...] = (), hold_gauges: bool = True, landmark_iterations: int | None = None,
                   ) -> tuple[Calibration, np.ndarray, gtsam.NonlinearFactorGraph, gtsam.Values, int]:
