@@ -6,8 +6,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-BENCHMARKS = ["cli_speed.py", "render.py", "detection.py", "calibration.py", "rectify.py", "refine.py", "sweep.py",
-              "middlebury_pairs.py", "ring.py", "real.py", "opencv_multiview.py", "fleet.py", "targetless.py"]
+BENCHMARKS = ["cli_speed.py", "render.py", "detection.py", "calibration.py", "calibrate_speed.py", "rectify.py",
+              "refine.py", "sweep.py", "middlebury_pairs.py", "ring.py", "real.py", "opencv_multiview.py", "fleet.py",
+              "targetless.py"]
 
 
 def main() -> int:
