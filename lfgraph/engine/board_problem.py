@@ -195,6 +195,12 @@ class BoardProblem:
         scale = self.valid[..., None] if sw is None else sw.reshape(*self.valid.shape, 2) * self.valid[..., None]
         return j * scale[..., None]
 
+    def rms_px(self, state: gtsam.Values) -> float:
+        """RMS over the observations of the whitened residual's length (px for a 1-px isotropic noise model; what
+        OpenCV's calibration functions return as their RMS)."""
+        e = self._residuals(state, False)
+        return float(np.sqrt(np.sum(e[self.valid] ** 2) / max(int(self.valid.sum()), 1)))
+
     def error(self, state: gtsam.Values) -> float:
         """Cost at ``state``: the observations' noise-model error plus the other factors' GTSAM error; inf when a
         corner is behind its camera."""

@@ -186,6 +186,4 @@ def pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics, 
     problem = BoardProblem(priors, values, corners, valid, local, measurement_noise(RobustKernel("none"), 1.0),
                            tuple(i.lens for i in pair), fixed_corners=obs.board.object_points())
     est = optimize_problem(problem, values, PAIR_MAX_ITERATIONS).values
-    e = problem._residuals(est, False)
-    n = int(valid.sum())
-    return read_view_poses(est, 2)[1], float(np.sqrt(np.sum(e[valid] ** 2) / n)), float(n)
+    return read_view_poses(est, 2)[1], problem.rms_px(est), float(valid.sum())
