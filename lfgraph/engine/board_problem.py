@@ -112,10 +112,10 @@ class BoardProblem:
             p = camera_block(lay, view_pose_key(v))
             cam[v, -POSE_DIM:] = np.arange(p.start, p.stop)
         self.cam_idx = cam
-        blocks = () if self.fixed_corners is not None else (camera_block(lay, board_corner_key(c))
-                                                              for c in range(self.n_corners))
-        self.corner_idx = None if self.fixed_corners is not None else np.array(
-            [np.arange(b.start, b.stop) for b in blocks])
+        self.corner_idx = None
+        if self.fixed_corners is None:
+            blocks = [camera_block(lay, board_corner_key(c)) for c in range(self.n_corners)]
+            self.corner_idx = np.array([np.arange(b.start, b.stop) for b in blocks])
 
     def _read(self, values: gtsam.Values) -> tuple[np.ndarray, ...]:
         """(V, 5) fx fy s cx cy, (7, V) coefficients (`COEFFICIENTS`), (V, 4, 4) poses, (F, 4, 4) board poses,
@@ -133,8 +133,9 @@ class BoardProblem:
         return head, coef, poses, boards, corners
 
     def _project(self, values: gtsam.Values):
-        """Every slot's camera point and distorted coordinates, or None when an observed corner is behind its
-        camera: (head, coef, ra, rb, x_ref, pc, x, y, z, code, cf, lens) with lens = `lens_distort`'s output."""
+        """Every slot's points in the reference frame and in its camera, and their normalised coordinates, or None
+        when an observed corner is behind its camera: (head, coef, ra, rb, x_ref, pc, x, y, z, lens codes, the
+        coefficients broadcast to the slots)."""
         head, coef, poses, boards, corners = self._read(values)
         V, F, C = self.n_views, self.n_frames, self.n_corners  # noqa: N806
         rb, tb, ra, ta = boards[:, :3, :3], boards[:, :3, 3], poses[:, :3, :3], poses[:, :3, 3]
