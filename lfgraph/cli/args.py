@@ -326,6 +326,12 @@ def rerun_session(args: argparse.Namespace, grid, logging: bool, kind: str = "ca
         print(f"rerun recording: {logger.path} (open it with: rerun {logger.path})")
 
 
+def note(args: argparse.Namespace, text: str) -> None:
+    """A ``note: ...`` line for the user: on standard output, or on standard error when ``--json`` makes standard
+    output the JSON document (which then parses as it is)."""
+    print(f"note: {text}", file=sys.stderr if getattr(args, "json", False) else sys.stdout)
+
+
 def reports_to_stderr(args: argparse.Namespace) -> AbstractContextManager:
     """With ``--stdout`` standard output carries the binary recording: print the human-readable report to stderr
     (rerun writes to the file descriptor, not through `sys.stdout`)."""

@@ -18,6 +18,7 @@ from lfgraph.cli.args import (
     jobs_default,
     json_text,
     non_negative,
+    note,
     positive_int,
     reports_to_stderr,
     rerun_session,
@@ -57,8 +58,8 @@ def _rectify(args: argparse.Namespace) -> int:
     check_output_folder(out, args.input)
     calib = Calibration.load(args.calibration)
     capture = open_capture(args.input, calib.grid, args.layout)
-    for note in capture.notes:
-        print(f"note: {note}")
+    for text in capture.notes:
+        note(args, text)
     check_compatible(calib, capture.grid, capture.image_sizes, str(args.input))
     logging = check_rerun(args)
     check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[out])
@@ -107,11 +108,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"{exc}") from None
     calib, arranged = free_when_not_parallel(Calibration.load(args.calibration))
-    if arranged and not args.json:
-        print(f"note: {arranged}")
+    if arranged:
+        note(args, arranged)
     capture = open_capture(args.input, calib.grid, args.layout)
-    for note in capture.notes:
-        print(f"note: {note}")
+    for text in capture.notes:
+        note(args, text)
     check_compatible(calib, capture.grid, capture.image_sizes, str(args.input))
     report = check(calib, capture.frames(args.max_frames), config=config)
     verdict = report.verdict

@@ -17,6 +17,7 @@ from lfgraph.cli.args import (
     cli_observer,
     json_text,
     non_negative,
+    note,
     positive_float,
     positive_int,
     reports_to_stderr,
@@ -60,14 +61,14 @@ def _refine(args: argparse.Namespace) -> int:
     logging = check_rerun(args)
     calib, arranged = free_when_not_parallel(Calibration.load(args.calibration))
     if arranged:
-        print(f"note: {arranged}")
+        note(args, arranged)
     if args.reference is not None:
         if not 0 <= args.reference < calib.num_views:
             raise UsageError(f"--reference {args.reference} is not a view of the {calib.grid} grid")
         calib = with_reference(calib, args.reference)
     capture = open_capture(args.input, calib.grid, args.layout)
-    for note in capture.notes:
-        print(f"note: {note}")
+    for text in capture.notes:
+        note(args, text)
     check_output_file(args.output, inputs=capture.all_paths())
     check_side_outputs(args, inputs=[args.calibration, *capture.all_paths()], outputs=[args.output])
     check_compatible(calib, capture.grid, capture.image_sizes, str(args.input))
