@@ -15,15 +15,23 @@ Rows are appended to the CSV as scenarios finish (a re-run skips the seeds alrea
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
-from sweep import GOAL_FALSE_ALARM, GOAL_MISS, GOAL_SIGMA_RATIO, HEADER, goals_met, score, summary
+from sweep import (
+    GOAL_FALSE_ALARM,
+    GOAL_MISS,
+    GOAL_SIGMA_RATIO,
+    HEADER,
+    goals_met,
+    resumed,
+    run_recorded,
+    score,
+    summary,
+)
 
 from lfgraph.datasets.ring import RingConfig, ring_capture
 from lfgraph.refinement import RefineConfig, refine
@@ -94,39 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--csv", default="out/bench-ring/ring_sweep.csv")
     ap.add_argument("--jobs", type=int, default=1, help="scenarios in parallel (processes)")
     args = ap.parse_args(argv)
-    path = Path(args.csv)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rows: list[dict] = []
-    if path.exists():
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    done = {int(r["seed"]) for r in rows}
-    todo = [draw(s) for s in range(args.seed, args.seed + args.scenarios) if s not in done]
-    print(f"{len(todo)} ring scenarios to run ({len(done)} in {path})", flush=True)
-
-    def record(row: dict) -> None:
-        rows.append(row)
-        new = not path.exists() or path.stat().st_size == 0
-        with open(path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=_fields(), extrasaction="ignore")
-            if new:
-                w.writeheader()
-            w.writerow(row)
-        flag = row.get("error") or (f"worse {row['worse_calibration']} (> 3 sigma {row['worse_views_3sigma']}) "
-                                    f"drifted {row['drifted_views']} missed {row['missed_views']}/{row['big_knocks']} "
-                                    f"transfer {row['transfer_in_max_px']:.3f} -> {row['transfer_out_max_px']:.3f} px, "
-                                    f"{row['seconds']:.1f} s")
-        print(f"{draw(int(row['seed'])).label()}: {flag}", flush=True)
-
-    if args.jobs > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(args.jobs) as pool:
-            for row in pool.map(run, todo):
-                record(row)
-    else:
-        for s in todo:
-            record(run(s))
+    path, rows, seeds = resumed(args.csv, args.seed, args.scenarios)
+    print(f"{len(seeds)} ring scenarios to run ({len(rows)} in {path})", flush=True)
+    run_recorded([draw(s) for s in seeds], run, path, _fields(), lambda seed: draw(seed).label(), rows, args.jobs)
     rows = [r for r in rows if args.seed <= int(r["seed"]) < args.seed + args.scenarios]
     tol = RefineConfig().tolerance_px
     print(format_table(["ring", *HEADER[1:]], [["rings", *line[1:]] for line in summary(rows, tol)[-1:]]))

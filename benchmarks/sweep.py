@@ -31,6 +31,7 @@ import os
 import sys
 import time
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -329,6 +330,49 @@ HEADER = ["texture", "scenarios", "refused", "(a) calibrations worse", "views wo
           "s/frame (med/max)"]
 
 
+def resumed(csv_path: str, first: int, count: int) -> tuple[Path, list[dict], list[int]]:
+    """A resumable sweep's CSV (created with its folder), the rows it holds and the seeds of ``first`` .. ``first +
+    count - 1`` still to run."""
+    path = Path(csv_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    if path.exists():
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    done = {int(r["seed"]) for r in rows}
+    return path, rows, [s for s in range(first, first + count) if s not in done]
+
+
+def run_recorded(todo: list, run_one, path: Path, fields: list[str], label, rows: list[dict], jobs: int) -> None:
+    """Run ``run_one`` on every item of ``todo`` (``jobs`` processes: ``run_one`` must pickle), each row appended to
+    ``path`` as it comes (a header first into an empty file) and to ``rows``, and said in one line under
+    ``label(seed)``."""
+    def record(row: dict) -> None:
+        rows.append(row)
+        new = not path.exists() or path.stat().st_size == 0
+        with open(path, "a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+            if new:
+                w.writeheader()
+            w.writerow(row)
+        views = f" (views {row['worse_views']}, > 3 sigma " if "worse_views" in row else " (> 3 sigma "
+        flag = row.get("error") or (f"worse {row['worse_calibration']}{views}{row['worse_views_3sigma']}) drifted "
+                                    f"{row['drifted_views']} missed {row['missed_views']}/{row['big_knocks']} transfer "
+                                    f"{row['transfer_in_max_px']:.3f} -> {row['transfer_out_max_px']:.3f} px, "
+                                    f"{row['seconds']:.1f} s")
+        print(f"{label(int(row['seed']))}: {flag}", flush=True)
+
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(jobs) as pool:
+            for row in pool.map(run_one, todo):
+                record(row)
+    else:
+        for item in todo:
+            record(run_one(item))
+
+
 def main(argv: list[str] | None = None) -> int:
     from lfgraph.cli.tables import format_table
 
@@ -343,46 +387,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lens", default="radtan", choices=("radtan", "fisheye", "unified"),
                     help="every view's lens model (fisheye, unified: wider fields, `wide_lens`)")
     args = ap.parse_args(argv)
-    path = Path(args.csv)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rows: list[dict] = []
-    if path.exists():
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    done = {int(r["seed"]) for r in rows}
-    todo = [s for s in range(args.seed, args.seed + args.scenarios) if s not in done]
+    path, rows, todo = resumed(args.csv, args.seed, args.scenarios)
     tol = RefineConfig().tolerance_px
-    print(f"{len(todo)} scenarios to run ({len(done)} in {path})", flush=True)
+    print(f"{len(todo)} scenarios to run ({len(rows)} in {path})", flush=True)
     if args.lens != "radtan":
         print(f"every view {args.lens}: the labels' focal lengths are the radtan draw's, the lenses' are "
               f"{WIDE_FOCAL_SCALE:g}x" + (" (1 + xi)" if args.lens == "unified" else ""), flush=True)
-
-    def record(row: dict) -> None:
-        rows.append(row)
-        new = not path.exists() or path.stat().st_size == 0
-        keys = list(_run_fields())
-        with open(path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
-            if new:
-                w.writeheader()
-            w.writerow(row)
-        flag = row.get("error") or (f"worse {row['worse_calibration']} (views {row['worse_views']}, > 3 sigma "
-                                    f"{row['worse_views_3sigma']}) drifted {row['drifted_views']} missed "
-                                    f"{row['missed_views']}/{row['big_knocks']} transfer "
-                                    f"{row['transfer_in_max_px']:.3f} -> {row['transfer_out_max_px']:.3f} px, "
-                                    f"{row['seconds']:.1f} s")
-        print(f"{draw(int(row['seed'])).label()}: {flag}", flush=True)
-
-    if args.jobs > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(args.jobs) as pool:
-            for row in pool.map(_run_seed, todo, [args.robust] * len(todo), [args.mixed] * len(todo),
-                                [args.lens] * len(todo)):
-                record(row)
-    else:
-        for seed in todo:
-            record(_run_seed(seed, args.robust, args.mixed, args.lens))
+    run_recorded(todo, partial(_run_seed, robust=args.robust, mixed=args.mixed, lens=args.lens), path,
+                 list(_run_fields()), lambda seed: draw(seed).label(), rows, args.jobs)
     rows = [r for r in rows if args.seed <= int(r["seed"]) < args.seed + args.scenarios]
     print(format_table(HEADER, summary(rows, tol)))
     print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
