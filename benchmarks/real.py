@@ -86,6 +86,9 @@ MM_PER_M = 1000.0
 POSITION_RADIUS_REL = 0.25  # LOPO: board centres closer than this share of the board's diagonal ...
 POSITION_ANGLE_DEG = 10.0  # ... with boards turned by less than this are one board position
 NOISE_SE = 2.0  # the default's LOPO may exceed --no-screen's by this many standard errors of the mean fold difference
+BOOTSTRAP_DRAWS = 4000  # paired bootstrap of the default - --no-screen difference over the held-out folds ...
+BOOTSTRAP_SEED = 0  # ... with a fixed seed (the printed interval is reproducible) ...
+BOOTSTRAP_LEVEL = 0.95  # ... and this two-sided level
 TIE_PX = 1e-3  # per-fold RMS closer than this counts as a tie, for neither solver
 CALISCOPE_FIRST_SYNC_INDEX = 35  # video frame i of every camera is caliscope's sync_index 35 + i
 
@@ -436,18 +439,46 @@ def lofo_folds(obs_a: BoardObservations, obs_b: BoardObservations, max_folds: in
     return frames
 
 
-def lofo(solver: Callable[[BoardObservations], Calibration], obs: BoardObservations,
-         folds: np.ndarray) -> tuple[float, np.ndarray]:
-    """Leave-one-frame-out prediction RMS (px) over ``folds`` and the per-fold RMS."""
-    residuals, per_fold = [], []
+@dataclass(frozen=True)
+class FoldScores:
+    """Held-out errors per fold: the sum of squared corner distances (px^2) and the number of corners."""
+
+    sq_px2: np.ndarray
+    count: np.ndarray
+
+    @property
+    def rms(self) -> float:
+        """RMS over every held-out corner of every fold (px)."""
+        return float(np.sqrt(np.sum(self.sq_px2) / np.sum(self.count))) if len(self.count) else float("nan")
+
+    @property
+    def per_fold(self) -> np.ndarray:
+        """(folds,) RMS of each fold's corners (px)."""
+        return np.sqrt(self.sq_px2 / self.count)
+
+
+def _fold_score(res: np.ndarray) -> tuple[float, int]:
+    sq = np.sum(res**2, axis=-1)
+    return float(np.nansum(sq)), int(np.sum(np.isfinite(sq)))
+
+
+def lofo_scores(solver: Callable[[BoardObservations], Calibration], obs: BoardObservations,
+                folds: np.ndarray) -> FoldScores:
+    """Leave-one-frame-out: each frame of ``folds`` held out in turn, predicted through the rig calibrated from the
+    others (`rig_fit_residuals`)."""
+    scores = []
     for f in folds:
         keep = np.array([g for g in range(obs.num_frames) if g != f])
         calib = solver(obs.subset_frames(keep))
-        res = rig_fit_residuals(calib, obs.subset_frames([f]))
-        residuals.append(res[np.isfinite(res)].reshape(-1, 2))
-        per_fold.append(float(rms_px(res)))
-    all_res = np.concatenate(residuals)
-    return float(np.sqrt(np.mean(np.sum(all_res**2, axis=1)))), np.array(per_fold)
+        scores.append(_fold_score(rig_fit_residuals(calib, obs.subset_frames([f]))))
+    return FoldScores(np.array([s[0] for s in scores]), np.array([s[1] for s in scores]))
+
+
+def lofo(solver: Callable[[BoardObservations], Calibration], obs: BoardObservations,
+         folds: np.ndarray) -> tuple[float, np.ndarray]:
+    """Leave-one-frame-out prediction RMS (px) over ``folds`` and the per-fold RMS."""
+    scores = lofo_scores(solver, obs, folds)
+    return scores.rms, scores.per_fold
 
 
 def board_positions(obs: BoardObservations) -> np.ndarray:
@@ -510,25 +541,65 @@ def best_fit_residuals(calib: Calibration, obs: BoardObservations) -> np.ndarray
     return best
 
 
+def lopo_scores(solver: Callable[[BoardObservations], Calibration], obs: BoardObservations,
+                folds: list[np.ndarray]) -> FoldScores:
+    """Leave-one-position-out: the frames of each fold (one board position) held out together, predicted through the
+    rig calibrated from the others (`best_fit_residuals`)."""
+    scores = []
+    for held in folds:
+        calib = solver(obs.subset_frames(np.setdiff1d(np.arange(obs.num_frames), held)))
+        scores.append(_fold_score(best_fit_residuals(calib, obs.subset_frames(held))))
+    return FoldScores(np.array([s[0] for s in scores]), np.array([s[1] for s in scores], dtype=int))
+
+
 def lopo(solver: Callable[[BoardObservations], Calibration], obs: BoardObservations,
          folds: list[np.ndarray]) -> tuple[float, np.ndarray]:
     """Leave-one-position-out prediction RMS (px) over ``folds`` (each the frames of one position) and per fold."""
-    residuals, per_fold = [], []
-    if not folds:
-        return float("nan"), np.zeros(0)
-    for held in folds:
-        calib = solver(obs.subset_frames(np.setdiff1d(np.arange(obs.num_frames), held)))
-        res = best_fit_residuals(calib, obs.subset_frames(held))
-        residuals.append(res[np.isfinite(res)].reshape(-1, 2))
-        per_fold.append(float(rms_px(res)))
-    all_res = np.concatenate(residuals)
-    return float(np.sqrt(np.mean(np.sum(all_res**2, axis=1)))), np.array(per_fold)
+    scores = lopo_scores(solver, obs, folds)
+    return scores.rms, scores.per_fold
 
 
 def screen_noise(default: np.ndarray, no_screen: np.ndarray) -> tuple[float, float]:
     """Mean and standard error of the per-fold difference default - --no-screen (px)."""
     d = default - no_screen
     return float(np.mean(d)), float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """``a`` - ``b`` on the same held-out folds (px): the pooled RMS difference with its paired bootstrap interval
+    (folds drawn with replacement, both solvers' errors of a fold drawn together), and the mean per-fold RMS
+    difference with its standard error (`screen_noise`)."""
+
+    pooled_px: float
+    ci_px: tuple[float, float]
+    mean_px: float
+    se_px: float
+
+    @property
+    def worse(self) -> bool:
+        """``a`` is worse than ``b`` beyond the noise by either measure: the mean per-fold difference above
+        `NOISE_SE` standard errors, or the bootstrap interval of the pooled difference above 0 (both beyond a tie,
+        `TIE_PX`: identical fits differ by rounding)."""
+        return bool(self.mean_px > max(NOISE_SE * self.se_px, TIE_PX) or self.ci_px[0] > TIE_PX)
+
+    def __str__(self) -> str:
+        return (f"{self.pooled_px:+.3f} [{self.ci_px[0]:+.3f}, {self.ci_px[1]:+.3f}]; per fold "
+                f"{self.mean_px:+.4f} ± {self.se_px:.4f}")
+
+
+def paired_difference(a: FoldScores, b: FoldScores) -> PairedDifference:
+    """`PairedDifference` of two solvers' scores on the same folds (`BOOTSTRAP_DRAWS` draws, `BOOTSTRAP_SEED`)."""
+    n = len(a.count)
+    if n == 0:
+        return PairedDifference(float("nan"), (float("nan"), float("nan")), float("nan"), 0.0)
+    idx = np.random.default_rng(BOOTSTRAP_SEED).integers(0, n, (BOOTSTRAP_DRAWS, n))
+    boot = (np.sqrt(a.sq_px2[idx].sum(axis=1) / a.count[idx].sum(axis=1))
+            - np.sqrt(b.sq_px2[idx].sum(axis=1) / b.count[idx].sum(axis=1)))
+    tail = 100 * (1 - BOOTSTRAP_LEVEL) / 2
+    lo, hi = np.percentile(boot, [tail, 100 - tail])
+    mean, se = screen_noise(a.per_fold, b.per_fold)
+    return PairedDifference(a.rms - b.rms, (float(lo), float(hi)), mean, se)
 
 
 # ------------------------------------------------------------------------------------------------ output
@@ -577,11 +648,15 @@ def run_set(s: RealSet, root: Path, max_folds: int) -> SetResult:
     folds = lofo_folds(obs["lf"], obs["cv"], max_folds)
     eligible = len(lofo_folds(obs["lf"], obs["cv"], obs["lf"].num_frames))
     t0 = time.perf_counter()
-    own = {k: lofo(SOLVERS[k], obs[k], folds) for k in SOLVERS}
+    own_s = {k: lofo_scores(SOLVERS[k], obs[k], folds) for k in SOLVERS}
     # both solvers on lfgraph's corners; where OpenCV's detector returned the very same corners (ChArUco) the own-
     # corner figures are reused
     identical = np.array_equal(obs["lf"].corners_px, obs["cv"].corners_px, equal_nan=True)
-    same = dict(own) if identical else {k: lofo(SOLVERS[k], obs["lf"], folds) for k in SOLVERS}
+    same_s = dict(own_s) if identical else {k: lofo_scores(SOLVERS[k], obs["lf"], folds) for k in SOLVERS}
+    own = {k: (v.rms, v.per_fold) for k, v in own_s.items()}
+    same = {k: (v.rms, v.per_fold) for k, v in same_s.items()}
+    no_screen = lofo_scores(solve_lfgraph_no_screen, obs["lf"], folds)
+    lofo_diff = paired_difference(same_s["lf"], no_screen)
     lofo_s = time.perf_counter() - t0
     need = "seen by both detectors" + ("" if s.grid.num_views == 1 else " in two views or more")
     sub = "all of them" if len(folds) == eligible else f"an evenly spaced subsample of {len(folds)}"
@@ -592,20 +667,29 @@ def run_set(s: RealSet, root: Path, max_folds: int) -> SetResult:
     t0 = time.perf_counter()
     labels = board_positions(obs["lf"])
     pos_folds = lopo_folds(obs["lf"], labels, lofo_folds(obs["lf"], obs["cv"], obs["lf"].num_frames), max_folds)
-    pos = {k: lopo(solver, obs["lf"], pos_folds) for k, solver in LOPO_SOLVERS.items()}
-    diff, se = screen_noise(pos["lf"][1], pos["lf_no_screen"][1])
+    pos_s = {k: lopo_scores(solver, obs["lf"], pos_folds) for k, solver in LOPO_SOLVERS.items()}
+    pos = {k: (v.rms, v.per_fold) for k, v in pos_s.items()}
+    lopo_diff = paired_difference(pos_s["lf"], pos_s["lf_no_screen"])
     n_pos = len(set(labels[labels >= 0].tolist()))
     print(f"LOPO: {n_pos} board positions in {int(np.sum(labels >= 0))} frames (largest "
           f"{sorted(np.bincount(labels[labels >= 0]).tolist())[::-1][:5]}); held out {len(pos_folds)}; default - "
-          f"--no-screen per fold {diff:+.4f} ± {se:.4f} px ({time.perf_counter() - t0:.0f} s)", flush=True)
+          f"--no-screen per fold {lopo_diff.mean_px:+.4f} ± {lopo_diff.se_px:.4f} px "
+          f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    print(f"default - --no-screen, pooled RMS [{100 * BOOTSTRAP_LEVEL:g} % paired bootstrap over folds]; mean per-fold "
+          f"RMS ± se (px): LOFO {lofo_diff}; LOPO {lopo_diff}")
     rows = [["boards found (view-frames)", found["lf"], found["cv"]],
             ["rig RMS, own corners (px)", rig["lf"], rig["cv"]],
             ["LOFO RMS, own corners (px)", own["lf"][0], own["cv"][0]],
             ["  folds predicted better, own corners", *wins["own"]],
             ["LOFO RMS, lfgraph's corners (px)", same["lf"][0], same["cv"][0]],
             ["  folds predicted better, lfgraph's corners", *wins["same"]],
+            ["LOFO RMS, lfgraph's corners, --no-screen (px)", no_screen.rms, None],
+            ["  default − --no-screen, LOFO (px; pooled [95 % paired bootstrap]; per fold mean ± se)",
+             str(lofo_diff), None],
             ["LOPO RMS, lfgraph's corners (px; --no-screen in brackets)",
              f"{pos['lf'][0]:.3f} ({pos['lf_no_screen'][0]:.3f})", pos["cv"][0]],
+            ["  default − --no-screen, LOPO (px; pooled [95 % paired bootstrap]; per fold mean ± se)",
+             str(lopo_diff), None],
             ["detection (s)", det.seconds["lf"], det.seconds["cv"]],
             ["calibration (s)", secs["lf"], secs["cv"]]]
     print(format_table(["", "lfgraph", "OpenCV"], rows))
@@ -615,15 +699,19 @@ def run_set(s: RealSet, root: Path, max_folds: int) -> SetResult:
     targets = []
     if found["lf"] < found["cv"]:
         targets.append(f"{s.name}: lfgraph found {found['lf']} boards, OpenCV {found['cv']}")
-    if diff > NOISE_SE * se and diff > 0:
-        targets.append(f"{s.name}: LOPO default {pos['lf'][0]:.3f} px worse than --no-screen "
-                       f"{pos['lf_no_screen'][0]:.3f} px beyond the noise ({diff:+.4f} ± {se:.4f} px per fold)")
+    for name, d, a, b in (("LOFO", lofo_diff, same_s["lf"].rms, no_screen.rms),
+                          ("LOPO", lopo_diff, pos_s["lf"].rms, pos_s["lf_no_screen"].rms)):
+        if d.worse:
+            targets.append(f"{s.name}: {name} default {a:.3f} px worse than --no-screen {b:.3f} px beyond the noise "
+                           f"({d})")
     if own["lf"][0] >= own["cv"][0]:
         targets.append(f"{s.name}: LOFO {own['lf'][0]:.3f} px is not below OpenCV's {own['cv'][0]:.3f} px")
     row = [s.name, str(s.grid), f"{found['lf']} / {found['cv']}", f"{rig['lf']:.3f} / {rig['cv']:.3f}",
            f"{own['lf'][0]:.3f} / {own['cv'][0]:.3f}", f"{own['cv'][0] / own['lf'][0]:.2f}",
            f"{same['lf'][0]:.3f} / {same['cv'][0]:.3f}",
            f"{pos['lf'][0]:.3f} / {pos['lf_no_screen'][0]:.3f} / {pos['cv'][0]:.3f} ({len(pos_folds)} of {n_pos})",
+           f"{lofo_diff.pooled_px:+.3f} [{lofo_diff.ci_px[0]:+.3f}, {lofo_diff.ci_px[1]:+.3f}] / "
+           f"{lopo_diff.pooled_px:+.3f} [{lopo_diff.ci_px[0]:+.3f}, {lopo_diff.ci_px[1]:+.3f}]",
            pub_summary,
            f"{det.seconds['lf'] + secs['lf']:.1f} / {det.seconds['cv'] + secs['cv']:.1f}"]
     return SetResult(row, targets)
@@ -659,7 +747,8 @@ def main() -> int:
           f"held-out frames better; seconds = detection + calibration; {time.perf_counter() - t_all:.0f} s in all)\n")
     print(format_table(["set", "views", "boards found", "rig RMS px", "LOFO px (own corners)", "ratio",
                         "LOFO px (lfgraph's corners)", "LOPO px, lfgraph's corners: default / --no-screen / OpenCV "
-                        "(positions held out of all)", "published", "seconds"], summary))
+                        "(positions held out of all)", "default − --no-screen px, LOFO / LOPO [95 % paired bootstrap]",
+                        "published", "seconds"], summary))
     if failed:
         print("sets that failed: " + ", ".join(failed))
     # issue 12's bar: lfgraph finds what OpenCV finds and predicts held-out frames better, on every real set
