@@ -82,15 +82,30 @@ def run(s: RingScenario) -> dict:
         out, report = refine(cap.original, cap.frames, config)
     except ValueError as exc:
         return {**asdict(s), "views": s.views, "error": str(exc)[:200]}
-    return score(s, cap.original, cap.truth, out, report, time.perf_counter() - start, config.tolerance_px)
+    row = score(s, cap.original, cap.truth, out, report, time.perf_counter() - start, config.tolerance_px)
+    return {**row, "heldout_before_px": report.heldout_before_px, "heldout_after_px": report.heldout_after_px,
+            "sigma_px": report.sigma_px}
 
 
 def _fields() -> list[str]:
     return [*asdict(draw(0)), "error", "knock_px_max", "transfer_in_px", "transfer_out_px", "transfer_out_max_px",
             "transfer_in_max_px", "pos_in_max_mm", "pos_out_max_mm", "worse_calibration", "worse_calibration_transfer",
             "worse_views", "worse_views_3sigma", "worse_transfer_views", "drifted_views", "big_knocks",
-            "missed_views", "uncertain_big", "applied_views", "accepted", "z_pan_tilt", "z_roll", "z_position",
-            "seconds", "seconds_per_frame"]
+            "missed_views", "uncertain_big", "applied_views", "accepted", "worst_view_ratio", "z_pan_tilt", "z_roll",
+            "z_position", "heldout_before_px", "heldout_after_px", "sigma_px", "seconds", "seconds_per_frame"]
+
+
+def per_scenario_sigma_ratios(rows: list[dict]) -> str:
+    """One line: per group, the range over scenarios of the RMS error / reported sigma of the written views (each
+    scenario's own RMS; the worst names its seed)."""
+    parts = []
+    for key in ("z_pan_tilt", "z_roll", "z_position"):
+        per = [(float(np.sqrt(np.mean(np.square(z)))), int(r["seed"])) for r in rows if not r.get("error")
+               for z in [[float(x) for x in str(r.get(key) or "").split(";") if x]] if z]
+        if per:
+            lo, hi = min(per), max(per)
+            parts.append(f"{key[2:]} {lo[0]:.2f}-{hi[0]:.2f} (worst seed {hi[1]})")
+    return "error / sigma RMS per scenario: " + "; ".join(parts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(["ring", *HEADER[1:]], [["rings", *line[1:]] for line in summary(rows, tol)[-1:]]))
     print(f"tolerance {tol:g} px; goals: (a) 0, (b) <= {100 * GOAL_FALSE_ALARM:g} %, (c) <= {100 * GOAL_MISS:g} %, "
           f"(d) {GOAL_SIGMA_RATIO[0]}-{GOAL_SIGMA_RATIO[1]}")
+    print(per_scenario_sigma_ratios(rows))
     worst = sorted((r for r in rows if not r.get("error")), key=lambda r: -float(r["transfer_out_max_px"]))[:5]
     print("worst cases (transfer at infinity after, worst view): " + "; ".join(
         f"{draw(int(r['seed'])).label()}: {float(r['transfer_in_max_px']):.3f} -> "
