@@ -24,6 +24,7 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer
 from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL
+from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.refinement.posterior import chi2_sigma
@@ -55,6 +56,10 @@ class PinResult:
         disagreement_sigmas: how far the pin disagrees with the scene, as a one-sided normal deviate (module
             docstring), large when they disagree.
         residual: the pin's own fit (e.g. the fitted distance against the measured, in its sigmas).
+        check_pct: the mistake in the pin's measurement (its distance, or its view's fx), relative, in %, that
+            alone would bring the test to `PIN_DISAGREEMENT_SIGMAS` (`check_pct`): a mistake well below it passes
+            unnoticed, one well beyond is refused (the right measurement's own noise moves the line a little). None
+            for a board pin.
     """
 
     name: str
@@ -66,6 +71,7 @@ class PinResult:
     sigma_px: float
     disagreement_sigmas: float
     residual: str
+    check_pct: float | None = None
 
     @property
     def fixes_zoom(self) -> bool:
@@ -77,7 +83,7 @@ class PinResult:
         return {"name": self.name, "kind": self.kind, "description": self.description,
                 "scene_zoom_px": self.scene_zoom_px, "scene_sigma_px": self.scene_sigma_px, "zoom_px": self.zoom_px,
                 "sigma_px": self.sigma_px, "disagreement_sigmas": self.disagreement_sigmas,
-                "fixes_zoom": self.fixes_zoom, "residual": self.residual}
+                "fixes_zoom": self.fixes_zoom, "residual": self.residual, "check_pct": self.check_pct}
 
     def text(self) -> str:
         """One line for the report."""
@@ -86,7 +92,15 @@ class PinResult:
         return (f"pin {self.name} ({self.description}) {verb}: sigma {self.scene_sigma_px:.3g} px "
                 f"({pct * self.scene_sigma_px:.2g} %) without it, {self.sigma_px:.3g} px "
                 f"({pct * self.sigma_px:.2g} %) with it; it moved the zoom {self.zoom_px - self.scene_zoom_px:+.3g} px "
-                f"(disagreement {self.disagreement_sigmas:.2f} sigma); {self.residual}")
+                f"(disagreement {self.disagreement_sigmas:.2f} sigma); {self.residual}{self.check_text()}")
+
+    def check_text(self) -> str:
+        """How precisely the scene could check the pin's measurement, in words ('' for a board pin)."""
+        if self.check_pct is None:
+            return ""
+        what = "fx" if self.kind == "view" else "distance"
+        return (f"; the scene can check this {what} only to about {self.check_pct:.2g} %: a mistake well below "
+                f"that passes unnoticed")
 
 
 def pin_kind(pin: Pin) -> str:
@@ -184,11 +198,9 @@ def _residual(pin: Pin, k: int, calib: Calibration, values: gtsam.Values, fragme
     return f"corner residual {np.sqrt(max(chi2, 0.0) / (2 * n)):.2f} of the corner sigma over {n} corners"
 
 
-def weak_modes(calib: Calibration, joint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The weak modes' values (the zoom, the common cx and cy shift, cx per grid column and cy per grid row; px)
-    and their covariance, from ``calib`` and the (DV, DV) ``joint`` covariance of every view's calibration."""
-    grid, n = calib.grid, calib.num_views
-    dim = len(joint) // n
+def mode_rows(grid, n: int, dim: int) -> np.ndarray:
+    """(M, dim n) the weak modes as rows over every view's calibration (``dim`` coordinates each, Cal3DS2's tangent
+    order): the zoom (mean of fx and fy), the common cx and cy shift, cx per grid column and cy per grid row."""
     off = np.array([grid.offset(v) for v in range(n)], dtype=float)
     rows = [{0: np.full(n, 0.5 / n), 1: np.full(n, 0.5 / n)}, {3: np.full(n, 1.0 / n)}, {4: np.full(n, 1.0 / n)}]
     for axis, idx in ((1, 3), (0, 4)):
@@ -196,35 +208,89 @@ def weak_modes(calib: Calibration, joint: np.ndarray) -> tuple[np.ndarray, np.nd
         if np.sum(d**2) > 0:
             rows.append({idx: d / np.sum(d**2)})
     a = np.zeros((len(rows), dim * n))
-    theta = np.zeros(dim * n)
     for k, row in enumerate(rows):
         for idx, w in row.items():
             a[k, idx::dim] = w
+    return a
+
+
+def weak_modes(calib: Calibration, joint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weak modes' values (the zoom, the common cx and cy shift, cx per grid column and cy per grid row; px)
+    and their covariance, from ``calib`` and the (DV, DV) ``joint`` covariance of every view's calibration."""
+    n = calib.num_views
+    dim = len(joint) // n
+    a = mode_rows(calib.grid, n, dim)
+    theta = np.zeros(dim * n)
     for idx, name in ((0, "fx"), (1, "fy"), (3, "cx"), (4, "cy")):
         theta[idx::dim] = [getattr(i, name) for i in calib.intrinsics]
     return a @ theta, a @ joint @ a.T
 
 
-def disagreement(scene: SceneFit, values: np.ndarray, cov: np.ndarray) -> float:
-    """The nested test of the module docstring: the pin's shift of the weak modes against the variance it removed,
-    as a one-sided normal deviate (0 when it removed none)."""
+def _shift_chi2(scene: SceneFit, shift: np.ndarray, cov: np.ndarray) -> tuple[float, int]:
+    """The test's chi-square of a shift of the weak modes and its degrees of freedom (`disagreement`)."""
     s0 = scene.modes_cov
     lam0, u0 = np.linalg.eigh(s0)
     w = u0 @ np.diag(1.0 / np.sqrt(np.maximum(lam0, 1e-30))) @ u0.T  # S0^(-1/2)
     removed, u = np.linalg.eigh(np.eye(len(s0)) - w @ cov @ w)
     keep = removed >= INFORMED_SHARE
     if not keep.any():
-        return 0.0
-    shift = u[:, keep].T @ (w @ (values - scene.modes))
-    return chi2_sigma(float(np.sum(shift**2 / removed[keep])), int(keep.sum()))
+        return 0.0, 0
+    proj = u[:, keep].T @ (w @ shift)
+    return float(np.sum(proj**2 / removed[keep])), int(keep.sum())
+
+
+def disagreement(scene: SceneFit, values: np.ndarray, cov: np.ndarray) -> float:
+    """The nested test of the module docstring: the pin's shift of the weak modes against the variance it removed,
+    as a one-sided normal deviate (0 when it removed none)."""
+    return chi2_sigma(*_shift_chi2(scene, values - scene.modes, cov))
+
+
+def check_pct(scene: SceneFit, cov: np.ndarray, gain: np.ndarray) -> float:
+    """`PinResult.check_pct`: the relative mistake in a pin's measurement that the test refuses. A mistake e (a
+    share of the measured value) shifts the pinned fit's weak modes by e ``gain`` (linearised: the posterior's
+    covariance of the modes with the measured quantity over the pin's variance, times the value); the test's
+    chi-square grows as e^2 and reaches `PIN_DISAGREEMENT_SIGMAS` (Wilson–Hilferty's inverse) at the figure returned,
+    in % (inf when the pin moves no tested mode)."""
+    chi2, dof = _shift_chi2(scene, gain, cov)
+    if dof == 0 or chi2 <= 0:
+        return float("inf")
+    a = 2.0 / (9.0 * dof)
+    limit = dof * (PIN_DISAGREEMENT_SIGMAS * np.sqrt(a) + 1.0 - a) ** 3
+    return float(100.0 * np.sqrt(limit / chi2))
+
+
+def _check(scene: SceneFit, pin: Pin, k: int, calib: Calibration, values: gtsam.Values, joint: np.ndarray,
+           modes: np.ndarray, cov: np.ndarray) -> float | None:
+    """`PinResult.check_pct` of a distance pin (a mistake in its distance) or a view pin (in its fx); None for a
+    board pin. ``joint``: the pinned fit's covariance of every view's calibration and, for a distance pin, of its
+    two points (the last six coordinates); ``modes``: (M, DV) the weak modes' rows (`weak_modes`)."""
+    n = len(joint)
+    grad = np.zeros(n)
+    if isinstance(pin, DistancePin):
+        a, b = (np.asarray(values.atPoint3(pin_point_key(2 * k + i))) for i in range(2))
+        grad[-6:] = np.concatenate([a - b, b - a]) / np.linalg.norm(a - b)
+        measured, sigma = pin.distance_m, pin.sigma_m
+    elif isinstance(pin, ViewPin):
+        grad[(modes.shape[1] // calib.num_views) * pin.view] = 1.0
+        measured, sigma = pin.intrinsics.fx, pin.sigmas[0]
+    else:
+        return None
+    rows = np.zeros((len(modes), n))
+    rows[:, :modes.shape[1]] = modes
+    return check_pct(scene, cov, rows @ joint @ grad * measured / sigma**2)
 
 
 def _result(scene: SceneFit, pin: Pin, k: int, fit, distortion: bool) -> PinResult:
     calib, _, graph, values, fragments = fit
-    joint = posterior(graph, values, calib.lenses)[1]
+    points = (pin_point_key(2 * k), pin_point_key(2 * k + 1)) if isinstance(pin, DistancePin) else ()
+    joint_all = posterior(graph, values, calib.lenses, points)[1]
+    joint = joint_all[:len(joint_all) - 3 * len(points), :len(joint_all) - 3 * len(points)]
     zoom, sigma = zoom_of(calib, joint, scene.sigmas, distortion)
+    rows = mode_rows(calib.grid, calib.num_views, len(joint) // calib.num_views)
+    values_m, cov = weak_modes(calib, joint)
     return PinResult(pin.name, pin_kind(pin), pin.describe(), scene.zoom_px, scene.zoom_sigma_px, zoom, sigma,
-                     disagreement(scene, *weak_modes(calib, joint)), _residual(pin, k, calib, values, fragments[k]))
+                     disagreement(scene, values_m, cov), _residual(pin, k, calib, values, fragments[k]),
+                     _check(scene, pin, k, calib, values, joint_all, rows, cov))
 
 
 def _refuse(result: PinResult) -> None:
@@ -249,7 +315,7 @@ def fit_pins(scene: SceneFit, pins: Sequence[Pin], distortion: bool, hooks: tupl
         PinRefused: a pin disagrees with the scene (the first one found, by name).
         PinError: a pin cannot be used (e.g. its points do not triangulate).
     """
-    pins = [p.retracked(scene.calib) if isinstance(p, DistancePin) else p for p in pins]
+    pins = [p.retracked(scene.calib).checked(scene.calib) if isinstance(p, DistancePin) else p for p in pins]
     results, fit = [], None
     for pin in pins:
         fit = _fit(scene, [pin], PIN_ITERATIONS, hooks, say)

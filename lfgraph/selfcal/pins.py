@@ -31,12 +31,18 @@ from lfgraph.core.grid import ViewGrid
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.values import insert_board_corners, insert_board_poses
-from lfgraph.refinement.triangulate import triangulate_dlt
+from lfgraph.refinement.triangulate import per_coordinate_sigma, reprojection_errors, triangulate_dlt
 from lfgraph.selfcal.marks import MARK_FORWARD_BACKWARD_PX, follow_marks
 from lfgraph.selfcal.retrack import Patches, cut_patches, retrack
 
 MIN_PIN_CORNERS = 6  # a pin frame seen by a view with fewer corners than this is not used in that view
 CORNER_NOISE_FLOOR_PX = 0.01  # a board pin's estimated corner noise is never taken below this
+# a mark's observation whose reprojection error through the scene's calibration exceeds this many times the mark's
+# median and `MARK_OUTLIER_FLOOR_PX` is dropped, worst first (as the one mismatch rule drops tracks): a mark on an edge
+# can be followed along it (measured: paper-4x4 rig seed 1, a mark 62 px from the top border slid 5-6 px in two views;
+# kept, it moved the triangulated mark 7 % deeper and a right wall pin was refused at 13.5 sigma)
+MARK_OUTLIER_FACTOR = 4.0
+MARK_OUTLIER_FLOOR_PX = 0.5
 FACING_DEG = 0.5  # a known depth's plane faces the reference view to within this (its marks' depths differ by at most
 # this tilt times their distance, 1 sigma): e.g. a wall the array was squared to
 
@@ -155,6 +161,8 @@ class DistancePin:
         pixels: (V, 2, 2) the two points in every view; valid: (V, 2).
         patches: the image patches around them (for the re-tracking; set when followed from the images).
         name: how the report and a refusal name it.
+        pixel_sigma_px: the marks' pixel noise per coordinate (None: measured from their own residuals through the
+            scene's calibration, `checked`, never below the tracks' noise).
     """
 
     distance_m: float
@@ -168,6 +176,7 @@ class DistancePin:
     name: str = "distance"
     depth_m: float | None = None
     depth_sigma_m: float | None = None
+    pixel_sigma_px: float | None = None
 
     def __post_init__(self) -> None:
         if (self.depth_m is None) != (self.depth_sigma_m is None):
@@ -270,10 +279,46 @@ class DistancePin:
             return self
         return replace(self, pixels=pixels, valid=valid, patches=None)
 
+    def checked(self, calib: Calibration) -> DistancePin:
+        """The marks' observations that ``calib``'s geometry explains, and their measured noise.
+
+        Each mark is triangulated through ``calib`` (the scene's calibration) and its worst observation dropped
+        while its reprojection error exceeds `MARK_OUTLIER_FACTOR` times the mark's median and
+        `MARK_OUTLIER_FLOOR_PX` (a mark followed along an edge); ``pixel_sigma_px``, unless given, is measured from
+        the rest (`per_coordinate_sigma`: a mark's window is not a typical track's, and its noise is the pin's).
+
+        Raises:
+            PinError: a mark is left with fewer than two consistent views.
+        """
+        if self.pixels is None:
+            return self
+        pixels, valid = np.array(self.pixels), np.array(self.valid)
+        while True:
+            points = triangulate_dlt(calib, pixels, valid)
+            errors = reprojection_errors(calib, points, pixels, valid)
+            dropped = False
+            for k in range(2):
+                e = np.where(valid[:, k], errors[:, k], np.nan)
+                if np.sum(np.isfinite(e)) <= 2:
+                    continue
+                worst = int(np.nanargmax(e))
+                if e[worst] > max(MARK_OUTLIER_FACTOR * float(np.nanmedian(e)), MARK_OUTLIER_FLOOR_PX):
+                    valid[worst, k], dropped = False, True
+            if not dropped:
+                break
+        if np.any(valid.sum(axis=0) < 2) or not np.all(np.isfinite(points)):
+            raise PinError(f"pin {self.name}: its marks are not seen consistently by two views (consistent views "
+                           f"{valid.sum(axis=0).tolist()}); mark points on texture every view sees")
+        sigma = self.pixel_sigma_px
+        if sigma is None:
+            sigma = per_coordinate_sigma(np.where(valid, errors, np.nan), 2, 0)
+        return replace(self, pixels=np.where(valid[..., None], pixels, np.nan), valid=valid,
+                       pixel_sigma_px=float(sigma) if np.isfinite(sigma) else None)
+
     def factors(self, calib: Calibration, values: gtsam.Values, track_sigma_px: float,
                 first_point: int) -> gtsam.NonlinearFactorGraph:
-        """The pin's factors (`selfcal_graph.distance_pin_factors`, at the tracks' noise) with its two points
-        inserted in ``values`` (triangulated through ``calib``)."""
+        """The pin's factors (`selfcal_graph.distance_pin_factors`, at the marks' noise, never below the tracks')
+        with its two points inserted in ``values`` (triangulated through ``calib``)."""
         if self.pixels is None:
             raise PinError(f"pin {self.name}: its marked points were not followed into the views (frame "
                            f"{self.frame} was not read)")
@@ -282,8 +327,9 @@ class DistancePin:
             raise PinError(f"pin {self.name}: its points do not triangulate in front of the views")
         for k in range(2):
             values.insert(pin_point_key(first_point + k), points[k])
+        sigma_px = max(track_sigma_px, self.pixel_sigma_px or 0.0)
         graph = selfcal_graph.distance_pin_factors(first_point, self.pixels, self.valid, self.distance_m, self.sigma_m,
-                                                   track_sigma_px, [i.lens for i in calib.intrinsics])
+                                                   sigma_px, [i.lens for i in calib.intrinsics])
         if self.depth_m is not None:
             graph.push_back(selfcal_graph.plane_depth_factors(first_point, self.depth_m, self.depth_sigma_m,
                                                               np.tan(np.radians(FACING_DEG)) * self.distance_m))

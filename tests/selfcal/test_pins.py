@@ -139,6 +139,41 @@ def test_a_distance_on_a_plane_of_known_depth_fixes_the_zoom(truth, scene):
         pin_scene(report, WIDE_DESIGN, [wall_pin(truth, WRONG_DISTANCE)])
 
 
+SLID_PX = 5.0  # a mark followed along an edge: slid this far in one view (measured on a rendered wall: 5-6 px)
+
+
+def test_a_mark_followed_along_an_edge_is_dropped(truth, scene):
+    """A mark on an edge can be followed along it; the views where it slid are those the scene's calibration cannot
+    explain (dropped, worst first), and the wall pin is accepted with the right zoom."""
+    calib, report = scene
+    right = wall_pin(truth)
+    pixels = right.pixels.copy()
+    pixels[8, 1, 0] += SLID_PX
+    slid = DistancePin(right.distance_m, right.sigma_m, pixels=pixels, depth_m=WALL_M,
+                       depth_sigma_m=right.depth_sigma_m, name="slid")
+    checked = slid.checked(report.scene.calib)
+    assert not checked.valid[8, 1] and checked.valid.sum() == slid.valid.sum() - 1
+    assert checked.pixel_sigma_px < 2 * TRACK_NOISE_PX
+    pinned, pinned_report = pin_scene(report, WIDE_DESIGN, [slid])
+    assert abs(zoom_px(pinned) - zoom_px(truth)) < HONEST_SIGMAS * pinned_report.modes[0].posterior_sigma
+
+
+CHECK_MARGIN = 2.0  # a mistake this many times what the report says the scene can check is refused, one this many
+# times smaller is accepted (the right measurement's own noise moves the line: measured 2.1-2.3 sigma at 1x)
+
+
+def test_the_report_says_how_far_the_scene_can_check_a_distance(truth, scene):
+    """The report says how large a mistake in a distance the scene can see (`PinResult.check_pct`, linearised from
+    the pinned posterior); well beyond it a wrong distance is refused, well below it passes."""
+    calib, report = scene
+    (result,) = pin_scene(report, WIDE_DESIGN, [wall_pin(truth)])[1].pins
+    assert 0 < result.check_pct < 100 * WRONG_DISTANCE and "can check this distance only to" in result.text()
+    assert result.as_dict()["check_pct"] == result.check_pct
+    with pytest.raises(PinRefused):
+        pin_scene(report, WIDE_DESIGN, [wall_pin(truth, CHECK_MARGIN * result.check_pct / 100)])
+    pin_scene(report, WIDE_DESIGN, [wall_pin(truth, result.check_pct / 100 / CHECK_MARGIN)])
+
+
 def test_a_board_of_other_squares_is_refused_by_name(truth, scene):
     with pytest.raises(PinRefused, match=r"pin a board of other squares disagrees with the scene by .* sigma"):
         pin_scene(scene[1], WIDE_DESIGN, [board_pin(truth, 0.05 * (1 + WRONG_SQUARES))])
