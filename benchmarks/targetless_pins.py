@@ -1,9 +1,12 @@
 """The pins of `benchmarks/targetless.py`: one board frame, or one known distance, added to a self-calibration.
 
-- Board: one frame of the rig's checkerboard (the peer's board) at a random place in the reference view, tilted by
-  at least `MIN_TILT_DEG` (a board facing the array squarely sees the scale, which the pitch fixes, not the zoom),
-  corners = true projections + `CORNER_SIGMA_PX` Gaussian noise, seen by every view that sees it whole; its corner
-  noise is left for the pin to measure.
+- Board: one frame of the rig's checkerboard (the peer's board) held as `calibrate-scene`'s manual tells a user to:
+  tilted `MIN_TILT_DEG`-`MAX_TILT_DEG` about a random in-plane axis (a board facing the array squarely sees the
+  scale, which the pitch fixes, not the zoom: the zoom comes from its perspective alone), rolled as the peer's boards
+  are, its centre on the array's central axis, as near as every view still sees it whole (the nearest of the peer's
+  distances that does: the perspective, and with it what the frame says of the zoom, grows with the board's size in
+  the image); corners = true projections + `CORNER_SIGMA_PX` Gaussian noise, seen by every view that sees it whole;
+  its corner noise is left for the pin to measure.
 - Distance: two points marked in the reference view of one rendered frame (Shi–Tomasi corners on flat texture, the
   pair about `DISTANCE_M` apart with the most depth between them, among the marks the KLT follows into every view),
   their true positions from the exact depth of the rendered scene, their distance measured with a 1-sigma of
@@ -31,8 +34,9 @@ from lfgraph.selfcal import BoardPin, DistancePin
 from lfgraph.selfcal.pins import follow_marks
 
 CORNER_SIGMA_PX = 0.1  # the pin board's corner noise (as the checkerboard peer's)
-MIN_TILT_DEG = 30.0  # the pin board is held at least this tilted to the reference view
-MAX_TILT_DEG = 50.0
+MIN_TILT_DEG = 30.0  # the pin board is held this tilted to the reference view (the manual's 30-45 deg)
+MAX_TILT_DEG = 45.0
+BOARD_DISTANCES = 41  # the pin board's distance: the nearest of this many steps over the peer's range every view sees
 DISTANCE_M = 1.0  # the known distance: about 1 m ...
 SIGMA_PER_M = 1e-3  # ... measured to 1 mm per metre (1 sigma)
 MISMEASURED = 0.05  # the refusal case: a distance 5 % wrong
@@ -50,15 +54,30 @@ def tilt_deg(ref_T_board: np.ndarray) -> float:  # noqa: N803
 
 
 def board_pin(rig: str, truth: Calibration, seed: int) -> BoardPin:
-    """One tilted board frame of the rig's checkerboard (seeded)."""
-    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=1, max_tilt_deg=MAX_TILT_DEG)
-    for attempt in range(200):
-        board = make_checkerboard_truth(truth, cfg, np.random.default_rng([seed, 43, attempt]))
-        if tilt_deg(board.ref_T_board[0]) >= MIN_TILT_DEG and board.board_visible[:, 0].sum() >= 1:
+    """One tilted board frame of the rig's checkerboard (seeded), held as the manual says (module docstring)."""
+    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=1)
+    rng = np.random.default_rng([seed, 43])
+    tilt = np.radians(rng.uniform(MIN_TILT_DEG, MAX_TILT_DEG))
+    axis = rng.uniform(0, 2 * np.pi)
+    roll = np.radians(rng.uniform(-cfg.max_roll_deg, cfg.max_roll_deg))
+    turn = cv2.Rodrigues(tilt * np.array([np.cos(axis), np.sin(axis), 0.0]))[0] @ \
+        cv2.Rodrigues(np.array([0.0, 0.0, roll]))[0]
+    obj = cfg.board.object_points()
+    axis_xy = truth.ref_T_view[:, :2, 3].mean(axis=0)  # the array's central axis, in the reference view's frame
+    best = None
+    for dist in np.linspace(*cfg.distance_m, BOARD_DISTANCES):
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = turn, np.array([*axis_xy, dist]) - turn @ obj.mean(axis=0)
+        board = make_checkerboard_truth(truth, cfg, rng, ref_T_board=pose[None])
+        seen = int(board.board_visible[:, 0].sum())
+        if best is None or seen > best[0]:
+            best = (seen, dist, board)
+        if seen == truth.num_views:
             break
+    seen, dist, board = best
     corners, valid = make_corner_observations(board, CORNER_SIGMA_PX, np.random.default_rng([seed, 47]))
-    return BoardPin(corners, valid, cfg.board.object_points(),
-                    name=f"1 board frame (tilt {tilt_deg(board.ref_T_board[0]):.0f} deg, seed {seed})")
+    return BoardPin(corners, valid, obj, name=f"1 board frame (tilt {tilt_deg(board.ref_T_board[0]):.0f} deg, "
+                                              f"{dist:.2f} m, seed {seed})")
 
 
 def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration,
