@@ -56,7 +56,7 @@ class PinResult:
         disagreement_sigmas: how far the pin disagrees with the scene, as a one-sided normal deviate (module
             docstring), large when they disagree.
         residual: the pin's own fit (e.g. the fitted distance against the measured, in its sigmas).
-        check_pct: the mistake in the pin's measurement (its distance, or its view's fx), relative, in %, that
+        check_pct: the mistake in the pin's measurement (its distance, or its view's focal length), relative, in %, that
             alone would bring the test to `PIN_DISAGREEMENT_SIGMAS` (`check_pct`): a mistake well below it passes
             unnoticed, one well beyond is refused (the right measurement's own noise moves the line a little). None
             for a board pin.
@@ -98,7 +98,7 @@ class PinResult:
         """How precisely the scene could check the pin's measurement, in words ('' for a board pin)."""
         if self.check_pct is None:
             return ""
-        what = "fx" if self.kind == "view" else "distance"
+        what = "focal length" if self.kind == "view" else "distance"
         return (f"; the scene can check this {what} only to about {self.check_pct:.2g} %: a mistake well below "
                 f"that passes unnoticed")
 
@@ -261,23 +261,23 @@ def check_pct(scene: SceneFit, cov: np.ndarray, gain: np.ndarray) -> float:
 
 def _check(scene: SceneFit, pin: Pin, k: int, calib: Calibration, values: gtsam.Values, joint: np.ndarray,
            modes: np.ndarray, cov: np.ndarray) -> float | None:
-    """`PinResult.check_pct` of a distance pin (a mistake in its distance) or a view pin (in its fx); None for a
+    """`PinResult.check_pct` of a distance pin (a mistake in its distance) or a view pin (in its fx and fy); None for a
     board pin. ``joint``: the pinned fit's covariance of every view's calibration and, for a distance pin, of its
     two points (the last six coordinates); ``modes``: (M, DV) the weak modes' rows (`weak_modes`)."""
     n = len(joint)
-    grad = np.zeros(n)
+    weights = np.zeros(n)  # each measured coordinate's value over its variance: a mistake e moves it by e x value
     if isinstance(pin, DistancePin):
         a, b = (np.asarray(values.atPoint3(pin_point_key(2 * k + i))) for i in range(2))
-        grad[-6:] = np.concatenate([a - b, b - a]) / np.linalg.norm(a - b)
-        measured, sigma = pin.distance_m, pin.sigma_m
-    elif isinstance(pin, ViewPin):
-        grad[(modes.shape[1] // calib.num_views) * pin.view] = 1.0
-        measured, sigma = pin.intrinsics.fx, pin.sigmas[0]
+        weights[-6:] = np.concatenate([a - b, b - a]) / np.linalg.norm(a - b) * pin.distance_m / pin.sigma_m**2
+    elif isinstance(pin, ViewPin):  # its focal length: fx and fy together (Cal3DS2's tangent order starts fx, fy)
+        first = (modes.shape[1] // calib.num_views) * pin.view
+        weights[first] = pin.intrinsics.fx / pin.sigmas[0] ** 2
+        weights[first + 1] = pin.intrinsics.fy / pin.sigmas[1] ** 2
     else:
         return None
     rows = np.zeros((len(modes), n))
     rows[:, :modes.shape[1]] = modes
-    return check_pct(scene, cov, rows @ joint @ grad * measured / sigma**2)
+    return check_pct(scene, cov, rows @ joint @ weights)
 
 
 def _result(scene: SceneFit, pin: Pin, k: int, fit, distortion: bool) -> PinResult:

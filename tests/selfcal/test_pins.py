@@ -93,6 +93,7 @@ def test_a_board_frame_fixes_the_zoom(truth, scene):
     assert pinned_report.zoom_from == "pin one board frame" and report.zoom_from == "design focal length"
     assert pinned.metrics["zoom_from"] == "pin one board frame"
     assert "one board frame" in pinned_report.text() and pinned_report.as_dict()["pins"][0]["fixes_zoom"]
+    assert result.check_pct is None  # a board's mistake (its square size) is not a figure the report gives
 
 
 def test_a_known_distance_fixes_the_near_gauge_the_scene_sees_least(truth, scene):
@@ -187,10 +188,11 @@ def test_a_known_view_fixes_the_zoom_and_another_cameras_is_refused(truth, scene
     pinned, pinned_report = pin_scene(report, WIDE_DESIGN, [right])
     assert pinned_report.pins[0].fixes_zoom
     assert abs(zoom_px(pinned) - zoom_px(truth)) < HONEST_SIGMAS * pinned_report.modes[0].posterior_sigma
+    assert pinned_report.pins[0].check_pct < 100 * WRONG  # the report says a 5 % wrong focal length can be seen ...
     other = truth.intrinsics[v]
     wrong = ViewPin(v, type(other)(other.fx * (1 + WRONG), other.fy * (1 + WRONG), other.cx, other.cy, other.k1),
                     sigmas, name="another camera")
-    with pytest.raises(PinRefused, match="pin another camera disagrees"):
+    with pytest.raises(PinRefused, match="pin another camera disagrees"):  # ... and it is refused
         pin_scene(report, WIDE_DESIGN, [wrong])
 
 
