@@ -203,10 +203,10 @@ def zoom_px(calib: Calibration) -> float:
 
 
 def pinned(rig: str, frames: int, truth: Calibration, design: Design, report, config: SelfCalConfig, seeds: int,
-           rig_seed: int) -> tuple[list[list], list[str], dict]:
+           rig_seed: int, z_by_kind: dict[str, list[float]]) -> tuple[list[list], list[str], dict]:
     """Each pin kind added to the unpinned fit ``report`` for ``seeds`` pin seeds (`targetless_pins`): rows of the
-    worst fx error over seeds, the zoom's error and sigma (%) and error / sigma; then a distance 5 % wrong, which
-    must be refused. Returns (rows, failures, the worst fx error per kind)."""
+    worst fx error over seeds, the zoom's error and sigma (%) and error / sigma (each appended to ``z_by_kind``);
+    then a distance 5 % wrong, which must be refused. Returns (rows, failures, the worst fx error per kind)."""
     rows, failures, worst = [], [], {}
     true_zoom = zoom_px(truth)
     for kind in PIN_KINDS:
@@ -228,6 +228,7 @@ def pinned(rig: str, frames: int, truth: Calibration, design: Design, report, co
         if not fx:
             continue
         worst[kind] = max(fx)
+        z_by_kind.setdefault(kind, []).extend(z)
         z_rms = float(np.sqrt(np.mean(np.square(z))))
         rows.append(["", frames, f"+ {kind} pin (worst of {len(fx)})", f"{max(fx):.4g}",
                      f"{100 * max(np.abs(np.array(z) * sig)) / true_zoom:.3g}", f"{100 * max(sig) / true_zoom:.3g}",
@@ -273,7 +274,7 @@ def main() -> int:
     config = SelfCalConfig(tracks_per_frame=args.tracks_per_frame, retrack=not args.no_retrack)
     if args.one_stage:
         config = dataclasses.replace(config, stages=(config.stages[-1],))
-    rows, failures, z_rows, g_rows, pin_rows = [], [], [], [], []
+    rows, failures, z_rows, g_rows, pin_rows, z_by_kind = [], [], [], [], [], {}
     for rig in args.rigs:
         truth = data.truth_rig(rig, args.seed)
         design = design_of(rig)
@@ -306,7 +307,8 @@ def main() -> int:
             ratios = {m: mine[m] / board[m] for m in METRICS}
             rows.append(["", frames, "ratio"] + [f"{ratios[m]:.2g}" for m in METRICS] + ["", ""])
             if args.pin_seeds:
-                more, missed, worst = pinned(rig, frames, truth, design, report, config, args.pin_seeds, args.seed)
+                more, missed, worst = pinned(rig, frames, truth, design, report, config, args.pin_seeds, args.seed,
+                                             z_by_kind)
                 pin_rows += [[rig, frames, "self-cal, no pin", f"{mine['fx_px']:.4g}",
                               f"{100 * abs(zoom_px(est) - zoom_px(truth)) / zoom_px(truth):.3g}",
                               f"{100 * report.modes[0].posterior_sigma / zoom_px(truth):.3g}", ""],
@@ -335,6 +337,13 @@ def main() -> int:
               "over pin seeds), the common zoom's error and posterior sigma (%, worst) and error / sigma over seeds")
         print(format_table(["rig", "frames", "method", "fx px", "zoom error %", "zoom sigma %", "error / sigma"],
                            pin_rows))
+        pooled = {k: float(np.sqrt(np.mean(np.square(z)))) for k, z in z_by_kind.items()}
+        print("the zoom's error / sigma, RMS over every row and pin seed: " + ", ".join(
+            f"{k} {v:.2f} ({len(z_by_kind[k])})" for k, v in pooled.items()))
+        failures += [f"the zoom's error / sigma with a {k} pin, RMS over rows and seeds, {v:.2f} (target "
+                     f"{HONEST_Z[0]:g}-{HONEST_Z[1]:g})" + (": the scene's own zoom sigma, which a distance alone "
+                                                            "leaves" if k == "distance" else "")
+                     for k, v in pooled.items() if not HONEST_Z[0] <= v <= HONEST_Z[1]]
     print("targets missed: " + ("; ".join(failures) if failures else "none"))
     return 1 if failures else 0
 
