@@ -36,6 +36,8 @@ from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, r
 PIN_DISAGREEMENT_SIGMAS = 3.0  # a pin whose shift of the weak modes is beyond this deviate (p ~ 0.001) is refused
 INFORMED_SHARE = 0.1  # the test's directions: those along which the pin removed at least this share of the variance
 FIXES_ZOOM = 0.5  # a pin "fixes the zoom" when the zoom's sigma with it is below this fraction of the scene's alone
+UNCHECKED_PCT = 5.0  # a pin whose measurement the scene can check only beyond this mistake (%) is warned about: a tape
+# read a few per cent wrong, or a mark on the wrong point, would pass unnoticed
 PIN_ITERATIONS = 100  # Levenberg–Marquardt cap of a pinned fit (it starts at the scene's optimum)
 REACH_PASSES = 3  # a pinned fit is run again without the landmarks it pushed out of reach, at most this often
 MIN_ARRAY_DISPARITY_PX = 1.0  # as the scene's final stage: a landmark with less disparity across the array has no depth
@@ -291,6 +293,14 @@ def _result(scene: SceneFit, pin: Pin, k: int, fit, distortion: bool) -> PinResu
     return PinResult(pin.name, pin_kind(pin), pin.describe(), scene.zoom_px, scene.zoom_sigma_px, zoom, sigma,
                      disagreement(scene, values_m, cov), _residual(pin, k, calib, values, fragments[k]),
                      _check(scene, pin, k, calib, values, joint_all, rows, cov))
+
+
+def pin_warnings(results: Sequence[PinResult]) -> list[str]:
+    """The report's warnings for pins the scene cannot check to `UNCHECKED_PCT`."""
+    return [f"pin {r.name} could not be checked: the scene can check its "
+            f"{'focal length' if r.kind == 'view' else 'distance'} only to about {r.check_pct:.2g} % (a mistake well "
+            f"below that passes unnoticed); make sure of the measurement"
+            for r in results if r.check_pct is not None and r.check_pct > UNCHECKED_PCT]
 
 
 def _refuse(result: PinResult) -> None:

@@ -18,7 +18,7 @@ from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.refinement.tracks import in_front
 from lfgraph.refinement.triangulate import per_coordinate_sigma
 from lfgraph.selfcal.config import Design, SelfCalConfig
-from lfgraph.selfcal.pinned import SceneFit, fit_pins, weak_modes, zoom_of
+from lfgraph.selfcal.pinned import SceneFit, fit_pins, pin_warnings, weak_modes, zoom_of
 from lfgraph.selfcal.pins import PIN_TYPES, DistancePin, PinError
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
 from lfgraph.selfcal.retrack import retrack
@@ -225,7 +225,8 @@ def pin_scene(report: SelfCalReport, design: Design, pins, config: SelfCalConfig
     start = time.perf_counter()
     calib, post, mode_list, results = _pinned(report.scene, config, resolve(observer))
     seconds = {**report.seconds, "pins": time.perf_counter() - start}
-    out = dataclasses.replace(report, posterior=post, modes=tuple(mode_list), pins=results, seconds=seconds)
+    out = dataclasses.replace(report, posterior=post, modes=tuple(mode_list), pins=results, seconds=seconds,
+                              warnings=report.warnings + tuple(pin_warnings(results)))
     return calib.replace(metrics=_metrics(design, out, out.noise_px, post)), out
 
 
@@ -313,6 +314,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
         SceneFit(calib, nominal, points, tracks, free, sigmas, used_noise, 0.0, 0.0), graph, values, config, say)
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
+    warnings += pin_warnings(pins)
     report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
                            tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES, retracked, tracks, pins,
                            scene)

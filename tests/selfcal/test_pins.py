@@ -25,7 +25,7 @@ from lfgraph.selfcal import (
     calibrate_tracks,
     pin_scene,
 )
-from lfgraph.selfcal.pinned import PIN_DISAGREEMENT_SIGMAS
+from lfgraph.selfcal.pinned import PIN_DISAGREEMENT_SIGMAS, UNCHECKED_PCT
 from tests.selfcal.test_selfcal import synthetic_tracks
 
 # a 3x3 array with a wide baseline for its depths (10 cm pitch, scenes at 1-3 m: a point's depth to ~0.3 %), so that
@@ -110,6 +110,9 @@ def test_a_known_distance_fixes_the_near_gauge_the_scene_sees_least(truth, scene
     fitted_slope = np.polyfit(cols, err, 1)[0]
     assert abs(fitted_slope) < HONEST_SIGMAS * slope.posterior_sigma
     assert abs(zoom_px(pinned) - zoom_px(truth)) < HONEST_SIGMAS * pinned_report.modes[0].posterior_sigma
+    # the scene holds this distance only through the hidden gauge: it cannot check it to a few per cent, and says so
+    assert pinned_report.pins[0].check_pct > UNCHECKED_PCT
+    assert "warning: pin tape +0 % could not be checked" in pinned_report.text()
 
 
 # two marks on a wall facing the array 1.5 m deep, 0.63 m apart; the wall's depth known to 1 mm per metre
@@ -169,6 +172,7 @@ def test_the_report_says_how_far_the_scene_can_check_a_distance(truth, scene):
     calib, report = scene
     (result,) = pin_scene(report, WIDE_DESIGN, [wall_pin(truth)])[1].pins
     assert 0 < result.check_pct < 100 * WRONG_DISTANCE and "can check this distance only to" in result.text()
+    assert not any("could not be checked" in w for w in pin_scene(report, WIDE_DESIGN, [wall_pin(truth)])[1].warnings)
     assert result.as_dict()["check_pct"] == result.check_pct
     with pytest.raises(PinRefused):
         pin_scene(report, WIDE_DESIGN, [wall_pin(truth, CHECK_MARGIN * result.check_pct / 100)])
