@@ -584,8 +584,17 @@ class PairedDifference:
         return bool(self.mean_px > max(NOISE_SE * self.se_px, TIE_PX) or self.ci_px[0] > TIE_PX)
 
     def __str__(self) -> str:
-        return (f"{self.pooled_px:+.3f} [{self.ci_px[0]:+.3f}, {self.ci_px[1]:+.3f}]; per fold "
-                f"{self.mean_px:+.4f} ± {self.se_px:.4f}")
+        return f"{self.pooled}; per fold {_signed(self.mean_px, 4)} ± {self.se_px:.4f}"
+
+    @property
+    def pooled(self) -> str:
+        """The pooled difference and its interval, printed (px)."""
+        return f"{_signed(self.pooled_px)} [{_signed(self.ci_px[0])}, {_signed(self.ci_px[1])}]"
+
+
+def _signed(x: float, digits: int = 3) -> str:
+    """``x`` with its sign, a value that rounds to zero as +0 (identical fits differ by rounding, not by -0.000)."""
+    return f"{(0.0 if abs(x) < 0.5 * 10.0**-digits else x):+.{digits}f}"
 
 
 def paired_difference(a: FoldScores, b: FoldScores) -> PairedDifference:
@@ -673,7 +682,7 @@ def run_set(s: RealSet, root: Path, max_folds: int) -> SetResult:
     n_pos = len(set(labels[labels >= 0].tolist()))
     print(f"LOPO: {n_pos} board positions in {int(np.sum(labels >= 0))} frames (largest "
           f"{sorted(np.bincount(labels[labels >= 0]).tolist())[::-1][:5]}); held out {len(pos_folds)}; default - "
-          f"--no-screen per fold {lopo_diff.mean_px:+.4f} ± {lopo_diff.se_px:.4f} px "
+          f"--no-screen per fold {_signed(lopo_diff.mean_px, 4)} ± {lopo_diff.se_px:.4f} px "
           f"({time.perf_counter() - t0:.0f} s)", flush=True)
     print(f"default - --no-screen, pooled RMS [{100 * BOOTSTRAP_LEVEL:g} % paired bootstrap over folds]; mean per-fold "
           f"RMS ± se (px): LOFO {lofo_diff}; LOPO {lopo_diff}")
@@ -710,8 +719,7 @@ def run_set(s: RealSet, root: Path, max_folds: int) -> SetResult:
            f"{own['lf'][0]:.3f} / {own['cv'][0]:.3f}", f"{own['cv'][0] / own['lf'][0]:.2f}",
            f"{same['lf'][0]:.3f} / {same['cv'][0]:.3f}",
            f"{pos['lf'][0]:.3f} / {pos['lf_no_screen'][0]:.3f} / {pos['cv'][0]:.3f} ({len(pos_folds)} of {n_pos})",
-           f"{lofo_diff.pooled_px:+.3f} [{lofo_diff.ci_px[0]:+.3f}, {lofo_diff.ci_px[1]:+.3f}] / "
-           f"{lopo_diff.pooled_px:+.3f} [{lopo_diff.ci_px[0]:+.3f}, {lopo_diff.ci_px[1]:+.3f}]",
+           f"{lofo_diff.pooled} / {lopo_diff.pooled}",
            pub_summary,
            f"{det.seconds['lf'] + secs['lf']:.1f} / {det.seconds['cv'] + secs['cv']:.1f}"]
     return SetResult(row, targets)

@@ -13,7 +13,7 @@ from lfgraph.pattern import CalibrateConfig
 from lfgraph.pattern.initial import drop_view_frames
 from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.prediction import predict_view_frame, rig_marginals
-from lfgraph.pattern.screen import OUTLIER_VIEW_FRAME_MIN_PX, SCREEN_KERNEL, _judged_by_the_rest
+from lfgraph.pattern.screen import OUTLIER_VIEW_FRAME_MIN_PX, SCREEN_KERNEL, _judged_by_the_rest, witness_sets
 
 SIGMA_PX = 0.1  # corner noise
 WEAK_FRAMES = 2  # the weak view sees the board in this many frames
@@ -73,3 +73,33 @@ def test_a_held_out_weak_frame_is_predicted_within_its_cramer_rao_rms():
                               invert_T(truth.ref_T_board[weak_frame]))
     assert pred.predicted_rms_px > 1.5 * np.sqrt(2) * SIGMA_PX  # the rig's uncertainty counts, not only the noise
     assert pred.rms_px < PREDICTED_RMS_REL * pred.predicted_rms_px
+
+
+OFF_SYNC_SHIFT_PX = 4.0  # one other view of the suspect's frame is off by this much (out of sync in that frame)
+
+
+def test_a_good_frame_is_not_blamed_for_another_views_miss():
+    """A frame whose views disagree because one *other* view is off in it (caliscope's webcam 1, out of sync in 20 of
+    its 48 frames and kept as a systematic misfit, still places the board in frame sync54) does not condemn a good
+    view-frame of it: predicted through all the frame's other views, the good one is missed beyond the threshold;
+    through the witnesses without the off view it is not, and it is kept. The off view-frame itself, judged as a
+    suspect, is dropped: every set of witnesses misses it."""
+    calib, truth, obs, _ = _rig_with_a_weak_view()
+    frame = int(np.nonzero(obs.seen[0] & obs.seen[1] & obs.seen[3] & ~obs.seen[2])[0][0])  # views 0, 1 and 3
+    corners = np.array(obs.corners_px)
+    corners[1, frame] += OFF_SYNC_SHIFT_PX
+    obs = dataclasses.replace(obs, corners_px=corners)
+    screen = _robust_fit(calib, truth, obs)
+    config = CalibrateConfig()
+    dropped, misses = _judged_by_the_rest(obs, screen, [(3, frame)], OUTLIER_VIEW_FRAME_MIN_PX, config)
+    assert dropped == [] and misses[3, frame] < OUTLIER_VIEW_FRAME_MIN_PX, misses
+    # the judgement through all the other views at once (the rule before the witness sets) would have dropped it
+    rest = drop_view_frames(obs, [(3, frame)])
+    boards = invert_T(truth.ref_T_board)
+    fit = calibrate_joint(rest, screen.intrinsics, screen.ref_T_view, boards, CalibrateConfig(marginals=False))
+    marginals = rig_marginals(rest, fit.intrinsics, fit.ref_T_view, fit.board_T_ref, fit.object_points_m, config)
+    everyone = predict_view_frame(obs, fit.intrinsics, fit.ref_T_view, marginals, 3, frame, witness_sets([0, 1])[0],
+                                  fit.noise_sigma_px, boards[frame])
+    assert everyone.deflated_rms_px > OUTLIER_VIEW_FRAME_MIN_PX
+    dropped, misses = _judged_by_the_rest(obs, screen, [(1, frame)], OUTLIER_VIEW_FRAME_MIN_PX, config)
+    assert dropped == [(1, frame)], misses
