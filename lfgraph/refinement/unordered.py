@@ -26,6 +26,11 @@ GRID_MIN_VIEWS = 3  # a grid's SIFT tracks: seen in 3 views at least (each one's
 FREE_MIN_VIEWS = 2  # a ring's: a pair (a rendered 12-view ring, 30 deg apart: in 3 views, 2 views kept 0-1 tracks;
 # in 2, every view 82-316, residuals with the true cameras 0.10 px median)
 SIFT_CONTRAST = 0.01  # below OpenCV's 0.04: plaster and other low-contrast objects give 3-5x more features
+SIFT_PRECISE_UPSCALE = True  # OpenCV's SIFT doubles the image for its first octave and, by default, maps upscaled
+# pixel 2x back to x, while its resize put it at x - 0.25: every keypoint is reported 0.25 px too far right and down
+# (measured on rendered ring views: a keypoint and its mirror image's disagree by 0.49-0.50 px, 0.00 with this). A
+# grid's views, near-parallel, take a common shift as a common turn the reference gauge absorbs; a ring's views turn
+# it into a tilt growing around the ring (sweep seed 78: 0.09 deg, 5 sigma, on the views opposite the reference)
 
 
 def ring_pairs(n_views: int, reach: int = 2, closed: bool = True) -> list[tuple[int, int]]:
@@ -68,6 +73,16 @@ def _find(parent: np.ndarray, x: int) -> int:
     return x
 
 
+def sift_features(image: np.ndarray, max_features: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) SIFT keypoints of an (H, W) grayscale image in pixels (the centre of the top-left pixel at (0, 0), as
+    every track), and their (N, 128) descriptors."""
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=SIFT_CONTRAST,
+                           enable_precise_upscale=SIFT_PRECISE_UPSCALE)
+    kp, des = sift.detectAndCompute(image, None)
+    pts = np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2)
+    return pts, des if des is not None else np.zeros((0, 128), np.float32)
+
+
 def match_unordered(images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]], max_features: int = 4000,
                     min_views: int = 3) -> Tracks:
     """Tracks over arbitrary views from SIFT matches on ``pairs``.
@@ -82,12 +97,11 @@ def match_unordered(images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int
         `Tracks` with a partial mask; counts ``detected`` (features of the first view), ``matches`` (pairwise,
         after RANSAC), ``tracks`` (after union-find, conflicts and ``min_views``).
     """
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=SIFT_CONTRAST)
     keypoints, descriptors = [], []
     for img in images:
-        kp, des = sift.detectAndCompute(img, None)
-        keypoints.append(np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2))
-        descriptors.append(des if des is not None else np.zeros((0, 128), np.float32))
+        pts, des = sift_features(img, max_features)
+        keypoints.append(pts)
+        descriptors.append(des)
     offsets = np.concatenate([[0], np.cumsum([len(k) for k in keypoints])])
     parent = np.arange(offsets[-1])
     matcher = cv2.BFMatcher(cv2.NORM_L2)
