@@ -98,7 +98,8 @@ class BoardProblem:
         keys = graph.keys()  # held: iterating GTSAM's temporary key set directly crashes
         if any(gtsam.Symbol(k).chr() == ord(BOARD_POSE_CHAR) for k in list(keys)):
             raise NotReducible("a factor on a board pose")
-        if self._residuals(values, False) is None:
+        self._last: tuple[gtsam.Values, np.ndarray | None] | None = None
+        if self._whitened_residuals(values) is None:
             raise NotReducible("a board corner behind its camera at the start")
 
     def _indices(self) -> None:
@@ -169,43 +170,59 @@ class BoardProblem:
         sw = self.noise.sqrt_weights(e.reshape(-1, 2))
         if sw is not None:
             e = e * sw.reshape(e.shape)
+        rows = self._row_weights(sw)
         d00, d01, d10, d11 = lens[2:]
-        # raw pixel derivatives by (x, y), the head and the coefficients: K2 = [[fx, s], [0, fy]] times the lens's
-        jxy = np.stack([np.stack([fx * d00 + s * d10, fx * d01 + s * d11], -1), np.stack([fy * d10, fy * d11], -1)],
-                       -2)
-        one, zero = np.ones_like(xd), np.zeros_like(xd)
-        jhead = np.stack([np.stack([xd, zero, yd, one, zero], -1), np.stack([zero, yd, zero, zero, one], -1)], -2)
+        V, F, C = self.valid.shape  # noqa: N806
+        nk = len(HEAD) + self.n_coef
+        jcam = np.zeros((V, F, C, 2, nk + POSE_DIM))
+        # the head's and coefficients' pixel derivatives (K2 = [[fx, s], [0, fy]] times the lens's), then whitened
+        jcam[..., 0, 0], jcam[..., 0, 2], jcam[..., 0, 3] = xd, yd, 1.0
+        jcam[..., 1, 1], jcam[..., 1, 4] = yd, 1.0
         cj = lens_coefficient_jacobian(code, cf, x, y, self.n_coef)
-        jcoef = np.stack([fx[..., None] * cj[..., 0, :] + s[..., None] * cj[..., 1, :], fy[..., None] * cj[..., 1, :]],
-                         -2)
+        jcam[..., 0, len(HEAD):nk] = fx[..., None] * cj[..., 0, :] + s[..., None] * cj[..., 1, :]
+        jcam[..., 1, len(HEAD):nk] = fy[..., None] * cj[..., 1, :]
+        jcam[..., :nk] = rows(jcam[..., :nk])
+        # whitened d pixel / d (x, y), then d pixel / d pc: (V, F, C, 2, 3)
+        jxy = rows(np.stack([np.stack([fx * d00 + s * d10, fx * d01 + s * d11], -1),
+                             np.stack([fy * d10, fy * d11], -1)], -2))
         iz = (1.0 / z)[..., None, None]
         jpc = np.concatenate([jxy, -(jxy[..., 0:1] * x[..., None, None] + jxy[..., 1:2] * y[..., None, None])],
-                             axis=-1) * iz  # d pixel / d pc: (V, F, C, 2, 3)
-        jcam = self._whitened(np.concatenate([jhead, jcoef, _cross_rows(jpc, pc), -jpc], axis=-1), sw)
-        q = _times(self._whitened(jpc, sw), ra, 0)  # jpc R_A^T (whitened)
+                             axis=-1) * iz
+        jcam[..., nk:nk + 3] = _cross_rows(jpc, pc)
+        jcam[..., nk + 3:] = -jpc
+        q = _times(jpc, ra, 0)  # jpc R_A^T
         jboard = np.concatenate([_cross_rows(q, np.broadcast_to(x_ref[None], pc.shape)), -q], axis=-1)
-        return e, jcam, jboard, _times(q, rb, 1)  # d pc / d corner: R_A^T R_B^T
+        # d pc / d corner: R_A^T R_B^T (none for constant corners)
+        return e, jcam, jboard, None if self.fixed_corners is not None else _times(q, rb, 1)
 
-    def _whitened(self, j: np.ndarray, sw: np.ndarray | None) -> np.ndarray:
-        """Raw (V, F, C, 2, k) Jacobian rows whitened by the noise model, weighted by the robust kernel and zeroed
-        where nothing was observed."""
-        if self.noise.isotropic_sigma is not None:
-            j = j * (1.0 / self.noise.isotropic_sigma)
-        else:
-            j = np.einsum("ij,...jk->...ik", self.noise.sqrt_information, j)
+    def _row_weights(self, sw: np.ndarray | None):
+        """The map whitening raw (V, F, C, 2, k) Jacobian rows by the noise model, weighting them by the robust
+        kernel and zeroing them where nothing was observed (rows are mixed by a non-isotropic model's R, then scaled:
+        it commutes with everything built from them row by row)."""
         scale = self.valid[..., None] if sw is None else sw.reshape(*self.valid.shape, 2) * self.valid[..., None]
-        return j * scale[..., None]
+        if self.noise.isotropic_sigma is not None:
+            scale = scale * (1.0 / self.noise.isotropic_sigma)
+            return lambda j: j * scale[..., None]
+        return lambda j: np.einsum("ij,...jk->...ik", self.noise.sqrt_information, j) * scale[..., None]
+
+    def _whitened_residuals(self, state: gtsam.Values) -> np.ndarray | None:
+        """`_residuals` without Jacobians, kept for the last state asked (the optimiser's states are new objects,
+        never modified in place: its start's error follows the constructor's check, the result's RMS its last
+        error)."""
+        if self._last is None or self._last[0] is not state:
+            self._last = (state, self._residuals(state, False))
+        return self._last[1]
 
     def rms_px(self, state: gtsam.Values) -> float:
         """RMS over the observations of the whitened residual's length (px for a 1-px isotropic noise model; what
         OpenCV's calibration functions return as their RMS)."""
-        e = self._residuals(state, False)
+        e = self._whitened_residuals(state)
         return float(np.sqrt(np.sum(e[self.valid] ** 2) / max(int(self.valid.sum()), 1)))
 
     def error(self, state: gtsam.Values) -> float:
         """Cost at ``state``: the observations' noise-model error plus the other factors' GTSAM error; inf when a
         corner is behind its camera."""
-        e = self._residuals(state, False)
+        e = self._whitened_residuals(state)
         if e is None:
             return float("inf")
         other = float(self.graph.error(state)) if self.graph.size() else 0.0
@@ -249,7 +266,7 @@ def _normal_equations(e: np.ndarray, jc: np.ndarray, jb: np.ndarray, jx: np.ndar
     V, F, C = e.shape[:3]  # noqa: N806
     kc = jc.shape[-1]
     jb_f = np.moveaxis(jb, 1, 0)  # (F, V, C, 2, 6)
-    jx_c = np.moveaxis(jx, 2, 0)  # (C, V, F, 2, 3)
+    jx_c = None if jx is None else np.moveaxis(jx, 2, 0)  # (C, V, F, 2, 3)
     jc_vc = np.moveaxis(jc, 2, 1)  # (V, C, F, 2, kc)
     H = np.zeros((n + 1, n + 1))  # noqa: N806  (the last row and column collect the padding)
     blocks = [(cam_idx, cam_idx, _gram(jc.reshape(V, -1, kc), jc.reshape(V, -1, kc)))]

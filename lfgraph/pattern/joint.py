@@ -22,7 +22,7 @@ from lfgraph.engine.schur import CameraMarginals, optimize_problem
 from lfgraph.engine.schur_system import NotReducible
 from lfgraph.factors import board_graph
 from lfgraph.factors.hooks import GraphContext, run_hooks
-from lfgraph.factors.keys import BOARD_CORNER_CHAR, calib_key, view_pose_key
+from lfgraph.factors.keys import BOARD_CORNER_CHAR, board_corner_key, calib_key, view_pose_key
 from lfgraph.factors.noise import MIN_SIGMA, RobustKernel, measurement_noise
 from lfgraph.factors.values import (
     insert_board_corners,
@@ -47,7 +47,7 @@ PAIR_MAX_ITERATIONS = 100  # a pair's relative pose (`pair_pose`): as cv2.stereo
 class JointResult:
     """The joint graph's calibration: every view's intrinsics and ``ref_T_view`` (V, 4, 4, m), every frame's
     ``board_T_ref`` (F, 4, 4), the board's corners (C, 3, m), the optimiser's record, the corner noise the residuals
-    support (px) and the posterior sigmas per view."""
+    support (px), the posterior sigmas per view and every corner's residual (V, F, C, 2) px (`rig_residuals`)."""
     intrinsics: tuple[Intrinsics, ...]
     ref_T_view: np.ndarray
     board_T_ref: np.ndarray
@@ -55,15 +55,18 @@ class JointResult:
     optimization: OptimizationResult
     noise_sigma_px: float
     sigmas: tuple[dict[str, Any], ...] | None
+    residuals_px: np.ndarray
 
 
-def joint_priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings: CalibrateConfig
-            ) -> gtsam.NonlinearFactorGraph:
-    """Every factor but the observations: the corners' priors, the gauge and the intrinsics pins."""
+def joint_priors(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], settings: CalibrateConfig,
+                 corners: bool = True) -> gtsam.NonlinearFactorGraph:
+    """Every factor but the observations: the corners' priors (unless ``corners`` is False: the corners are then
+    constants of the bulk problem, `_solve`), the gauge and the intrinsics pins."""
     graph = gtsam.NonlinearFactorGraph()
     board_sigma_m = board_graph.RIGID_BOARD_SIGMA_M if settings.board_sigma_mm is None \
         else settings.board_sigma_mm * 1e-3
-    board_graph.add_corner_priors(graph, obs.board.object_points(), board_sigma_m)
+    if corners:
+        board_graph.add_corner_priors(graph, obs.board.object_points(), board_sigma_m)
     board_graph.add_gauge_prior(graph, obs.grid.reference)
     board_graph.add_intrinsics_pins(graph, intrinsics, settings.tangential, weak_views(obs),
                                    [obs.image_size(v)[0] for v in range(obs.num_views)])
@@ -85,26 +88,45 @@ def _with_observations(priors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return graph, values
 
 
-def _solve(obs: BoardObservations, valid: np.ndarray, frames: list[int], priors: gtsam.NonlinearFactorGraph,
+def _solve(obs: BoardObservations, valid: np.ndarray, frames: list[int], intrinsics: tuple[Intrinsics, ...],
            values: gtsam.Values, settings: CalibrateConfig, lenses: tuple[str, ...], callback):
-    """Levenberg–Marquardt on the joint graph: the engine's bulk board problem (`BoardProblem`), or GTSAM's factors
-    where it cannot (graph hooks, a noise model it does not evaluate in bulk). Returns (the result, the problem or
-    None, a function making the whole GTSAM graph and values at a state)."""
+    """Levenberg–Marquardt on the joint graph: the engine's bulk board problem (`BoardProblem`; a rigid board's
+    corners as its constants rather than variables held by 1 um priors: 240 instead of 504 columns on paper-4x4, its
+    sigmas 6e-7 apart; a board given in square units, 1 mm a square, was not rigid under 1 um: pycalib's corners moved
+    0.04 % of a square and its fx 0.25 px), or GTSAM's factors where it cannot (graph hooks, a noise model it does not
+    evaluate in bulk). Returns (the result, the problem or None, a function making the whole GTSAM graph and values
+    at a state)."""
     noise = measurement_noise(settings.noise, settings.corner_sigma_px)
+    priors = joint_priors(obs, intrinsics, settings)
 
     def build(state: gtsam.Values):
+        if not state.exists(board_corner_key(0)):  # a rigid board's corners, constants of the bulk problem
+            state = gtsam.Values(state)
+            insert_board_corners(state, obs.board.object_points())
         return _with_observations(priors, state, obs, valid, noise, lenses)
 
     if not settings.graph_hooks:
+        rigid = settings.board_sigma_mm is None
+        state = _without_corners(values, obs.board.num_corners) if rigid else values
         try:
-            problem = BoardProblem(priors, values, obs.corners_px[:, frames], valid[:, frames], frames, noise, lenses)
-            return optimize_problem(problem, values, settings.max_iterations, callback=callback), problem, build
+            problem = BoardProblem(joint_priors(obs, intrinsics, settings, corners=False) if rigid else priors,
+                                   state, obs.corners_px[:, frames], valid[:, frames], frames, noise, lenses,
+                                   fixed_corners=obs.board.object_points() if rigid else None)
+            return optimize_problem(problem, state, settings.max_iterations, callback=callback), problem, build
         except NotReducible:
             pass
     graph, full = build(values)
     run_hooks(settings.graph_hooks, GraphContext("calibration", None, graph, full, obs.num_views))
     result = optimize(graph, full, OptimizerSettings(max_iterations=settings.max_iterations), callback)
     return result, None, lambda state: (graph, state)
+
+
+def _without_corners(values: gtsam.Values, n_corners: int) -> gtsam.Values:
+    """``values`` without the board's corners (a rigid board's: constants of the bulk problem)."""
+    out = gtsam.Values(values)
+    for c in range(n_corners):
+        out.erase(board_corner_key(c))
+    return out
 
 
 def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], ref_T_view: np.ndarray,  # noqa: N803
@@ -129,9 +151,11 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     insert_view_poses(values, ref_T_view)
     insert_board_poses(values, board_T_ref, frames)
     insert_board_corners(values, obj)
-    priors = joint_priors(obs, intrinsics, settings)
-    result, problem, build = _solve(obs, valid, frames, priors, values, settings, lenses, callback)
-    est = result.values
+    result, problem, build = _solve(obs, valid, frames, intrinsics, values, settings, lenses, callback)
+    fit = est = result.values
+    if not est.exists(board_corner_key(0)):  # a rigid board's corners were constants
+        est = gtsam.Values(est)
+        insert_board_corners(est, obj)
     n_views = obs.num_views
     # skew and (unless estimated) p1, p2 are pinned at 0 by priors: read_intrinsics clears their round-off
     intr = read_intrinsics(est, n_views, tangential=settings.tangential, lenses=lenses)
@@ -149,7 +173,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
         scale = max(noise_sigma, SIGMA_FLOOR_PX) / settings.corner_sigma_px
         try:
             with gtsam_quiet():
-                marginals = CameraMarginals(problem=problem, state=est, build=lambda: build(est)) \
+                marginals = CameraMarginals(problem=problem, state=fit, build=lambda: build(est)) \
                     if problem is not None else CameraMarginals(*build(est), BOARD_CORNER_CHAR)
             # Pose3's covariance is in the body frame: about / along each view's own axes, as `Sigmas` keeps them
             sigmas = tuple(Sigmas.from_marginals(marginals, [calib_key(v) for v in range(n_views)],
@@ -159,7 +183,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
             logging.getLogger("lfgraph").warning(
                 "the calibration's uncertainties cannot be computed: some parameters are not determined by these "
                 "boards (GTSAM found the system indeterminate); the file has no 1-sigma figures")
-    return JointResult(intr, poses, boards, corners, result, noise_sigma, sigmas)
+    return JointResult(intr, poses, boards, corners, result, noise_sigma, sigmas, res)
 
 
 def pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics, Intrinsics], frames: list[int],
