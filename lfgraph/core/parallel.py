@@ -1,4 +1,4 @@
-"""Run independent tasks on a local process pool with a progress bar.
+"""Run independent tasks on a local process pool with a progress bar, or on this process's threads (`thread_map`).
 
 The pool's processes never outlive this one and never see Ctrl-C:
 
@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
@@ -229,3 +229,15 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any], jobs: int | None, 
                     results.append(r)
                     bar.update()
     return results
+
+
+def thread_map(fn: Callable[[Any], Any], items: Sequence[Any], workers: int | None = None) -> list[Any]:
+    """``[fn(i) for i in items]`` in order, on up to ``workers`` threads of this process (default: the cores it may
+    run on): for calls that release the GIL (OpenCV's, numpy's on large arrays). The first item's exception, in
+    order, is raised, after every call has ended."""
+    workers = min(len(items), workers or len(os.sched_getaffinity(0)))
+    if workers <= 1:
+        return [fn(i) for i in items]
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="lfgraph") as pool:
+        futures = [pool.submit(fn, i) for i in items]
+    return [f.result() for f in futures]

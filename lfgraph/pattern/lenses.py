@@ -15,6 +15,7 @@ import numpy as np
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T, rotation_from_rotvec
 from lfgraph.core.grid import ViewGrid
+from lfgraph.core.parallel import thread_map
 from lfgraph.detect.detections import BoardObservations
 from lfgraph.lenses import FISHEYE, RADTAN, UNIFIED, lens_model, lens_names
 from lfgraph.pattern.config import AUTO_LENS, CalibrateConfig, parse_lens_spec
@@ -120,9 +121,10 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
         intr = Intrinsics.from_opencv(K, np.concatenate([dist.ravel()[:4], [0.0]]), lens=lens)
     poses = {f: make_T(rotation_from_rotvec(np.ravel(r)), np.ravel(t)) for f, r, t in zip(frames, rvecs, tvecs,
                                                                                             strict=True)}
-    sq = [np.sum((intr.project(o @ T[:3, :3].T + T[:3, 3]) - i) ** 2, axis=1) for o, i, T in
-          zip(objs, imgs, (poses[f] for f in frames), strict=True)]
-    return MonoFit(intr, float(np.sqrt(np.mean(np.concatenate(sq)))), poses)
+    T = np.concatenate([np.broadcast_to(poses[f], (len(o), 4, 4)) for f, o in zip(frames, objs, strict=True)])  # noqa: N806
+    cam = np.einsum("nij,nj->ni", T[:, :3, :3], np.concatenate(objs)) + T[:, :3, 3]
+    sq = np.sum((intr.project(cam) - np.concatenate(imgs)) ** 2, axis=1)
+    return MonoFit(intr, float(np.sqrt(np.mean(sq))), poses)
 
 
 def _fit_unified(obs: BoardObservations, v: int, frames: list[int], guess: Intrinsics | None) -> MonoFit:
@@ -253,25 +255,27 @@ def choose_lenses(obs: BoardObservations, requested: Sequence[str]) -> LensChoic
     mono: dict[tuple[int, str], MonoFit] = {}
     undecided = []
     weak = obs.seen.sum(axis=1) < 3
-    for v in range(n):
-        if requested[v] != AUTO:
-            continue
+
+    def choose(v: int) -> str | None:  # view v's model, None when undecided (one thread per view: their own cells)
         starts: dict[str, Intrinsics] = {}
         if not weak[v]:
             base = _fit_rms(obs, v, RADTAN, fits, starts, mono)
             if (v, RADTAN) in mono and not _radial_structure(obs, v, mono[v, RADTAN]):
-                lenses[v] = RADTAN
-                continue
+                return RADTAN
             if not _clearly_better(_fit_rms(obs, v, FISHEYE, fits, starts, mono), base):
-                lenses[v] = RADTAN
-                continue
+                return RADTAN
         for lens in FIT_LENSES:
             table[lens][v] = heldout_rms_px(obs, v, lens, start=starts.get(lens))
-        scores = np.array([table[lens][v] for lens in FIT_LENSES])
-        if not np.any(np.isfinite(scores)):
+        if not np.any(np.isfinite([table[lens][v] for lens in FIT_LENSES])):
+            return None
+        return _preferred(table, v)
+
+    auto = [v for v in range(n) if requested[v] == AUTO]
+    for v, lens in zip(auto, thread_map(choose, auto), strict=True):
+        if lens is None:
             undecided.append(v)
-            continue
-        lenses[v] = _preferred(table, v)
+        else:
+            lenses[v] = lens
     decided = [lens for v, lens in enumerate(lenses) if lens != AUTO]
     common = max(FIT_LENSES, key=lambda lens: (decided.count(lens), lens == RADTAN)) if decided else RADTAN
     for v in undecided:

@@ -12,6 +12,7 @@ import numpy as np
 
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.geometry import invert_T, make_T
+from lfgraph.core.parallel import thread_map
 from lfgraph.detect.detections import MIN_CORNERS_PER_BOARD, BoardObservations
 from lfgraph.lenses import DEFAULT_LENS
 from lfgraph.pattern.initial import (
@@ -70,6 +71,15 @@ def _pair_pose(obs: BoardObservations, ref: int, v: int, pair: tuple[Intrinsics,
     return invert_T(make_T(R, T.ravel())), float(rms), 2.0 * sum(len(p) for p in objs)
 
 
+def _fit(obs: BoardObservations, v: int, lens: str) -> MonoFit:
+    """`fit_mono`, its failure said as the calibration's input error."""
+    try:
+        return fit_mono(obs, v, lens)
+    except FIT_ERRORS as exc:
+        raise CalibrationInputError(f"{obs.describe(v)}: {fitter_name(lens)} failed ({getattr(exc, 'err', exc)})"
+                                    ) from None
+
+
 def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = None,
                     mono: dict[tuple[int, str], MonoFit] | None = None, pair_lm: bool = True) -> PaperResult:
     """The paper's Section 3.2: per-view Zhang (k1, k2) then relative poses by PnP + LM with intrinsics fixed.
@@ -97,12 +107,9 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
     e_mono = np.full(n_views, np.nan)
     n_points = np.zeros(n_views)
     lenses = lenses or (DEFAULT_LENS,) * n_views
-    for v in np.nonzero(~weak)[0]:
-        try:
-            fit = (mono or {}).get((int(v), lenses[v])) or fit_mono(obs, int(v), lenses[v])
-        except FIT_ERRORS as exc:
-            raise CalibrationInputError(f"{obs.describe(v)}: {fitter_name(lenses[v])} failed "
-                                        f"({getattr(exc, 'err', exc)})") from None
+    strong = [int(v) for v in np.nonzero(~weak)[0]]
+    for v, fit in zip(strong, thread_map(lambda v: (mono or {}).get((v, lenses[v])) or _fit(obs, v, lenses[v]), strong),
+                      strict=True):
         known[int(v)] = fit.intrinsics
         for f, pose in fit.view_T_board.items():
             view_T_board[v, f] = pose
@@ -124,6 +131,7 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
                                     f"show the board to these views together with others")
     e_pnp = np.full(n_views, np.nan)
     pnp_points = np.zeros(n_views)
+    pairs = []  # (view, its shared frames with the reference, their common corners)
     for v in range(n_views) if pair_lm else ():
         if v == ref:
             continue
@@ -134,10 +142,11 @@ def calibrate_paper(obs: BoardObservations, lenses: tuple[str, ...] | None = Non
             warnings.append(f"{obs.describe(v)} shares no frame with the reference view; its pose is chained "
                             f"through view {parent[v]} and has no E_PnP")
             continue
-        shared = [int(frames[i]) for i in keep]
-        ref_T_view[v], e_pnp[v], pnp_points[v] = _pair_pose(obs, ref, v, (intrinsics[ref], intrinsics[v]), shared,
-                                                            [masks[i] for i in keep], ref_T_view[v],
-                                                            view_T_board[ref, shared])
+        pairs.append((v, [int(frames[i]) for i in keep], [masks[i] for i in keep]))
+    fits = thread_map(lambda p: _pair_pose(obs, ref, p[0], (intrinsics[ref], intrinsics[p[0]]), p[1], p[2],
+                                           ref_T_view[p[0]], view_T_board[ref, p[1]]), pairs)
+    for (v, _, _), fit in zip(pairs, fits, strict=True):
+        ref_T_view[v], e_pnp[v], pnp_points[v] = fit
     mono = np.isfinite(e_mono)  # weak views have no Zhang step
     pooled_mono = float(np.sqrt(np.sum(e_mono[mono] ** 2 * n_points[mono]) / np.sum(n_points[mono])))
     has = np.isfinite(e_pnp)

@@ -5,6 +5,7 @@ the rig fixed, so inconsistency between views cannot hide in per-view figures)."
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -115,19 +116,37 @@ def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
     a Cauchy fit first finds suspect view-frames (swapped or mislabelled images, a mis-detected board, which plain
     least squares would smear over every view), and those the rest of the rig cannot predict either are dropped by
     name (`lfgraph.pattern.screen`: a merely weakly constrained view-frame is kept); the least-squares fit (the
-    reported one) starts from the robust result. A view the robust fit misses in more than a quarter of its frames
-    keeps them (a systematic misfit, said). Returns (observations, its result, warnings)."""
+    reported one) starts from the robust result when the screen dropped any, else from the start (the fit without the
+    screen). A view the robust fit misses in more than a quarter of its frames keeps them (a systematic misfit, said).
+    Returns (observations, its result, warnings)."""
     if paper is not None:
         start_intr, start_poses, view_T_board = paper.intrinsics, paper.ref_T_view, paper.view_T_board  # noqa: N806
     else:
         start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
         start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
     start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
-    dropped: list[str] = []
-    if _screens(config):
+    if not _screens(config):
+        return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), []
+    if config.graph_hooks:  # the user's hooks see each graph once, on this thread
         obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
             obs, start_intr, start_poses, start_boards, config, say)
-    return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
+        return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
+    # the least-squares fit from the start runs beside the screen, on another thread (numpy's work on its large arrays
+    # leaves the interpreter free): it is the result when the screen drops nothing, the same fit as after the screen
+    steps: list[tuple[int, float, float]] = []
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="lfgraph-fit") as pool:
+        plain = pool.submit(calibrate_joint, obs, start_intr, start_poses, start_boards, config,
+                            lambda *step: steps.append(step))
+        try:
+            screened = screen_view_frames(obs, start_intr, start_poses, start_boards, config, say)
+        finally:
+            fit = plain.result() if plain.exception() is None else None
+    kept, start_intr, start_poses, start_boards, dropped = screened  # noqa: N806
+    if kept is obs and fit is not None:
+        for step in steps:  # its iterations, told on this thread
+            say.iteration(*step)
+        return obs, fit, list(dropped)
+    return kept, calibrate_joint(kept, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
 
 
 def _screens(config: CalibrateConfig) -> bool:
@@ -273,7 +292,7 @@ def calibrate(obs: BoardObservations, config: CalibrateConfig | None = None,
                 f"{opt.final_error:.4g} ({seconds['joint']:.1f} s incl. marginals)")
         intrinsics, ref_T_view = joint.intrinsics, joint.ref_T_view  # noqa: N806
         warnings += _weak_view_warnings(obs, joint)
-        res = rig_residuals(intrinsics, ref_T_view, joint.board_T_ref, obs, joint.object_points_m)
+        res = joint.residuals_px
         boards = joint.board_T_ref
     warnings += _held_against_the_grid(obs, ref_T_view, config, say)
     calib, report = _result(obs, method, init, paper, joint, intrinsics, ref_T_view, boards, res, warnings, seconds,
