@@ -31,18 +31,16 @@ from lfgraph.core.grid import ViewGrid
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.values import insert_board_corners, insert_board_poses
-from lfgraph.refinement.triangulate import per_coordinate_sigma, reprojection_errors, triangulate_dlt
-from lfgraph.selfcal.marks import MARK_FORWARD_BACKWARD_PX, follow_marks
+from lfgraph.refinement.triangulate import per_coordinate_sigma, triangulate_dlt
+from lfgraph.selfcal.marks import (
+    MARK_FORWARD_BACKWARD_PX,
+    consistent_marks,
+    follow_marks,
+)
 from lfgraph.selfcal.retrack import Patches, cut_patches, retrack
 
 MIN_PIN_CORNERS = 6  # a pin frame seen by a view with fewer corners than this is not used in that view
 CORNER_NOISE_FLOOR_PX = 0.01  # a board pin's estimated corner noise is never taken below this
-# a mark's observation whose reprojection error through the scene's calibration exceeds this many times the mark's
-# median and `MARK_OUTLIER_FLOOR_PX` is dropped, worst first (as the one mismatch rule drops tracks): a mark on an edge
-# can be followed along it (measured: paper-4x4 rig seed 1, a mark 62 px from the top border slid 5-6 px in two views;
-# kept, it moved the triangulated mark 7 % deeper and a right wall pin was refused at 13.5 sigma)
-MARK_OUTLIER_FACTOR = 4.0
-MARK_OUTLIER_FLOOR_PX = 0.5
 FACING_DEG = 0.5  # a known depth's plane faces the reference view to within this (its marks' depths differ by at most
 # this tilt times their distance, 1 sigma): e.g. a wall the array was squared to
 
@@ -292,20 +290,7 @@ class DistancePin:
         """
         if self.pixels is None:
             return self
-        pixels, valid = np.array(self.pixels), np.array(self.valid)
-        while True:
-            points = triangulate_dlt(calib, pixels, valid)
-            errors = reprojection_errors(calib, points, pixels, valid)
-            dropped = False
-            for k in range(2):
-                e = np.where(valid[:, k], errors[:, k], np.nan)
-                if np.sum(np.isfinite(e)) <= 2:
-                    continue
-                worst = int(np.nanargmax(e))
-                if e[worst] > max(MARK_OUTLIER_FACTOR * float(np.nanmedian(e)), MARK_OUTLIER_FLOOR_PX):
-                    valid[worst, k], dropped = False, True
-            if not dropped:
-                break
+        pixels, valid, points, errors = consistent_marks(calib, self.pixels, self.valid)
         if np.any(valid.sum(axis=0) < 2) or not np.all(np.isfinite(points)):
             raise PinError(f"pin {self.name}: its marks are not seen consistently by two views (consistent views "
                            f"{valid.sum(axis=0).tolist()}); mark points on texture every view sees")

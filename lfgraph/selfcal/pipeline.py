@@ -240,6 +240,14 @@ def _metrics(design: Design, report: SelfCalReport, noise_px: float, post) -> di
             "sigmas": post.to_metrics()}  # the one writer (`Sigmas`), as calibrate writes them
 
 
+def _final_free(stages: list[StageResult], config: SelfCalConfig) -> frozenset:
+    """What the final stage frees: the last stage's groups, and the distortion the stages held (tracks short of the
+    corners) free here, pulled to the design values with their tolerances: its uncertainty then enters every posterior
+    sigma instead of a pin's 1e-6."""
+    free = frozenset(stages[-1].free)
+    return free - {"k1"} | {"distortion"} if any("distortion" in st for st in config.stages) else free
+
+
 def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,
                      observer: Observer | None = None) -> tuple[Calibration, SelfCalReport]:
     """Self-calibrate from pooled tracks (the solver of `calibrate_scene`; tests feed it exact synthetic tracks).
@@ -299,11 +307,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
     errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
     noise = _measured_noise(errors, tracks.num_tracks, grid.num_views)
-    free = frozenset(stages[-1].free)
-    if any("distortion" in st for st in config.stages):
-        # distortion the stages held (tracks short of the corners) is free here, pulled to the design values with
-        # their tolerances: its uncertainty then enters every posterior sigma instead of a pin's 1e-6
-        free = free - {"k1"} | {"distortion"}
+    free = _final_free(stages, config)
     if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
         calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
     calib, points, tracks, graph, values, used_noise, passes = _final_fit(calib, nominal, tracks, points, free,
