@@ -169,6 +169,7 @@ class Decision:
     fit_rms: float
     foreign: tuple[float, float] | None = None  # (poses-only RMS, RMS with the intrinsics free) px: another unit's?
     outliers: OutlierEvidence | None = None  # wrong matches named as the cause of a refusal
+    untested: frozenset[int] = frozenset()  # significant views no held-out fold refitted (free arrangements)
 
     @property
     def disagreement(self) -> float:
@@ -222,6 +223,9 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but the frames disagree: refits predict "
                            f"held-out tracks {dec.disagreement:.0f}x worse than they fit their own (mismatches, or "
                            f"too few tracks): kept"), ask
+    if v in dec.untested:
+        return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px that no held-out fold could test (the view "
+                           f"has too few tracks to be refitted without one): kept"), ask
     if v in dec.unsure_mismatch and dec.foreign is not None:
         return UNCERTAIN, (f"a {z:.1f}-sigma change of {change_px:.2f} px, but other intrinsics explain the tracks "
                            f"far better than any poses ({dec.foreign[0]:.3f} px RMS with the poses alone, "
