@@ -5,7 +5,6 @@ the rig fixed, so inconsistency between views cannot hide in per-view figures)."
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -125,28 +124,11 @@ def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
         start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
         start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
     start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
-    if not _screens(config):
-        return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), []
-    if config.graph_hooks:  # the user's hooks see each graph once, on this thread
+    dropped: list[str] = []
+    if _screens(config):
         obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
             obs, start_intr, start_poses, start_boards, config, say)
-        return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
-    # the least-squares fit from the start runs beside the screen, on another thread (numpy's work on its large arrays
-    # leaves the interpreter free): it is the result when the screen drops nothing, the same fit as after the screen
-    steps: list[tuple[int, float, float]] = []
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="lfgraph-fit") as pool:
-        plain = pool.submit(calibrate_joint, obs, start_intr, start_poses, start_boards, config,
-                            lambda *step: steps.append(step))
-        try:
-            screened = screen_view_frames(obs, start_intr, start_poses, start_boards, config, say)
-        finally:
-            fit = plain.result() if plain.exception() is None else None
-    kept, start_intr, start_poses, start_boards, dropped = screened  # noqa: N806
-    if kept is obs and fit is not None:
-        for step in steps:  # its iterations, told on this thread
-            say.iteration(*step)
-        return obs, fit, list(dropped)
-    return kept, calibrate_joint(kept, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
+    return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
 
 
 def _screens(config: CalibrateConfig) -> bool:

@@ -360,8 +360,7 @@ SAME_POSE = 1e-9  # rotation-matrix entries and positions (m)
 
 def test_a_screen_that_drops_nothing_gives_the_unscreened_calibration():
     """On clean corners the robust screen drops nothing, and the default calibration is `screen=False`'s (the
-    least-squares fit runs beside the screen on another thread and is the result then), its iterations told to the
-    observer in order, as that fit ran them."""
+    least-squares fit starts where it would without the screen), its iterations told to the observer once, in order."""
     from lfgraph.core.observer import BaseObserver
 
     class Steps(BaseObserver):
