@@ -352,8 +352,8 @@ def test_one_camera_matches_opencv_calibrate_camera():
     assert abs(est.intrinsics[0].fx - K[0, 0]) < 1e-3 * K[0, 0]
 
 
-# two runs differ by OpenCV's calibrateCamera, not deterministic to ~1e-8 px between identical calls (their Zhang starts),
-# which the joint fit shrinks to round-off: measured 7e-16 in the poses, 3e-13 px in fx
+# two runs differ by OpenCV's calibrateCamera, not deterministic to ~1e-8 px between identical calls (their Zhang
+# starts), which the joint fit shrinks to round-off: measured 7e-16 in the poses, 3e-13 px in fx
 SAME_FIT_PX = 1e-6  # fx fy cx cy (px)
 SAME_POSE = 1e-9  # rotation-matrix entries and positions (m)
 
