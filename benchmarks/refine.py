@@ -33,11 +33,11 @@ from lfgraph.datasets.rig import ShakeConfig, make_rig, shake_rig
 from lfgraph.datasets.scene import SceneConfig, write_scene_dataset
 from lfgraph.datasets.scenes import get_scene
 from lfgraph.engine.bulk_noise import vectorised_estimator
+from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.io.capture import open_capture
 from lfgraph.judge.alignment import transfer_error_at_infinity
 from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import RefineConfig, refine
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 
 SHAKES = [(0.0, 0.0), (0.25, 1.0), (0.5, 2.0), (1.0, 5.0)]
 AXIS = "any"  # knocks about random axes (pan, tilt and roll; issue 24); "optical" is the paper's roll-only shake

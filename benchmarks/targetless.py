@@ -169,7 +169,7 @@ def first_frames(tracks: PooledTracks, frames: int) -> PooledTracks:
 
 def track_noise(truth: Calibration, tracks: PooledTracks) -> float:
     """RMS reprojection of the tracks through the true cameras (landmarks triangulated with them): KLT's error."""
-    from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
+    from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 
     pts = triangulate_dlt(truth, tracks.pixels, tracks.valid)
     e = reprojection_errors(truth, pts, tracks.pixels, tracks.valid)

@@ -28,8 +28,8 @@ import targetless_data as data
 from lfgraph.core.calibration import Calibration
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.scene import make_scene, render_scene_depth
+from lfgraph.engine.triangulate import triangulate_dlt
 from lfgraph.io.capture import open_capture
-from lfgraph.refinement.triangulate import triangulate_dlt
 from lfgraph.selfcal import BoardPin, DistancePin
 from lfgraph.selfcal.pins import follow_marks
 

@@ -23,9 +23,9 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.grid import ViewGrid
+from lfgraph.engine.triangulate import triangulate_dlt
 from lfgraph.judge.evaluation import INFINITY_SAMPLES, transfer_error_at_infinity  # noqa: F401  (re-exported: its home before)
 from lfgraph.rectification.rectify import Rectification, rectify_points
-from lfgraph.refinement.triangulate import triangulate_dlt
 
 
 @dataclass(frozen=True)

@@ -16,12 +16,12 @@ import numpy as np
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import SilentObserver
 from lfgraph.core.verdict import Verdict
+from lfgraph.engine.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 from lfgraph.io.capture import check_frame_array, check_frames_argument
 from lfgraph.judge.alignment import PointAlignmentReport, align_points
 from lfgraph.rectification.rectify import Rectification
 from lfgraph.refinement.matching import MatchSettings, Tracks
 from lfgraph.refinement.trackers import AutoTracker
-from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 
 if TYPE_CHECKING:
     from lfgraph.refinement.config import RefineConfig

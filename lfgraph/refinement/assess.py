@@ -34,6 +34,7 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import SilentObserver
+from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, gate_rms, has_kernel, informative
 from lfgraph.refinement.posterior import (
@@ -49,7 +50,6 @@ from lfgraph.refinement.posterior import (
     restricted,
 )
 from lfgraph.refinement.priors import view_priors
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.verdicts import (
     MAX_TRACK_SIGMA_PX,
     MIN_TRACK_RMS_PX,

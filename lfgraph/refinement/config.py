@@ -50,7 +50,7 @@ class Stage(StrEnum):
 
 
 class TriangulationFilter(StrEnum):
-    """Which tracks survive triangulation (`lfgraph.refinement.triangulate`)."""
+    """Which tracks survive triangulation (`lfgraph.engine.triangulate`)."""
 
     MEDIAN = "median"  # the paper's: keep tracks whose reference-view error is <= the median
     WORST = "worst"  # drop tracks whose worst error is > 4x the median track's and > 0.5 px

@@ -5,7 +5,6 @@ runs them frame after frame and `lfgraph.refinement.assess` judges the result.""
 from __future__ import annotations
 
 import dataclasses
-import time
 from dataclasses import dataclass
 
 import gtsam
@@ -13,24 +12,23 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.geometry import rotation_angle_deg
-from lfgraph.core.observer import Observer, SilentObserver, StageEnd, resolve, tell
+from lfgraph.core.observer import Observer, SilentObserver, resolve, tell
 from lfgraph.engine.bulk_noise import BulkNoise, NotBulk
-from lfgraph.factors.noise import Noise, RobustKernel, describe_noise, measurement_noise
-from lfgraph.refinement.config import RefineConfig, Stage
-from lfgraph.refinement.priors import ViewPriors, view_priors
-from lfgraph.refinement.report import StageReport
-from lfgraph.refinement.stages import run_stage
-from lfgraph.refinement.tracks import in_front
-from lfgraph.refinement.triangulate import (
-    drop_mismatches,
+from lfgraph.engine.schedule import StageRecord, Step, TrackState, Triangulator, at_supported_sigma, run_schedule
+from lfgraph.engine.triangulate import (
     finite_rms,
-    normalized_coordinates,
     per_coordinate_sigma,
     reprojection_errors,
     robust_per_coordinate_sigma,
     triangulate_dlt,
     worst_error_filter,
 )
+from lfgraph.factors.noise import Noise, RobustKernel, describe_noise, measurement_noise
+from lfgraph.refinement.config import RefineConfig, Stage
+from lfgraph.refinement.priors import ViewPriors, view_priors
+from lfgraph.refinement.report import StageReport
+from lfgraph.refinement.stages import run_stage
+from lfgraph.refinement.tracks import in_front
 
 FIRST_PASS_SIGMA_PX = 1.0  # the measurement sigma of the pass that estimates it
 SIGMA_CARRY_RATIO = 1.15  # a sigma carried from the previous frames is kept while the fit's own residuals support
@@ -73,74 +71,68 @@ class FitResult:
 def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
                observer: Observer | None = None, *, priors: ViewPriors | None = None,
                held_views: frozenset[int] = frozenset(), sigma_px: float | None = None) -> FitResult:
-    """Run the stage schedule once with a given measurement sigma (None: the config's, or 1 px)."""
+    """Run the stage schedule once with a given measurement sigma (None: the config's, or 1 px): each stage a `Step`
+    of the one schedule (`lfgraph.engine.schedule.run_schedule`), its landmarks triangulated from the calibration so
+    far and those behind a view dropped, the clean stage's worst-error filter before it."""
     config = config or RefineConfig()
     obs = resolve(observer)
     if sigma_px is None:
         sigma_px = config.measurement_sigma_px or FIRST_PASS_SIGMA_PX
-    keep = np.ones(valid.shape[1], dtype=bool)
-    reports = []
-    last_free = None
-    last: tuple = (None, pixels[:, :0], valid[:, :0], np.zeros((0, 3)), frozenset(held_views), None)
-    norm, norm_intrinsics = None, None  # undistorted observations, recomputed only when a stage moves intrinsics
-    for name in config.stages:
-        t0 = time.perf_counter()
-        if norm_intrinsics != calib.intrinsics:
-            norm, norm_intrinsics = normalized_coordinates(calib, pixels, valid), calib.intrinsics
-        # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes the
-        # linear system singular and LM give up at once — guard cheirality before building the graph
-        points = triangulate_dlt(calib, pixels[:, keep], valid[:, keep], norm[:, keep])
-        front = in_front(calib, points, valid[:, keep])
-        idx = np.nonzero(keep)[0]
-        keep[idx[~front]] = False
-        px, ok, points = pixels[:, keep], valid[:, keep], points[front]
-        errors = reprojection_errors(calib, points, px, ok)
-        if name == Stage.CLEAN:
-            if last_free is None:
-                raise ValueError("'clean' needs a free stage before it")
-            good = worst_error_filter(errors, CLEAN_FACTOR, CLEAN_FLOOR_PX)
-            idx = np.nonzero(keep)[0]
-            keep[idx[~good]] = False
-            px, ok, points = px[:, good], ok[:, good], points[good]
-            errors = errors[:, good]
-            stage, noise = last_free, config.clean_noise
-        else:
-            stage, noise = name, config.noise
-        rms_before = finite_rms(errors)
-        before = calib
-        tell(obs, "measurement_sigma", float(sigma_px))  # the stage's graph errors are in units of this sigma
-        obs.stage_start(str(name), int(ok.sum()))
-        per_view = ok.sum(axis=1)
-        thin = frozenset(int(v) for v in np.nonzero(per_view < config.min_view_observations)[0])
-        held = thin | frozenset(held_views)
-        if thin and stage != Stage.POINTS:
-            obs.log(f"stage {name}: views {', '.join(calib.grid.name(v) for v in sorted(thin))} have fewer than "
-                f"{config.min_view_observations} observations and are held")
-        calib, points, iterations = run_stage(stage, calib, px, ok, points, noise, sigma_px,
-                                              config.scale_sigma_mm, config.max_iterations, obs.iteration, held,
-                                              config.graph_hooks, priors)
-        if stage != Stage.POINTS:
-            last = (stage, px, ok, points, held, noise)
-        errors = reprojection_errors(calib, points, px, ok)
-        rms_after = finite_rms(errors)
-        obs.stage_end(StageEnd(str(name), calib, points, px, ok, errors))
-        rot, pos, foc, pp = _changes(before, calib)
-        reports.append(StageReport(name, int(ok.shape[1]), int(ok.sum()), rms_before, rms_after, iterations,
-                                   time.perf_counter() - t0, rot, pos, foc, pp))
-        obs.log(f"stage {name} ({stage}, {describe_noise(noise)}): {ok.shape[1]} landmarks, RMS "
-            f"{rms_before:.4f} -> {rms_after:.4f} px, {iterations} iterations, max change {np.max(rot):.4f} deg "
-            f"{np.max(pos):.3f} mm {np.max(foc):.3f} px (focal) {np.max(pp):.3f} px (principal point)")
-        if name not in (Stage.POINTS, Stage.CLEAN):
-            last_free = name
-        if name != Stage.CLEAN:
-            # re-run the outlier rejection between stages
-            good = drop_mismatches(errors)
-            idx = np.nonzero(keep)[0]
-            keep[idx[~good]] = False
-        else:
-            good = np.ones(px.shape[1], dtype=bool)
-        obs.outliers(str(name), px[:, ~good], ok[:, ~good])
-    return FitResult(calib, reports, keep, last[0], last[1], last[2], last[3], float(sigma_px), last[4], last[5])
+    triangulated = Triangulator(pixels, valid)
+    ran: list[tuple] = []  # per stage run: the stage it ran (clean re-runs the last free one), held views, noise
+    free_before: list[Stage] = []  # the free stages so far: what a clean stage re-runs
+
+    def step(name: Stage) -> Step:
+        stage, noise = (None, config.clean_noise) if name == Stage.CLEAN else (name, config.noise)
+
+        def prepare(state: TrackState) -> TrackState:
+            # GTSAM pitfall: a landmark behind a camera gives a constant residual with zero Jacobians, which makes
+            # the linear system singular and LM give up at once — guard cheirality before building the graph
+            state = triangulated(state)
+            state = state.subset(in_front(state.calib, state.points, state.valid))
+            if name == Stage.CLEAN:
+                if not free_before:
+                    raise ValueError("'clean' needs a free stage before it")
+                state = state.subset(worst_error_filter(state.errors(), CLEAN_FACTOR, CLEAN_FLOOR_PX))
+            tell(obs, "measurement_sigma", float(sigma_px))  # the stage's graph errors are in units of this sigma
+            return state
+
+        def solve(state: TrackState) -> tuple[TrackState, int]:
+            run = free_before[-1] if stage is None else stage
+            thin = frozenset(int(v) for v in np.nonzero(state.valid.sum(axis=1) < config.min_view_observations)[0])
+            held = thin | frozenset(held_views)
+            if thin and run != Stage.POINTS:
+                obs.log(f"stage {name}: views {', '.join(state.calib.grid.name(v) for v in sorted(thin))} have fewer "
+                        f"than {config.min_view_observations} observations and are held")
+            new, points, iterations = run_stage(run, state.calib, state.pixels, state.valid, state.points, noise,
+                                                sigma_px, config.scale_sigma_mm, config.max_iterations,
+                                                obs.iteration, held, config.graph_hooks, priors)
+            ran.append((run, held, noise))
+            if name not in (Stage.POINTS, Stage.CLEAN):
+                free_before.append(name)
+            return dataclasses.replace(state, calib=new, points=points), iterations
+
+        def describe(r: StageRecord) -> str:
+            rot, pos, foc, pp = _changes(r.before, r.state.calib)
+            return (f"stage {name} ({ran[-1][0]}, {describe_noise(noise)}): {r.landmarks} landmarks, RMS "
+                    f"{r.rms_before_px:.4f} -> {r.rms_after_px:.4f} px, {r.iterations} iterations, max change "
+                    f"{np.max(rot):.4f} deg {np.max(pos):.3f} mm {np.max(foc):.3f} px (focal) {np.max(pp):.3f} px "
+                    "(principal point)")
+
+        return Step(str(name), solve, prepare, outliers=name != Stage.CLEAN, describe=describe)
+
+    state, records = run_schedule([step(name) for name in config.stages], TrackState.start(calib, pixels, valid), obs)
+    reports = [StageReport(name, r.landmarks, r.observations, r.rms_before_px, r.rms_after_px, r.iterations,
+                           r.seconds, *_changes(r.before, r.state.calib))
+               for name, r in zip(config.stages, records, strict=True)]
+    last = next(((run, r.state) for run, r in zip(reversed(ran), reversed(records), strict=True)
+                 if run[0] != Stage.POINTS), None)
+    if last is None:
+        return FitResult(state.calib, reports, state.kept(valid.shape[1]), None, pixels[:, :0], valid[:, :0],
+                         np.zeros((0, 3)), float(sigma_px), frozenset(held_views), None)
+    (stage, held, noise), ran_state = last
+    return FitResult(state.calib, reports, state.kept(valid.shape[1]), stage, ran_state.pixels, ran_state.valid,
+                     ran_state.points, float(sigma_px), held, noise)
 
 
 def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
@@ -168,35 +160,42 @@ def fit_auto(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: 
     """`fit_tracks` with the config's priors centred on ``calib`` and, when neither ``sigma_px`` nor the config
     gives a measurement sigma, one estimated from the residuals of a first pass (floored) — or, when given,
     ``sigma_estimate``: the sigma the residuals of an earlier fit of the frames so far supported (`fit_sigma`), which
-    spares that first pass frame after frame. ``priors`` replaces the config's (e.g. with some groups held)."""
+    spares that first pass frame after frame while these tracks support it (`SIGMA_CARRY_RATIO`). Both are the one
+    refit loop (`lfgraph.engine.schedule.at_supported_sigma`). ``priors`` replaces the config's (e.g. with some groups
+    held)."""
     config = config or RefineConfig()
+    say = resolve(observer)
     if priors is None and config.priors:
         priors = view_priors(calib, config.drift)
     sigma_px = sigma_px or config.measurement_sigma_px
-    if sigma_px is None and sigma_estimate is not None and np.isfinite(sigma_estimate):
-        fit = fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
-                         sigma_px=sigma_estimate)
-        measured = fit_sigma(fit)
-        # the sigma must be the one these tracks support: refit when they disagree with the earlier frames'
-        if not np.isfinite(measured) or abs(np.log(measured / sigma_estimate)) <= np.log(SIGMA_CARRY_RATIO):
-            resolve(observer).log(f"measurement sigma {sigma_estimate:.4f} px per coordinate (from the previous "
-                                  f"frames; these tracks support {measured:.4f})")
-            return fit
-        resolve(observer).log(f"measurement sigma {measured:.4f} px per coordinate (these tracks; the previous "
-                              f"frames supported {sigma_estimate:.4f}): refitted")
-        sigma_px = measured
+    carried = sigma_px is None and sigma_estimate is not None and np.isfinite(sigma_estimate)
     if sigma_px is not None:
         return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views,
                           sigma_px=sigma_px)
 
-    # the sigma-estimating pass is not heard: the observer hears the pass that counts, once
-    fit = fit_tracks(calib, pixels, valid, config, SilentObserver(), priors=priors, held_views=held_views,
-                     sigma_px=FIRST_PASS_SIGMA_PX)
-    sigma = fit_sigma(fit)
-    if not np.isfinite(sigma):
-        return fit
-    resolve(observer).log(f"measurement sigma estimated from the first pass: {sigma:.4f} px per coordinate")
-    return fit_tracks(calib, pixels, valid, config, observer, priors=priors, held_views=held_views, sigma_px=sigma)
+    def fit(sigma: float, k: int) -> FitResult:
+        # without a carried sigma the first pass only estimates it: the observer hears the pass that counts, once
+        heard = observer if carried or k > 0 else SilentObserver()
+        return fit_tracks(calib, pixels, valid, config, heard, priors=priors, held_views=held_views, sigma_px=sigma)
+
+    def agree(measured: float, assumed: float, _: FitResult) -> bool:
+        if not np.isfinite(measured):
+            if carried:
+                say.log(f"measurement sigma {assumed:.4f} px per coordinate (from the previous frames; these tracks "
+                        f"support {measured:.4f})")
+            return True
+        if not carried:
+            say.log(f"measurement sigma estimated from the first pass: {measured:.4f} px per coordinate")
+            return False
+        if abs(np.log(measured / assumed)) <= np.log(SIGMA_CARRY_RATIO):
+            say.log(f"measurement sigma {assumed:.4f} px per coordinate (from the previous frames; these tracks "
+                    f"support {measured:.4f})")
+            return True
+        say.log(f"measurement sigma {measured:.4f} px per coordinate (these tracks; the previous frames supported "
+                f"{assumed:.4f}): refitted")
+        return False
+
+    return at_supported_sigma(fit, sigma_estimate if carried else FIRST_PASS_SIGMA_PX, fit_sigma, agree, 2)[0]
 
 
 def fit_sigma(fit: FitResult) -> float:

@@ -18,6 +18,11 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer, resolve, tell
+from lfgraph.engine.triangulate import (
+    finite_rms,
+    reprojection_errors,
+    triangulate_dlt,
+)
 from lfgraph.io.capture import check_frame_array, check_frames_argument
 from lfgraph.refinement.assess import assess
 from lfgraph.refinement.config import RefineConfig
@@ -30,11 +35,6 @@ from lfgraph.refinement.tracks import (
     collect_tracks,
     pooled_filter,
     track_coverage,
-)
-from lfgraph.refinement.triangulate import (
-    finite_rms,
-    reprojection_errors,
-    triangulate_dlt,
 )
 
 COVERAGE_WARN = 0.5  # warn when kept tracks fill less than half of the reference image's 8x8 cells

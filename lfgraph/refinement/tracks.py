@@ -10,9 +10,7 @@ import numpy as np
 
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.grid import ViewGrid
-from lfgraph.refinement.config import TriangulationFilter
-from lfgraph.refinement.matching import ChainTracker, Tracker, Tracks, as_tracker
-from lfgraph.refinement.triangulate import (
+from lfgraph.engine.triangulate import (
     OUTLIER_FACTOR,
     OUTLIER_FLOOR_PX,
     drop_mismatches,
@@ -20,6 +18,8 @@ from lfgraph.refinement.triangulate import (
     reprojection_errors,
     triangulate_dlt,
 )
+from lfgraph.refinement.config import TriangulationFilter
+from lfgraph.refinement.matching import ChainTracker, Tracker, Tracks, as_tracker
 
 COVERAGE_CELLS = 8
 MIN_BASELINE_M = 1e-6  # a track needs observing centres at least this far apart

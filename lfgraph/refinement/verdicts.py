@@ -13,12 +13,12 @@ import numpy as np
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import SilentObserver
 from lfgraph.core.sigmas import Sigmas
+from lfgraph.engine.triangulate import RAYLEIGH_MEDIAN, finite_rms, reprojection_errors, tail_ratio
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_tracks, has_kernel, same_track_costs
 from lfgraph.refinement.posterior import Posterior, predicted_transfer_px
 from lfgraph.refinement.report import DRIFTED, OK, REFERENCE, UNCERTAIN
-from lfgraph.refinement.triangulate import RAYLEIGH_MEDIAN, finite_rms, reprojection_errors, tail_ratio
 
 MIN_TRACK_RMS_PX = 0.05  # KLT tracks are not better than this (px): the floor of a fit's own RMS
 MAX_TRACK_SIGMA_PX = 1.0  # px per coordinate: KLT tracks fit a right rig to ~0.05-0.3 px (rendered and real sets);

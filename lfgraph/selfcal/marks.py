@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from lfgraph.core.grid import ViewGrid
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
+from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 
 # a marked point is followed from its view through the grid by pyramidal KLT (as the chain tracker does, with the
 # self-calibration's deeper pyramid) and then re-tracked from the reference view like every track

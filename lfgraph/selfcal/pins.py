@@ -28,10 +28,10 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.camera import Intrinsics
 from lfgraph.core.files import input_problem
 from lfgraph.core.grid import ViewGrid
+from lfgraph.engine.triangulate import per_coordinate_sigma, triangulate_dlt
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.values import insert_board_corners, insert_board_poses
-from lfgraph.refinement.triangulate import per_coordinate_sigma, triangulate_dlt
 from lfgraph.selfcal.marks import (
     MARK_FORWARD_BACKWARD_PX,
     consistent_marks,

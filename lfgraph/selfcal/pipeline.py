@@ -13,10 +13,10 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer, resolve
 from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
+from lfgraph.engine.triangulate import per_coordinate_sigma
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.refinement.tracks import in_front
-from lfgraph.refinement.triangulate import per_coordinate_sigma
 from lfgraph.selfcal.config import Design, SelfCalConfig
 from lfgraph.selfcal.pinned import SceneFit, fit_pins, pin_warnings, weak_modes, zoom_of
 from lfgraph.selfcal.pins import PIN_TYPES, DistancePin, PinError

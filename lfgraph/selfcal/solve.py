@@ -14,12 +14,12 @@ from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.optimize import IterationCallback, OptimizerSettings, gtsam_quiet
 from lfgraph.engine.schur import CameraMarginals
 from lfgraph.engine.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, run_plan
+from lfgraph.engine.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.groups import Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.lenses import lens_model
-from lfgraph.refinement.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 
 # after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.engine.schur`'s
 # embedded point iterations). The common zoom and the hidden principal-point gauge are long curved valleys that move
@@ -110,7 +110,7 @@ def robust_sigma(errors: np.ndarray) -> float:
 
 def drop_outliers(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
                   points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The one mismatch rule (`lfgraph.refinement.triangulate.drop_mismatches`); returns (keep, errors)."""
+    """The one mismatch rule (`lfgraph.engine.triangulate.drop_mismatches`); returns (keep, errors)."""
     errors = reprojection_errors(calib, points, pixels, valid)
     keep = drop_mismatches(errors)
     return keep, errors

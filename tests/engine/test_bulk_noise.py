@@ -12,6 +12,7 @@ from lfgraph.engine.kernel_table import TABLE_RTOL
 from lfgraph.engine.optimize import OptimizerSettings, optimize
 from lfgraph.engine.schur import GraphProblem, optimize_problem
 from lfgraph.engine.stage_engine import START_WEIGHT_MIN, least_squares_start
+from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.factors.keys import view_pose_key
 from lfgraph.factors.noise import RobustKernel, measurement_noise, pose_noise
 from lfgraph.judge.evaluation import evaluate_calibration
@@ -19,7 +20,6 @@ from lfgraph.refinement import Stage, stages
 from lfgraph.refinement.config import DriftModel
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 from tests.engine.test_schur import gtsam_route, scene
 
 M = gtsam.noiseModel.mEstimator

@@ -12,13 +12,13 @@ from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.engine.optimize import OptimizerSettings, optimize
 from lfgraph.engine.schur import marginal_covariance, problem_covariance
 from lfgraph.engine.schur_system import camera_block, chol3_inv
+from lfgraph.engine.triangulate import triangulate_dlt
 from lfgraph.factors.keys import LANDMARK_CHAR, landmark_key, view_pose_key
 from lfgraph.factors.noise import RobustKernel, measurement_noise
 from lfgraph.refinement import Stage
 from lfgraph.refinement.config import DriftModel
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import run_stage, stage_graph, stage_problem
-from lfgraph.refinement.triangulate import triangulate_dlt
 
 SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same LM, different linear solver)
 SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals

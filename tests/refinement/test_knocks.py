@@ -9,6 +9,7 @@ import pytest
 
 from lfgraph.core.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
+from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.factors.scene_graph import rotation_gauge
 from lfgraph.judge.alignment import transfer_error_at_infinity
 from lfgraph.refinement import DriftModel, RefineConfig
@@ -18,7 +19,6 @@ from lfgraph.refinement.matching import ChainTracker, MatchSettings
 from lfgraph.refinement.posterior import Posterior, held_directions
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.report import DRIFTED, OK
-from lfgraph.refinement.triangulate import reprojection_errors, triangulate_dlt
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import sweep  # noqa: E402

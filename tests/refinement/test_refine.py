@@ -10,6 +10,7 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.camera import project_world
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, ideal_ref_T_view, make_rig, shake_rig
 from lfgraph.datasets.scenes import get_scene
+from lfgraph.engine.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.io.capture import open_capture
 from lfgraph.judge.alignment import transfer_error_at_infinity
@@ -17,7 +18,6 @@ from lfgraph.judge.evaluation import evaluate_calibration
 from lfgraph.refinement import RefineConfig, Stage, parse_stages, refine, refine_tracks
 from lfgraph.refinement.matching import track_chain
 from lfgraph.refinement.stages import run_stage
-from lfgraph.refinement.triangulate import median_filter, reprojection_errors, triangulate_dlt, worst_error_filter
 
 EXACT_M = 1e-9  # noise-free triangulation
 REFINED_TRANSFER_PX = 0.1  # issue 5: transfer error at infinity after refinement (small rig here)

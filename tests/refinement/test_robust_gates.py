@@ -12,18 +12,18 @@ from lfgraph.core.camera import project_world
 from lfgraph.core.grid import ViewGrid
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.engine.bulk_noise import vectorised_estimator
+from lfgraph.engine.triangulate import (
+    finite_rms,
+    per_coordinate_sigma,
+    robust_per_coordinate_sigma,
+    tail_ratio,
+)
 from lfgraph.factors.noise import as_noise
 from lfgraph.judge.alignment import transfer_error_at_infinity
 from lfgraph.refinement import RefineConfig
 from lfgraph.refinement.fit import gate_rms, has_kernel
 from lfgraph.refinement.matching import Tracks
 from lfgraph.refinement.tracks import OutlierTracker
-from lfgraph.refinement.triangulate import (
-    finite_rms,
-    per_coordinate_sigma,
-    robust_per_coordinate_sigma,
-    tail_ratio,
-)
 from lfgraph.refinement.verdicts import OUTLIER_SIGMAS, OUTLIER_TAIL_RATIO, outlier_evidence
 
 NOISE_PX = 0.1  # synthetic residual noise per coordinate (px)

@@ -494,8 +494,8 @@ def test_embedded_point_iterations_walk_the_valleys_that_plain_lm_crawls(monkeyp
     assert sum(s.iterations for s in plain_report.stages[final:]) >= PLAIN_LM_MIN_ITERATIONS
     assert sum(s.iterations for s in report.stages[final:]) * 5 < PLAIN_LM_MIN_ITERATIONS
     # the embedded run stopped at the minimum: GTSAM's LM, given all the iterations it wants from there, stays
+    from lfgraph.engine.triangulate import triangulate_dlt
     from lfgraph.factors.noise import RobustKernel
-    from lfgraph.refinement.triangulate import triangulate_dlt
     from lfgraph.selfcal.solve import measurement, run_map_stage
 
     kept = report.tracks
@@ -513,9 +513,9 @@ SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM
 def test_posterior_is_gtsams_marginals():
     import gtsam
 
+    from lfgraph.engine.triangulate import triangulate_dlt
     from lfgraph.factors.keys import calib_key, view_pose_key
     from lfgraph.factors.noise import RobustKernel
-    from lfgraph.refinement.triangulate import triangulate_dlt
     from lfgraph.selfcal.solve import measurement, posterior, run_map_stage
 
     truth = make_rig(RIG, np.random.default_rng(3))
