@@ -17,7 +17,7 @@ _EXPORTS = {
     "Design": "lfgraph.selfcal.config",
     "SelfCalConfig": "lfgraph.selfcal.config",
     "focal_from_lens": "lfgraph.selfcal.config",
-    "SelfCalibrationError": "lfgraph.selfcal.pipeline",
+    "SelfCalibrationError": "lfgraph.selfcal.stages",
     "calibrate_scene": "lfgraph.selfcal.pipeline",
     "calibrate_tracks": "lfgraph.selfcal.pipeline",
     "pin_scene": "lfgraph.selfcal.pipeline",

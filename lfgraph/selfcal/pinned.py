@@ -28,10 +28,10 @@ from lfgraph.factors.keys import pin_point_key
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.refinement.posterior import chi2_sigma
-from lfgraph.refinement.tracks import in_front
 from lfgraph.selfcal.pins import BoardPin, DistancePin, Pin, PinError, ViewPin
 from lfgraph.selfcal.report import Mode, modes
 from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, run_map_stage
+from lfgraph.selfcal.stages import reachable
 
 PIN_DISAGREEMENT_SIGMAS = 3.0  # a pin whose shift of the weak modes is beyond this deviate (p ~ 0.001) is refused
 INFORMED_SHARE = 0.1  # the test's directions: those along which the pin removed at least this share of the variance
@@ -40,7 +40,6 @@ UNCHECKED_PCT = 5.0  # a pin whose measurement the scene can check only beyond t
 # read a few per cent wrong, or a mark on the wrong point, would pass unnoticed
 PIN_ITERATIONS = 100  # Levenberg–Marquardt cap of a pinned fit (it starts at the scene's optimum)
 REACH_PASSES = 3  # a pinned fit is run again without the landmarks it pushed out of reach, at most this often
-MIN_ARRAY_DISPARITY_PX = 1.0  # as the scene's final stage: a landmark with less disparity across the array has no depth
 
 
 class PinRefused(PinError):
@@ -134,14 +133,6 @@ class SceneFit:
     zoom_sigma_px: float
     modes: np.ndarray | None = None
     modes_cov: np.ndarray | None = None
-
-
-def reachable(calib: Calibration, points: np.ndarray, valid: np.ndarray, focal_px: float) -> np.ndarray:
-    """(N,) landmarks still in front of their views and nearer than the depth at which their disparity across the
-    whole array falls below `MIN_ARRAY_DISPARITY_PX` (as the scene's own final stage keeps them)."""
-    centres = calib.ref_T_view[:, :3, 3]
-    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
-    return in_front(calib, points, valid) & (points[:, 2] < focal_px * span / MIN_ARRAY_DISPARITY_PX)
 
 
 def _fit(scene: SceneFit, pins: Sequence[Pin], max_iterations: int, hooks: tuple[Callable, ...],

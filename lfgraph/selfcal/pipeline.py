@@ -12,84 +12,28 @@ import numpy as np
 from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer, resolve
 from lfgraph.core.sigmas import Sigmas
-from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
-from lfgraph.engine.triangulate import per_coordinate_sigma
-from lfgraph.factors.noise import RobustKernel
+from lfgraph.engine.schedule import TrackState
 from lfgraph.factors.selfcal_graph import design_tangent_sigmas
-from lfgraph.refinement.tracks import in_front
 from lfgraph.selfcal.config import Design, SelfCalConfig
 from lfgraph.selfcal.pinned import SceneFit, fit_pins, pin_warnings, weak_modes, zoom_of
 from lfgraph.selfcal.pins import PIN_TYPES, DistancePin, PinError
-from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, StageResult, modes
+from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, modes
 from lfgraph.selfcal.retrack import retrack
-from lfgraph.selfcal.solve import (
-    LANDMARK_ITERATIONS,
-    drop_outliers,
-    initial_landmarks,
-    measurement,
-    posterior,
-    robust_sigma,
-    run_map_stage,
-    zoom_to_prior,
+from lfgraph.selfcal.solve import drop_outliers, initial_landmarks, posterior, zoom_to_prior
+from lfgraph.selfcal.stages import (
+    SelfCalibrationError,
+    final_fit,
+    final_free,
+    measured_noise,
+    run_stages,
+    with_depth,
 )
-from lfgraph.selfcal.tracks import MIN_TRACKS, PooledTracks, measure_coverage, pool_tracks
+from lfgraph.selfcal.tracks import PooledTracks, measure_coverage, pool_tracks
 
-NOISE_FLOOR_PX = 0.01  # the measured tracking noise is never taken below this (sub-1/100 px is not KLT)
-FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to the MAP: give it more iterations
-FINAL_PASSES = 3  # the final stage re-runs at the noise its own residuals show until they agree ...
-NOISE_AGREEMENT = 0.2  # ... to 20 %
-MIN_ARRAY_DISPARITY_PX = 1.0  # a landmark whose disparity across the whole array is below this has (almost) no depth
-PARAMS_PER_VIEW = 12  # pose (6) + fx, fy, cx, cy, k1, k2
 # re-tracked observations whose window mismatch exceeds this multiple of the median are dropped. Measured on
 # paper-4x4 (4 frames, exact correspondences): error RMS of those kept (below 1 px) 0.143 px with all, 0.104 px
 # (91 % kept) at 2x, 0.082 px (80 %) at 1.5x, 0.066 px (68 %) at 1.25x
 MISMATCH_FACTOR = 1.5
-
-
-class SelfCalibrationError(ValueError):
-    """The frames cannot determine the parameters; the message says what is missing."""
-
-
-def _rms(errors: np.ndarray) -> float:
-    e = errors[np.isfinite(errors)]
-    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
-
-
-def _measured_noise(errors: np.ndarray, landmarks: int, views: int) -> float:
-    """`per_coordinate_sigma` (each view's pose and six intrinsics), never below `NOISE_FLOOR_PX`; no degrees of
-    freedom left is a clear error (a NaN here used to reach the noise model as "sigmas must be positive and finite,
-    got [nan]").
-
-    Raises:
-        SelfCalibrationError: too few tracks survive to measure the noise.
-    """
-    measured = per_coordinate_sigma(errors, landmarks, PARAMS_PER_VIEW * views)
-    if not np.isfinite(measured):
-        raise SelfCalibrationError(
-            f"self-calibration: only {landmarks} tracks ({int(np.isfinite(errors).sum())} observations) survive, too "
-            f"few to measure the track noise for {views} views; add frames of a textured scene at several depths")
-    return max(measured, NOISE_FLOOR_PX)
-
-
-def _clean(calib: Calibration, tracks: PooledTracks, points: np.ndarray,
-           design: Design) -> tuple[PooledTracks, np.ndarray]:
-    """Drop landmarks behind a view, seen from one centre only, or so far that their disparity across the whole
-    array is below `MIN_ARRAY_DISPARITY_PX` (no depth; XYZ at kilometres makes the marginals indeterminate)."""
-    ok = in_front(calib, points, tracks.valid)
-    centres = calib.ref_T_view[:, :3, 3]
-    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
-    ok &= points[:, 2] < design.focal_px * span / MIN_ARRAY_DISPARITY_PX
-    return tracks.subset(ok), points[ok]
-
-
-def graph_landmarks(values: gtsam.Values) -> int:
-    """Landmarks in a stage's values."""
-    from lfgraph.factors.keys import landmark_key
-
-    n = 0
-    while values.exists(landmark_key(n)):
-        n += 1
-    return n
 
 
 def _retracked(tracks: PooledTracks, points: np.ndarray, calib: Calibration,
@@ -115,68 +59,6 @@ def _retracked(tracks: PooledTracks, points: np.ndarray, calib: Calibration,
     say.log(f"self-calibration: {retracked} observations re-tracked with the calibrated local maps, "
             f"{tracks.num_tracks} tracks kept")
     return tracks, points, retracked
-
-
-NO_TRACK = ("no track was followed through all {views} views in {frames} frame(s); use textured scenes that every "
-            "view sees")
-
-
-def _enough_tracks(tracks: PooledTracks, stage: str) -> None:
-    """Raises SelfCalibrationError when a stage left fewer than `MIN_TRACKS` usable tracks."""
-    if tracks.num_tracks < MIN_TRACKS:
-        raise SelfCalibrationError(f"{stage} left {tracks.num_tracks} usable tracks (at least {MIN_TRACKS} are "
-                                   f"needed): the frames do not hold the landmarks' depths; add frames at other "
-                                   f"depths or tighten the design tolerances")
-
-
-def _covered_distortion(free: frozenset, coverage, design: Design) -> tuple[frozenset, str | None]:
-    """The groups a stage frees given how far the tracks reach: short of the corners, the stages estimate k1 alone
-    when they reach half way out, else neither (the final stage frees both, pulled to the design with its
-    tolerances); with the warning that says so (None when the tracks cover the corners)."""
-    if coverage.distortion_covered:
-        return free, None
-    held = "k2" if coverage.k1_covered else "k1 and k2"
-    return (free - {"distortion"} | ({"k1"} if coverage.k1_covered else set()),
-            f"tracks reach only {coverage.max_radius:.0%} of the half diagonal: {held} set largely by the design "
-            f"values (k1 {design.k1:g}, k2 {design.k2:g}) and their tolerances (see the sigmas); add frames with "
-            "texture in the image corners")
-
-
-def _frames_suffice(calib: Calibration, tracks: PooledTracks, points: np.ndarray, design: Design,
-                    config: SelfCalConfig):
-    """The tracks' coverage (`measure_coverage`), refusing frames that cannot determine the calibration.
-
-    Raises:
-        SelfCalibrationError: the coverage's problems (too few frames, depths, image regions)."""
-    coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
-    problems = coverage.problems(config.min_frames)
-    if problems:
-        raise SelfCalibrationError("these frames cannot determine the calibration: " + "; ".join(problems))
-    return coverage
-
-
-def _final_fit(calib: Calibration, nominal: Calibration, tracks: PooledTracks, points: np.ndarray, free: frozenset,
-               sigmas, noise: float, design: Design, config: SelfCalConfig, say: Observer):
-    """The final stage: plain least squares at the measured noise, with embedded landmark iterations, repeated
-    (up to `FINAL_PASSES`) until the fit's own residuals support the noise it assumed and no landmark left. Returns
-    (calibration, landmarks, tracks, graph, values, the noise of the graph — which the marginals scale with — and
-    one `StageResult` per pass)."""
-    passes = []
-    for _ in range(FINAL_PASSES):
-        used_noise = noise
-        calib, points, graph, values, iters = run_map_stage(
-            calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
-            measurement(RobustKernel("none"), noise), FINAL_ITERATIONS_FACTOR * config.max_iterations,
-            FINAL_RELATIVE_TOL, say.iteration, config.graph_hooks, hold_gauges=False,
-            landmark_iterations=LANDMARK_ITERATIONS)
-        tracks, points = _clean(calib, tracks, points, design)
-        errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-        passes.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
-        measured = _measured_noise(errors, tracks.num_tracks, calib.num_views)
-        if abs(measured / noise - 1.0) < NOISE_AGREEMENT and len(points) == graph_landmarks(values):
-            break
-        noise = measured  # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
-    return calib, points, tracks, graph, values, used_noise, passes
 
 
 def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
@@ -240,17 +122,15 @@ def _metrics(design: Design, report: SelfCalReport, noise_px: float, post) -> di
             "sigmas": post.to_metrics()}  # the one writer (`Sigmas`), as calibrate writes them
 
 
-def _final_free(stages: list[StageResult], config: SelfCalConfig) -> frozenset:
-    """What the final stage frees: the last stage's groups, and the distortion the stages held (tracks short of the
-    corners) free here, pulled to the design values with their tolerances: its uncertainty then enters every posterior
-    sigma instead of a pin's 1e-6."""
-    free = frozenset(stages[-1].free)
-    return free - {"k1"} | {"distortion"} if any("distortion" in st for st in config.stages) else free
+NO_TRACK = ("no track was followed through all {views} views in {frames} frame(s); use textured scenes that every "
+            "view sees")
 
 
 def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig | None = None,
                      observer: Observer | None = None) -> tuple[Calibration, SelfCalReport]:
-    """Self-calibrate from pooled tracks (the solver of `calibrate_scene`; tests feed it exact synthetic tracks).
+    """Self-calibrate from pooled tracks (the solver of `calibrate_scene`; tests feed it exact synthetic tracks): the
+    staged MAP steps on the one schedule (`lfgraph.selfcal.stages.run_stages`), the re-tracking, the final
+    least-squares stage at the noise its residuals support (`final_fit`), the posterior and the pins.
 
     Raises:
         SelfCalibrationError: the tracks cannot determine the parameters (the message says what is missing).
@@ -263,65 +143,34 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     grid = nominal.grid
     if tracks.num_tracks == 0:
         raise SelfCalibrationError(NO_TRACK.format(views=grid.num_views, frames=tracks.frames_seen))
-    calib = nominal
-    points = initial_landmarks(calib, tracks.pixels, tracks.valid)
-    tracks, points = _clean(calib, tracks, points, design)
-    errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-    stages: list[StageResult] = []
-    warnings: list[str] = []
-    distortion = True  # tracks reach the corners: the stages estimate k1 and k2
-    held_warned = False
-    coverage = None
-    for k, groups in enumerate(config.stages):
-        free = frozenset(groups)
-        if "distortion" in free:
-            if coverage is None:
-                coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
-            free, message = _covered_distortion(free, coverage, design)
-            if message is not None:
-                warnings += [] if held_warned else [message]
-                distortion, held_warned = False, True
-        if not free:
-            continue
-        # the kernel's scale follows the stage's own residuals: early stages see pixels of model error
-        stage_sigma = max(config.track_sigma_px, robust_sigma(errors))
-        calib, points, _, _, iters = run_map_stage(calib, nominal, tracks.pixels, tracks.valid, points, free, sigmas,
-                                                   measurement(config.noise, stage_sigma), config.max_iterations,
-                                                   INTERMEDIATE_RELATIVE_TOL, say.iteration, config.graph_hooks)
-        tracks, points = _clean(calib, tracks, points, design)
-        keep, errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)
-        stages.append(StageResult(tuple(sorted(free)), tracks.num_tracks, iters, _rms(errors)))
-        say.log(f"self-calibration stage {k + 1} ({'+'.join(sorted(free))}): {tracks.num_tracks} tracks, "
-                f"{iters} iterations, rms {stages[-1].rms_px:.3f} px")
-        tracks, points = tracks.subset(keep), points[keep]
-        _enough_tracks(tracks, f"stage {k + 1} ({'+'.join(sorted(free))})")
-        if k == 0:  # after the poses the landmarks' depths are right: refuse now if the frames cannot do it
-            coverage = _frames_suffice(calib, tracks, points, design, config)
-    if not stages:
-        raise SelfCalibrationError("no stage frees any parameter")
+    points = initial_landmarks(nominal, tracks.pixels, tracks.valid)
+    state = with_depth(TrackState.start(nominal, tracks.pixels, tracks.valid, points, tracks), design)
+    state, staged = run_stages(state, nominal, sigmas, design, config, say)
+    stages, warnings = list(staged.stages), list(staged.warnings)
     retracked = 0
-    if config.retrack and tracks.patches is not None:
-        tracks, points, retracked = _retracked(tracks, points, calib, say)
+    if config.retrack and state.tracks.patches is not None:
+        kept, points, retracked = _retracked(state.tracks, state.points, state.calib, say)
+        state = TrackState.start(state.calib, kept.pixels, kept.valid, points, kept)
     # final stage: plain least squares at the measured noise, so that the marginals are the posterior. The noise
     # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
     # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
-    errors = drop_outliers(calib, tracks.pixels, tracks.valid, points)[1]
-    noise = _measured_noise(errors, tracks.num_tracks, grid.num_views)
-    free = _final_free(stages, config)
+    noise = measured_noise(state.errors(), state.tracks.num_tracks, grid.num_views)
+    free = final_free(stages, config)
     if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
-        calib, points = zoom_to_prior(calib, points, nominal.intrinsics[0])
-    calib, points, tracks, graph, values, used_noise, passes = _final_fit(calib, nominal, tracks, points, free,
-                                                                         sigmas, noise, design, config, say)
+        calib, points = zoom_to_prior(state.calib, state.points, nominal.intrinsics[0])
+        state = dataclasses.replace(state, calib=calib, points=points)
+    state, graph, values, used_noise, passes = final_fit(state, nominal, free, sigmas, noise, design, config, say)
     stages += passes
+    calib, points, tracks = state.calib, state.points, state.tracks
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
     calib, post, mode_list, pins, scene = _posterior(
         SceneFit(calib, nominal, points, tracks, free, sigmas, used_noise, 0.0, 0.0), graph, values, config, say)
     if coverage.missing_regions():
         warnings.append(f"no tracks in every view in: {', '.join(coverage.missing_regions())}")
     warnings += pin_warnings(pins)
-    report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list), distortion,
-                           tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES, retracked, tracks, pins,
-                           scene)
+    report = SelfCalReport(coverage, tuple(stages), used_noise, stages[-1].rms_px, post, tuple(mode_list),
+                           staged.distortion, tuple(warnings), {"graph": time.perf_counter() - start}, GAUGES,
+                           retracked, tracks, pins, scene)
     say.log(f"self-calibration: rms {report.rms_px:.3f} px at a measured noise of {used_noise:.3f} px; verdict "
             f"{report.verdict}")
     return calib.replace(metrics=_metrics(design, report, used_noise, post)), report

@@ -17,7 +17,7 @@ from lfgraph.engine.stage_engine import INTERMEDIATE_RELATIVE_TOL, StagePlan, ru
 from lfgraph.engine.triangulate import drop_mismatches, reprojection_errors, triangulate_dlt
 from lfgraph.factors import selfcal_graph
 from lfgraph.factors.groups import Group
-from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, view_pose_key
+from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
 from lfgraph.lenses import lens_model
 
@@ -74,6 +74,14 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
                      eliminate_landmarks=landmark_iterations is not None, tangential=False)
     out = run_plan(plan, calib, pixels, valid, points, model, callback, hooks)
     return out.calib, out.points, out.graph, out.values, out.iterations
+
+
+def graph_landmarks(values: gtsam.Values) -> int:
+    """Landmarks in a stage's values."""
+    n = 0
+    while values.exists(landmark_key(n)):
+        n += 1
+    return n
 
 
 def zoom_to_prior(calib: Calibration, points: np.ndarray, design: Intrinsics) -> tuple[Calibration, np.ndarray]:

@@ -482,13 +482,13 @@ PLAIN_LM_MIN_ITERATIONS = 100  # measured: plain LM's final stage took 150 + 105
 
 @pytest.mark.slow
 def test_embedded_point_iterations_walk_the_valleys_that_plain_lm_crawls(monkeypatch):
-    import lfgraph.selfcal.pipeline as pipeline
+    import lfgraph.selfcal.stages as stages
 
     truth = make_rig(NARROW, np.random.default_rng(7))
     tracks = synthetic_tracks(truth, 6, 80, 0.06, np.random.default_rng(8), depth_m=(0.5, 2.8))
     config = SelfCalConfig(retrack=False)
     embedded, report = calibrate_tracks(tracks, NARROW_DESIGN, config)
-    monkeypatch.setattr(pipeline, "LANDMARK_ITERATIONS", 0)
+    monkeypatch.setattr(stages, "LANDMARK_ITERATIONS", 0)
     plain, plain_report = calibrate_tracks(tracks, NARROW_DESIGN, config)
     final = len(config.stages)
     assert sum(s.iterations for s in plain_report.stages[final:]) >= PLAIN_LM_MIN_ITERATIONS
