@@ -29,9 +29,9 @@ from lfgraph.pattern.initial import (
     initial_board_T_ref,
     weak_views,
 )
-from lfgraph.pattern.joint import calibrate_joint
 from lfgraph.pattern.lenses import AUTO, LensChoice, choose_lenses, radial_profile_warning, resolve_lenses
 from lfgraph.pattern.paper import calibrate_paper
+from lfgraph.pattern.schedule import BoardRun, joint_schedule
 from lfgraph.pattern.scoring import (
     CalibrationReport,
     coverage_map,
@@ -41,7 +41,6 @@ from lfgraph.pattern.scoring import (
     rig_residuals,
     rms_px,
 )
-from lfgraph.pattern.screen import screen_view_frames
 
 
 def _without_copies(obs: BoardObservations, say: Observer) -> tuple[BoardObservations, list[str]]:
@@ -111,7 +110,8 @@ def _paper_route(obs: BoardObservations, choice: LensChoice, say: Observer,
 
 def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
                  say: Observer) -> tuple[BoardObservations, Any, list[str]]:
-    """The joint graph (`calibrate_joint`), started from the paper route or from design values. Robust by default:
+    """The joint graph (`calibrate_joint`), started from the paper route or from design values, as two steps of the
+    one stage schedule (`lfgraph.pattern.schedule`: the screen, then the reported fit). Robust by default:
     a Cauchy fit first finds suspect view-frames (swapped or mislabelled images, a mis-detected board, which plain
     least squares would smear over every view), and those the rest of the rig cannot predict either are dropped by
     name (`lfgraph.pattern.screen`: a merely weakly constrained view-frame is kept); the least-squares fit (the
@@ -124,11 +124,8 @@ def _joint_route(obs: BoardObservations, paper, lenses, config: CalibrateConfig,
         start_intr, start_poses, view_T_board = design_initial(obs, config.focal_px, config.pitch_m)  # noqa: N806
         start_intr = tuple(i.with_distortion(lens) for i, lens in zip(start_intr, lenses, strict=True))
     start_boards = initial_board_T_ref(view_T_board, start_poses, obs.valid.sum(axis=2))
-    dropped: list[str] = []
-    if _screens(config):
-        obs, start_intr, start_poses, start_boards, dropped = screen_view_frames(  # noqa: N806
-            obs, start_intr, start_poses, start_boards, config, say)
-    return obs, calibrate_joint(obs, start_intr, start_poses, start_boards, config, say.iteration), list(dropped)
+    run = joint_schedule(BoardRun(obs, start_intr, start_poses, start_boards), config, _screens(config), say)
+    return run.obs, run.joint, list(run.dropped)
 
 
 def _screens(config: CalibrateConfig) -> bool:

@@ -77,15 +77,15 @@ def _judged_by_the_rest(obs: BoardObservations, screen: JointResult, suspects: l
 
 def screen_view_frames(obs: BoardObservations, intrinsics: tuple, ref_T_view: np.ndarray,  # noqa: N803
                        board_T_ref: np.ndarray, config: CalibrateConfig, say: Observer  # noqa: N803
-                       ) -> tuple[BoardObservations, tuple, np.ndarray, np.ndarray, list[str]]:
+                       ) -> tuple[BoardObservations, tuple, np.ndarray, np.ndarray, list[str], int]:
     """The robust screening fit (`SCREEN_KERNEL`, no marginals), its suspects, and those the rest of the rig cannot
     explain either (`_judged_by_the_rest`).
 
     Returns:
         the observations without the dropped view-frames, the start of the final fit — the robust fit's intrinsics,
         poses and board poses (NaN for frames no view sees any more) when it dropped any, else the start it was
-        given (the screen then changes nothing: the default is ``screen=False``'s fit) — and one warning per dropped
-        view-frame.
+        given (the screen then changes nothing: the default is ``screen=False``'s fit) —, one warning per dropped
+        view-frame, and the robust fit's iterations.
     """
     screen = calibrate_joint(obs, intrinsics, ref_T_view, board_T_ref,
                              dataclasses.replace(config, robust=SCREEN_KERNEL, marginals=False))
@@ -118,9 +118,9 @@ def screen_view_frames(obs: BoardObservations, intrinsics: tuple, ref_T_view: np
         # directions, a weak view's distortion where it never saw the board: from the robust fit's end it stopped
         # elsewhere in them, and caliscope's camera 3 predicted a board position no frame showed it 49 px off, 7.9 px
         # from the route's start)
-        return obs, intrinsics, ref_T_view, board_T_ref, messages
+        return obs, intrinsics, ref_T_view, board_T_ref, messages, screen.optimization.iterations
     boards = screen.board_T_ref.copy()
     obs = drop_view_frames(obs, pairs)
     check_observations(obs)
     boards[~obs.seen.any(axis=0)] = np.nan
-    return obs, screen.intrinsics, screen.ref_T_view, boards, messages
+    return obs, screen.intrinsics, screen.ref_T_view, boards, messages, screen.optimization.iterations

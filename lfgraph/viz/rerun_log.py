@@ -147,6 +147,7 @@ class RerunLogger(SceneLog, OptimiserLog, BaseObserver):
         self.rec = rec
         self.grid = grid
         self._kind = kind  # the default blueprint's kind (None: the first run or result logged decides)
+        self._run_kind: str | None = None  # the command running (`run_start`)
         self._live = live  # a viewer may watch: layouts are sent as they become known (else once, at `close`)
         self._eye_calib: Calibration | None = None  # the rig the 3-D eye frames (the first one logged)
         # where a calibration's images come from (``f -> (V, H, W)``); None: the observations' files
@@ -246,6 +247,7 @@ class RerunLogger(SceneLog, OptimiserLog, BaseObserver):
     def run_start(self, kind: str, calib: Calibration | None) -> None:
         """A run starts: its layout (`default_blueprint` of ``kind``, the 3-D eye on ``calib`` when given) becomes
         the recording's, and for ``refine`` the input rig is shown."""
+        self._run_kind = kind
         grid = self.grid or (None if calib is None else calib.grid)
         if kind in KINDS and grid is not None:
             self.grid = grid
@@ -303,9 +305,12 @@ class RerunLogger(SceneLog, OptimiserLog, BaseObserver):
         self.set_measurements(measurements)
 
     def stage_end(self, event: StageEnd) -> None:
-        """Landmarks, and on every frame so far that frame's tracks with the calibration after this stage."""
+        """Landmarks, and on every frame so far that frame's tracks with the calibration after this stage (not for
+        ``calibrate``, whose landmarks are the boards' corners: `calibration_result` logs them per frame at its end)."""
         from lfgraph.core.camera import project_world
 
+        if self._run_kind == "calibrate":
+            return
         calib, points, valid = event.calib, event.points_ref_m, event.valid
         with np.errstate(invalid="ignore"):
             mean_err = np.nanmean(np.where(valid, event.errors_px, np.nan), axis=0)
