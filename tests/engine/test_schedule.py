@@ -104,3 +104,23 @@ def test_self_calibration_reports_every_stage_through_the_schedule():
     starts = [e for e in heard.events if e[0] == "start"]
     assert [s[1] for s in starts] == ["+".join(sorted(g)) for g in config.stages]
     assert len(report.stages) > len(starts)  # and the final stage's passes after them
+
+
+def test_calibrate_runs_its_screen_and_joint_fit_through_the_schedule():
+    import lfgraph as lf
+    from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
+    from lfgraph.datasets.scenes import get_scene
+    from lfgraph.detect.detections import observations_from_arrays
+
+    scene = get_scene("paper-4x4")
+    rig = make_rig(scene.rig, np.random.default_rng(1))
+    truth = make_checkerboard_truth(rig, scene.checkerboard, np.random.default_rng(1))
+    corners, valid = make_corner_observations(truth, 0.1, np.random.default_rng(2))
+    obs = observations_from_arrays(truth.board, rig.grid, rig.image_size_px, corners, valid).subset_frames(
+        np.arange(8))
+    heard = Heard()
+    _, report = lf.calibrate(obs, observer=heard)
+    assert [e[:2] for e in heard.events if e[0] == "start"] == [("start", "screen"), ("start", "joint")]
+    ends = [e for e in heard.events if e[0] == "end"]
+    assert [e[2] for e in ends] == [obs.num_frames * obs.board.num_corners] * 2  # every corner of every frame
+    assert report.optimization.iterations > 0
