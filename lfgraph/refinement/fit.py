@@ -53,8 +53,9 @@ def _changes(before: Calibration, after: Calibration) -> tuple[np.ndarray, ...]:
 @dataclass(frozen=True)
 class FitResult:
     """One run of the stage schedule (`fit_tracks`): the calibration, stage reports, kept-track mask, and what the
-    posterior needs — the last free stage, its tracks and landmarks, the measurement sigma and the held views — and
-    the noise model that stage ran with (what `fit_sigma` and the gates of `lfgraph.refinement.assess` judge by)."""
+    posterior needs to rebuild the graph that was solved — the last free stage, its tracks and landmarks, the
+    measurement sigma, the held views, the noise model that stage ran with (what `fit_sigma` and the gates of
+    `lfgraph.refinement.assess` judge by) and the priors it ran with (None: a free fit)."""
 
     calib: Calibration
     stages: list[StageReport]
@@ -66,6 +67,7 @@ class FitResult:
     sigma_px: float
     held: frozenset[int]
     noise: Noise | None = None
+    priors: ViewPriors | None = None
 
 
 def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,
@@ -129,10 +131,10 @@ def fit_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config
                  if run[0] != Stage.POINTS), None)
     if last is None:
         return FitResult(state.calib, reports, state.kept(valid.shape[1]), None, pixels[:, :0], valid[:, :0],
-                         np.zeros((0, 3)), float(sigma_px), frozenset(held_views), None)
+                         np.zeros((0, 3)), float(sigma_px), frozenset(held_views), None, priors)
     (stage, held, noise), ran_state = last
     return FitResult(state.calib, reports, state.kept(valid.shape[1]), stage, ran_state.pixels, ran_state.valid,
-                     ran_state.points, float(sigma_px), held, noise)
+                     ran_state.points, float(sigma_px), held, noise, priors)
 
 
 def refine_tracks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig | None = None,

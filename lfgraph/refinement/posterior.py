@@ -19,7 +19,7 @@ from lfgraph.factors.noise import measurement_noise
 from lfgraph.factors.scene_graph import holds_rotation_gauge, principal_point_gauge, rotation_gauge
 from lfgraph.judge.evaluation import reference_pixels
 from lfgraph.refinement.config import RefineConfig, Stage
-from lfgraph.refinement.priors import ViewPriors, view_priors
+from lfgraph.refinement.priors import ViewPriors
 from lfgraph.refinement.scatter import (
     bending_functionals,
     prior_information,
@@ -102,16 +102,15 @@ def held_directions(calib: Calibration, stage: Stage, held_views: frozenset[int]
     return mask
 
 
-def posterior(calib: Calibration, fit, config: RefineConfig, priors: ViewPriors | None = None) -> Posterior | None:
-    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran), the
-    bending modes widened to the tracks' own scatter where that is larger (`lfgraph.refinement.scatter`);
-    ``priors`` replaces the config's (as the fit had them)."""
+def posterior(calib: Calibration, fit, config: RefineConfig) -> Posterior | None:
+    """Marginals of the last free stage's graph built at the fit's solution (None when no free stage ran) with the
+    noise model and priors the fit ran with (`FitResult.noise`, `FitResult.priors`), the bending modes widened to the
+    tracks' own scatter where that is larger (`lfgraph.refinement.scatter`)."""
     n = calib.num_views
     if fit.last_stage is None or fit.valid.shape[1] == 0:
         return None
-    if priors is None and config.priors:
-        priors = view_priors(calib, config.drift)
-    model = measurement_noise(config.noise, fit.sigma_px)
+    priors = fit.priors
+    model = measurement_noise(config.noise if fit.noise is None else fit.noise, fit.sigma_px)
     intr_free = fit.last_stage.frees_intrinsics
 
     def build(projections: bool = True):
