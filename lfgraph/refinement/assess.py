@@ -2,7 +2,8 @@
 view's change per parameter group, and a per-view verdict (OK, DRIFTED, UNCERTAIN).
 
 The RMS of the tracks a fit used cannot judge it (any refit lowers it). `assess`:
-1. the MAP fit over all tracks (`lfgraph.refinement.fit.fit_auto`) and its marginals (`posterior`);
+1. the MAP fit over all tracks (`lfgraph.refinement.fit.fit_auto`; in a free arrangement refitted without the tracks
+   it bent itself to fit, `lfgraph.refinement.leverage`) and its marginals (`posterior`);
 2. refits on folds (whole frames when there are several, else random thirds of the tracks): their scatter widens
    the marginals where those are too small (`inflate`);
 3. per view and group (pan/tilt, roll, position, intrinsics when freed) a chi-square test of the change against the
@@ -37,6 +38,7 @@ from lfgraph.core.observer import SilentObserver
 from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import fit_auto, gate_rms, has_kernel, informative
+from lfgraph.refinement.leverage import without_bent_tracks
 from lfgraph.refinement.posterior import (
     GROUPS,
     ROTATION,
@@ -308,8 +310,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     """MAP fit, posterior, fold refits (held-out tracks and the jackknife), significance, verdicts (see the
     module docstring). ``frame_of``: (N,) frame of each track; with several frames the folds are whole frames.
     ``sigma_estimate``: the measurement sigma the fit of the previous frames supported (`fit_auto`)."""
-
-    fit = fit_auto(calib, pixels, valid, config, observer, sigma_estimate=sigma_estimate)
+    fit = without_bent_tracks(calib, pixels, valid, fit_auto(calib, pixels, valid, config, observer,
+                                                             sigma_estimate=sigma_estimate), config, observer)
     reported = posterior(calib, informative(fit), config)  # the tests judge by its graph's (module docstring)
     post = reported.graph if reported is not None else None
     n, ref = calib.num_views, calib.grid.reference
