@@ -30,7 +30,6 @@ from lfgraph.factors.keys import LANDMARK_CHAR
 from lfgraph.factors.noise import measurement_noise
 from lfgraph.refinement.config import RefineConfig
 from lfgraph.refinement.fit import FitResult, fit_auto
-from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.stages import stage_problem
 
 DELETION_SIGMA = 5.0  # a track's deletion chi-square beyond this normal deviate (one-sided, p ~3e-7: under Gaussian
@@ -76,12 +75,12 @@ def deletion_chi2(problem, state, cov: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def fit_deletion_chi2(calib, fit, config: RefineConfig) -> tuple[np.ndarray, np.ndarray] | None:
-    """`deletion_chi2` of a `FitResult`'s tracks (its last free stage, with the config's priors centred on
-    ``calib``), or None where the bulk solver does not take the stage or the system is indeterminate."""
+    """`deletion_chi2` of a `FitResult`'s tracks (its last free stage, with the priors and noise model it ran with),
+    or None where the bulk solver does not take the stage or the system is indeterminate."""
     if fit.last_stage is None or fit.valid.shape[1] == 0:
         return None
-    priors = view_priors(calib, config.drift) if config.priors else None
-    model = measurement_noise(config.noise, fit.sigma_px)
+    priors = fit.priors
+    model = measurement_noise(config.noise if fit.noise is None else fit.noise, fit.sigma_px)
     try:
         with gtsam_quiet():
             bulk = stage_problem(fit.last_stage, fit.calib, fit.pixels, fit.valid, fit.points, model,
