@@ -60,10 +60,13 @@ def joint_schedule(run: BoardRun, config: CalibrateConfig, screens: bool, say: O
     """The screen (when ``screens``) and the joint fit on the one schedule from ``run``'s start; the run after them
     (its ``joint`` the reported fit)."""
 
+    dropped_view_frames: list[int] = []
+
     def screen(state: TrackState) -> tuple[TrackState, int]:
         r = state.tracks
         obs, intr, poses, boards, dropped, iterations = screen_view_frames(r.obs, r.intrinsics, r.ref_T_view,
                                                                            r.board_T_ref, config, say)
+        dropped_view_frames.append(int(r.obs.seen.sum() - obs.seen.sum()))
         return board_state(BoardRun(obs, intr, poses, boards, None, tuple(dropped))), iterations
 
     def joint(state: TrackState) -> tuple[TrackState, int]:
@@ -72,14 +75,16 @@ def joint_schedule(run: BoardRun, config: CalibrateConfig, screens: bool, say: O
         return board_state(replace(r, intrinsics=fit.intrinsics, ref_T_view=fit.ref_T_view,
                                    board_T_ref=fit.board_T_ref, joint=fit)), fit.optimization.iterations
 
-    def described(name: str):
-        def describe(r: StageRecord) -> str:
-            return (f"calibrate stage {name}: {r.observations} corners, RMS {r.rms_before_px:.4f} -> "
-                    f"{r.rms_after_px:.4f} px, {r.iterations} iterations")
-        return describe
+    def screened(r: StageRecord) -> str:
+        return (f"calibrate stage screen: a robust fit in {r.iterations} iterations, {dropped_view_frames[-1]} "
+                f"view-frames dropped" + (f", the start RMS {r.rms_before_px:.4f} -> {r.rms_after_px:.4f} px"
+                                          if dropped_view_frames[-1] else " (the start unchanged)"))
 
-    steps = [Step("screen", screen, prepare=lambda s: s if screens else None, outliers=False,
-                  describe=described("screen")),
-             Step("joint", joint, outliers=False, describe=described("joint"))]
+    def fitted(r: StageRecord) -> str:
+        return (f"calibrate stage joint: {r.observations} corners, RMS {r.rms_before_px:.4f} -> "
+                f"{r.rms_after_px:.4f} px, {r.iterations} iterations")
+
+    steps = [Step("screen", screen, prepare=lambda s: s if screens else None, outliers=False, describe=screened),
+             Step("joint", joint, outliers=False, describe=fitted)]
     state, _ = run_schedule(steps, board_state(run), say)
     return state.tracks

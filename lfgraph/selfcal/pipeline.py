@@ -154,8 +154,8 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     # final stage: plain least squares at the measured noise, so that the marginals are the posterior. The noise
     # is the residuals' RMS per coordinate (with the degrees of freedom), not a robust estimate: KLT errors have
     # heavy tails, and the marginals of a least-squares fit scale with the RMS (a MAD-based sigma was 0.5x of it)
-    noise = measured_noise(state.errors(), state.tracks.num_tracks, grid.num_views)
     free = final_free(stages, config)
+    noise = measured_noise(state.errors(), state.tracks.num_tracks, grid.num_views, free)
     if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
         calib, points = zoom_to_prior(state.calib, state.points, nominal.intrinsics[0])
         state = dataclasses.replace(state, calib=calib, points=points)

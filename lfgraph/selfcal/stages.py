@@ -16,6 +16,7 @@ from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.schedule import StageRecord, Step, TrackState, at_supported_sigma, run_schedule
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL, INTERMEDIATE_RELATIVE_TOL
 from lfgraph.engine.triangulate import finite_rms, per_coordinate_sigma, reprojection_errors
+from lfgraph.factors.groups import parameters_per_view
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.refinement.tracks import in_front
 from lfgraph.selfcal.config import Design, SelfCalConfig
@@ -28,22 +29,21 @@ FINAL_ITERATIONS_FACTOR = 3  # the final stage walks the near-gauge valleys to t
 FINAL_PASSES = 3  # the final stage re-runs at the noise its own residuals show until they agree ...
 NOISE_AGREEMENT = 0.2  # ... to 20 %
 MIN_ARRAY_DISPARITY_PX = 1.0  # a landmark whose disparity across the whole array is below this has (almost) no depth
-PARAMS_PER_VIEW = 12  # pose (6) + fx, fy, cx, cy, k1, k2
 
 
 class SelfCalibrationError(ValueError):
     """The frames cannot determine the parameters; the message says what is missing."""
 
 
-def measured_noise(errors: np.ndarray, landmarks: int, views: int) -> float:
-    """`per_coordinate_sigma` (each view's pose and six intrinsics), never below `NOISE_FLOOR_PX`; no degrees of
-    freedom left is a clear error (a NaN here used to reach the noise model as "sigmas must be positive and finite,
-    got [nan]").
+def measured_noise(errors: np.ndarray, landmarks: int, views: int, free: frozenset) -> float:
+    """`per_coordinate_sigma` (each view's parameters in the groups ``free`` frees, `parameters_per_view`: 12 with
+    every group), never below `NOISE_FLOOR_PX`; no degrees of freedom left is a clear error (a NaN here used to reach
+    the noise model as "sigmas must be positive and finite, got [nan]").
 
     Raises:
         SelfCalibrationError: too few tracks survive to measure the noise.
     """
-    measured = per_coordinate_sigma(errors, landmarks, PARAMS_PER_VIEW * views)
+    measured = per_coordinate_sigma(errors, landmarks, parameters_per_view(free) * views)
     if not np.isfinite(measured):
         raise SelfCalibrationError(
             f"self-calibration: only {landmarks} tracks ({int(np.isfinite(errors).sum())} observations) survive, too "
@@ -197,7 +197,7 @@ def final_fit(state: TrackState, nominal: Calibration, free: frozenset, sigmas: 
         return state, graph, values, errors
 
     def supported(result) -> float:
-        return measured_noise(result[3], result[0].tracks.num_tracks, result[0].calib.num_views)
+        return measured_noise(result[3], result[0].tracks.num_tracks, result[0].calib.num_views, free)
 
     def agree(measured: float, assumed: float, result) -> bool:
         # the fit's own residuals disagree with the noise it assumed (or landmarks left): again
