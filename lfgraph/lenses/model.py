@@ -72,6 +72,11 @@ class LensModel:
         """The size of the model's GTSAM calibration tangent (9 for Cal3DS2 and Cal3Fisheye, 10 for Cal3Unified)."""
         return len(HEAD) + len(self.tangent)
 
+    def free_size(self, tangential: bool) -> int:
+        """How many of a view's intrinsics a calibration estimates under this model: fx, fy, cx, cy and every
+        coefficient, the tangential ones only when asked for (skew is never free)."""
+        return 4 + len(self.coefficients) - (0 if tangential else len(self.tangential))
+
     def gtsam(self, prefix: str = "", module: Any = None) -> Any:
         """GTSAM's class ``prefix + gtsam_name`` (``"PriorFactor"`` -> ``PriorFactorCal3DS2``) from ``module``
         (``gtsam`` by default; ``gtsam_unstable`` for the board factors), or None where GTSAM has none."""

@@ -164,8 +164,7 @@ def calibrate_joint(obs: BoardObservations, intrinsics: tuple[Intrinsics, ...], 
     boards = read_board_poses(est, obs.num_frames, frames)
     corners = read_board_corners(est, len(obj))
     res = rig_residuals(intr, poses, boards, obs, corners)
-    n_params = sum(len(i.distortion) + 4 - (0 if settings.tangential else len(i.model.tangential))
-                   for i in intr) + 6 * (n_views - 1) + 6 * len(frames)
+    n_params = sum(i.model.free_size(settings.tangential) for i in intr) + 6 * (n_views - 1) + 6 * len(frames)
     dof = max(2 * int(valid.sum()) - n_params, 1)
     noise_sigma = float(np.sqrt(np.nansum(res**2) / dof))
     sigmas = None
