@@ -98,11 +98,9 @@ class Step:
 
 
 @dataclass(frozen=True)
-class StageRecord:
-    """One stage as every wing reports it: its name, the tracks (landmarks) and observations it used, the
-    reprojection RMS before and after (px), the optimiser's iterations and the seconds; ``before`` / ``state``: the
-    calibration it started from and the state it ended in (before the outlier rule); ``errors``: (V, N) reprojection
-    errors of that state (px); ``dropped``: (N,) the tracks the outlier rule dropped after it."""
+class StageFigures:
+    """One stage's figures, as every wing reports them: its name, the tracks (landmarks) and observations it used,
+    the reprojection RMS before and after (px), the optimiser's iterations and the seconds."""
     name: str
     landmarks: int
     observations: int
@@ -110,6 +108,13 @@ class StageRecord:
     rms_after_px: float
     iterations: int
     seconds: float
+
+
+@dataclass(frozen=True)
+class StageRecord(StageFigures):
+    """One stage as the schedule ran it: its figures, and ``before`` / ``state``: the calibration it started from and
+    the state it ended in (before the outlier rule); ``errors``: (V, N) reprojection errors of that state (px);
+    ``dropped``: (N,) the tracks the outlier rule dropped after it."""
     before: Calibration = field(repr=False)
     state: TrackState = field(repr=False)
     errors: np.ndarray = field(repr=False)

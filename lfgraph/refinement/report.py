@@ -7,22 +7,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from lfgraph.core.verdict import Verdict
+from lfgraph.engine.schedule import StageFigures
 
 OK, DRIFTED, UNCERTAIN, REFERENCE = Verdict.OK, Verdict.DRIFTED, Verdict.UNCERTAIN, Verdict.REFERENCE
 VERDICTS = (OK, DRIFTED, UNCERTAIN, REFERENCE)  # a view's verdict (`lfgraph.refinement.assess.ViewVerdict`)
 
 
 @dataclass(frozen=True)
-class StageReport:
-    """One stage: landmarks used, RMS before/after (px), iterations, and per-view changes it made."""
+class StageReport(StageFigures):
+    """One stage: the schedule's figures (`StageFigures`: landmarks used, RMS before/after (px), iterations, seconds),
+    and the per-view changes it made."""
 
-    name: str
-    landmarks: int
-    observations: int
-    rms_before_px: float
-    rms_after_px: float
-    iterations: int
-    seconds: float
     rotation_change_deg: np.ndarray
     position_change_mm: np.ndarray
     focal_change_px: np.ndarray
