@@ -39,6 +39,7 @@ from lfgraph.factors import scene_graph
 from lfgraph.factors.groups import Group
 from lfgraph.factors.hooks import GraphContext, GraphHook, run_hooks
 from lfgraph.factors.keys import LANDMARK_CHAR, view_pose_key
+from lfgraph.factors.prior_table import PriorTable
 from lfgraph.factors.values import (
     insert_intrinsics,
     insert_landmarks,
@@ -87,7 +88,9 @@ class StagePlan:
         wing: ``refinement`` or ``selfcal`` (``GraphContext.kind``).
         cameras: the views' poses are variables (False: the points stage, landmarks through constant cameras).
         intrinsics: the views' intrinsics are variables too (`scene_graph.sfm_factors`).
-        priors: the camera variables' priors and gauges (what pulls the free groups and pins the rest).
+        priors: the camera variables' priors and gauges as data (`lfgraph.factors.prior_table.PriorTable`: per view a
+            mean and sigmas per parameter, held ones at ``HELD_SIGMA``, and gauge factors such as a range): what pulls
+            the free groups and pins the rest; its ``graph`` is what the solvers add.
         frees: what the priors leave free of a free view (`lfgraph.factors.groups.Group`: pan/tilt, roll, position,
             focal, principal, distortion, k1 and their unions); what counts a stage's parameters derives from it.
             Variables the plan holds are still variables (``cameras``, ``intrinsics``), pinned by ``priors``.
@@ -103,7 +106,7 @@ class StagePlan:
     wing: str
     cameras: bool
     intrinsics: bool
-    priors: gtsam.NonlinearFactorGraph
+    priors: PriorTable
     settings: OptimizerSettings
     frees: frozenset[Group] = frozenset()
     eliminate_landmarks: bool = True
@@ -141,7 +144,7 @@ def stage_graph(plan: StagePlan, calib: Calibration, pixels: np.ndarray, valid: 
             graph.push_back(scene_graph.triangulation_factors(calib, pixels, valid, model))
         return graph, values
     insert_view_poses(values, calib.ref_T_view)
-    graph.push_back(plan.priors)
+    graph.push_back(plan.priors.graph)
     if plan.intrinsics:
         insert_intrinsics(values, calib.intrinsics)
         if projections:

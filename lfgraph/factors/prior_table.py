@@ -14,6 +14,9 @@ to `CAL_TANGENT_MAX` columns.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from functools import cached_property
+
 import gtsam
 import numpy as np
 
@@ -68,6 +71,35 @@ def intrinsics_prior_factors(mean: np.ndarray, sigmas: np.ndarray,
         graph.add(model.gtsam("PriorFactor")(calib_key(v), model.gtsam()(*mean[v, :n].tolist()),
                                              calibration_noise(sigmas[v, :n])))
     return graph
+
+
+@dataclass(frozen=True)
+class PriorTable:
+    """A stage's priors as data, what a `lfgraph.engine.stage_engine.StagePlan` carries: the reference view (the
+    gauge), each view's pose ``pose_mean`` (V, 4, 4) ``ref_T_view`` and ``pose_sigmas`` (V, 6; rad, m, Pose3 tangent
+    order), each view's calibration ``intrinsics_mean`` / ``intrinsics_sigmas`` (V, `CAL_TANGENT_MAX`, its lens's
+    tangent order, `calibration_vectors`) under ``lenses``, and ``gauges``: factors that are no prior on one view (a
+    range fixing scale). Held parameters are sigmas of ``HELD_SIGMA``, a view free without a pull a NaN row; None: no
+    such priors (the points stage). `graph` renders it: pose priors, the gauges, calibration priors."""
+    reference: int
+    pose_mean: np.ndarray | None = field(default=None, repr=False)
+    pose_sigmas: np.ndarray | None = None
+    intrinsics_mean: np.ndarray | None = field(default=None, repr=False)
+    intrinsics_sigmas: np.ndarray | None = None
+    lenses: tuple[str, ...] = ()
+    gauges: gtsam.NonlinearFactorGraph | None = field(default=None, repr=False)
+
+    @cached_property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        """The GTSAM factors (`pose_prior_factors`, the gauges, `intrinsics_prior_factors`), built once."""
+        graph = gtsam.NonlinearFactorGraph()
+        if self.pose_sigmas is not None:
+            graph.push_back(pose_prior_factors(self.reference, self.pose_mean, self.pose_sigmas))
+        if self.gauges is not None:
+            graph.push_back(self.gauges)
+        if self.intrinsics_sigmas is not None:
+            graph.push_back(intrinsics_prior_factors(self.intrinsics_mean, self.intrinsics_sigmas, self.lenses))
+        return graph
 
 
 def _check(shape: tuple, expected: tuple, what: str) -> None:

@@ -32,7 +32,7 @@ from lfgraph.core.geometry import to_pose3
 from lfgraph.factors.groups import CAL3DS2_INDICES, Group
 from lfgraph.factors.keys import calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import HELD_SIGMA, MIN_SIGMA, range_noise
-from lfgraph.factors.prior_table import POSE_TANGENT, calibration_vectors, intrinsics_prior_factors, pose_prior_factors
+from lfgraph.factors.prior_table import POSE_TANGENT, calibration_vectors
 from lfgraph.lenses import DEFAULT_LENS, lens_model
 
 RANGE_GAUGE_SIGMA_M = 1e-3  # a pure gauge: any sigma keeps the range; 1e-6 m made LM fail on a 14 mm baseline
@@ -107,8 +107,10 @@ def holds_rotation_gauge(calib: Calibration, intrinsics_free: bool) -> bool:
 
 def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int],
                 scale_sigma_mm: float | None, map_centre: np.ndarray | None = None,
-                map_sigmas: np.ndarray | None = None, intrinsics_free: bool = False) -> gtsam.NonlinearFactorGraph:
-    """The reference pose (gauge); held views and, when poses are not free, every view; on the free views either
+                map_sigmas: np.ndarray | None = None,
+                intrinsics_free: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The pose rows of a `PriorTable` (mean (V, 4, 4), sigmas (V, 6)): the reference pose (gauge); held views and,
+    when poses are not free, every view; on the free views either
     the MAP drift priors (``map_centre`` (V, 4, 4) ``ref_T_view`` of the input with ``map_sigmas`` (V, 6) in GTSAM's
     Pose3 tangent order, body frame: rotation about x, y (pan/tilt) and z (roll) in radians, then position in metres)
     or optional weak position priors (``scale_sigma_mm``, which bias rotations). With MAP
@@ -130,7 +132,7 @@ def pose_priors(calib: Calibration, poses_free: bool, held_views: frozenset[int]
         sigmas[free] = [1.0, 1.0, 1.0, *(3 * [scale_sigma_mm * 1e-3])]
     else:
         sigmas[free] = np.nan  # free without a pull
-    return pose_prior_factors(calib.grid.reference, mean, sigmas)
+    return mean, sigmas
 
 
 def range_gauge(calib: Calibration) -> gtsam.NonlinearFactorGraph:
@@ -157,8 +159,9 @@ def principal_point_gauge(calib: Calibration) -> tuple[int, int] | None:
 
 
 def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre: Calibration | None = None,
-                      map_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
-    """fx, fy, cx, cy free for the non-reference, non-held views (minus the principal-point gauge); skew,
+                      map_sigmas: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The calibration rows of a `PriorTable` (mean, sigmas: V x `CAL_TANGENT_MAX`): fx, fy, cx, cy free for the
+    non-reference, non-held views (minus the principal-point gauge); skew,
     distortion (each view's lens model's) and everything of the reference and held views held. With
     ``map_centre`` and ``map_sigmas`` (V, 4) the free ones get MAP drift priors centred on the input (fx, fy, cx, cy
     sigmas in px) instead of no pull."""
@@ -177,4 +180,4 @@ def intrinsics_priors(calib: Calibration, held_views: frozenset[int], map_centre
         gauge = principal_point_gauge(calib)
         if gauge is not None and free[gauge[0]]:
             sigmas[gauge] = HELD_SIGMA
-    return intrinsics_prior_factors(mean, sigmas, [i.lens for i in calib.intrinsics])
+    return mean, sigmas

@@ -37,8 +37,6 @@ from lfgraph.factors.noise import (
 from lfgraph.factors.prior_table import (
     POSE_TANGENT,
     calibration_vectors,
-    intrinsics_prior_factors,
-    pose_prior_factors,
 )
 from lfgraph.lenses import lens_model
 
@@ -70,12 +68,11 @@ def intrinsics_gauges(grid: ViewGrid) -> dict[int, tuple[int, ...]]:
 
 def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sigmas: Sigmas,
                           free: frozenset[str],
-                          pinned: dict[int, tuple[int, ...]] | None = None) -> gtsam.NonlinearFactorGraph:
-    """One calibration prior per view (Cal3DS2, Cal3Fisheye or Cal3Unified, the design's model: the groups'
-    indices are the same): free groups pulled to the design value with the design tolerance, everything else (skew,
-    p1, p2 or a fisheye's k3, k4, a unified lens's xi, the groups this stage holds and the ``pinned`` indices of some
-    views, e.g.
-    `intrinsics_gauges`) pinned at ``current``."""
+                          pinned: dict[int, tuple[int, ...]] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The calibration rows of a `PriorTable` (mean, sigmas): one calibration prior per view (Cal3DS2, Cal3Fisheye or
+    Cal3Unified, the design's model: the groups' indices are the same): free groups pulled to the design value with
+    the design tolerance, everything else (skew, p1, p2 or a fisheye's k3, k4, a unified lens's xi, the groups this
+    stage holds and the ``pinned`` indices of some views, e.g. `intrinsics_gauges`) pinned at ``current``."""
     now = calibration_vectors(current)
     mean = now.copy()
     sig = np.full(now.shape, HELD_SIGMA)
@@ -88,13 +85,14 @@ def intrinsics_map_priors(current: Sequence[Intrinsics], design: Intrinsics, sig
     for v, indices in (pinned or {}).items():
         mean[v, list(indices)] = now[v, list(indices)]
         sig[v, list(indices)] = HELD_SIGMA
-    return intrinsics_prior_factors(mean, sig, [i.lens for i in current])
+    return mean, sig
 
 
 def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sigmas: Sigmas,
-                    free: frozenset[str]) -> gtsam.NonlinearFactorGraph:
-    """The reference pose (gauge: the identity); every other view's rotation and position pulled to the design
-    grid (parallel views at the nominal pitch) when free, pinned at ``current`` when held.
+                    free: frozenset[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The pose rows of a `PriorTable` (mean, sigmas): the reference pose (gauge: the identity); every other
+    view's rotation and position pulled to the design grid (parallel views at the nominal pitch) when free, pinned at
+    ``current`` when held.
 
     Args:
         current: (V, 4, 4) current ``ref_T_view``; design: (V, 4, 4) the ideal grid.
@@ -115,7 +113,7 @@ def pose_map_priors(current: np.ndarray, design: np.ndarray, reference: int, sig
         baseline = np.linalg.norm(design[:, :3, 3] - design[reference, :3, 3], axis=1)
         sig[:, 3:5] = sigmas.pose[:, 3:5]
         sig[:, 5] = np.hypot(sigmas.pose[:, 5], np.max(sigmas.pose[:, :2], axis=1) * baseline)  # the grid's tilt
-    return pose_prior_factors(reference, mean, sig)
+    return mean, sig
 
 
 # ---- pins: what fixes the common zoom (`lfgraph.selfcal.pins`), each a fragment with its own sigma ----------------

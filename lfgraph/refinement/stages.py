@@ -10,6 +10,8 @@ The gauges are described in `lfgraph.factors.scene_graph`.
 
 from __future__ import annotations
 
+import dataclasses
+
 import gtsam
 import numpy as np
 
@@ -21,6 +23,7 @@ from lfgraph.engine.stage_engine import REFINE_RELATIVE_TOL, ROBUST_RELATIVE_TOL
 from lfgraph.factors import scene_graph
 from lfgraph.factors.hooks import GraphHook
 from lfgraph.factors.noise import Noise, measurement_noise
+from lfgraph.factors.prior_table import PriorTable
 from lfgraph.refinement.config import Stage
 from lfgraph.refinement.priors import ViewPriors
 
@@ -44,22 +47,25 @@ def stage_plan(stage: Stage, calib: Calibration, scale_sigma_mm: float | None = 
     centred on ``priors.centre``, or weak position priors of ``scale_sigma_mm``), the range gauge when scale is
     otherwise free, and with free intrinsics their priors; held views stay where they are."""
     stage = Stage(stage)
-    graph = gtsam.NonlinearFactorGraph()
     centre = None if priors is None else priors.centre
+    table = PriorTable(calib.grid.reference)
     if stage != Stage.POINTS:
-        graph.push_back(scene_graph.pose_priors(calib, stage.frees_poses, held_views, scale_sigma_mm,
-                                                None if centre is None else centre.ref_T_view,
-                                                None if priors is None else priors.pose_sigmas,
-                                                stage.frees_intrinsics))
+        pose_mean, pose_sigmas = scene_graph.pose_priors(calib, stage.frees_poses, held_views, scale_sigma_mm,
+                                                         None if centre is None else centre.ref_T_view,
+                                                         None if priors is None else priors.pose_sigmas,
+                                                         stage.frees_intrinsics)
+        table = dataclasses.replace(table, pose_mean=pose_mean, pose_sigmas=pose_sigmas)
         free_views = [v for v in range(calib.num_views) if v != calib.grid.reference and v not in held_views]
         # a held view fixes scale by itself; otherwise one range does, and the result is rescaled in run_stage
         if stage.frees_poses and scale_sigma_mm is None and not held_views and free_views:
-            graph.push_back(scene_graph.range_gauge(calib if centre is None else centre))
+            table = dataclasses.replace(table, gauges=scene_graph.range_gauge(calib if centre is None else centre))
         if stage.frees_intrinsics:
-            graph.push_back(scene_graph.intrinsics_priors(calib, held_views, centre,
-                                                          None if priors is None else priors.intrinsics_sigmas))
+            mean, sigmas = scene_graph.intrinsics_priors(calib, held_views, centre,
+                                                         None if priors is None else priors.intrinsics_sigmas)
+            table = dataclasses.replace(table, intrinsics_mean=mean, intrinsics_sigmas=sigmas,
+                                        lenses=calib.lenses)
     return StagePlan(str(stage), "refinement", cameras=stage != Stage.POINTS, intrinsics=stage.frees_intrinsics,
-                     priors=graph, settings=OptimizerSettings(max_iterations=max_iterations,
+                     priors=table, settings=OptimizerSettings(max_iterations=max_iterations,
                                                               relative_error_tol=relative_tol),
                      frees=stage.groups, bulk=True, keep_distortion=True)
 

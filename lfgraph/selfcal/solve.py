@@ -19,6 +19,7 @@ from lfgraph.factors import selfcal_graph
 from lfgraph.factors.groups import Group
 from lfgraph.factors.keys import LANDMARK_CHAR, calib_key, landmark_key, view_pose_key
 from lfgraph.factors.noise import Noise, measurement_noise
+from lfgraph.factors.prior_table import PriorTable
 from lfgraph.lenses import lens_model
 
 # after every Levenberg–Marquardt step the landmarks are solved again with the cameras held (`lfgraph.engine.schur`'s
@@ -61,12 +62,11 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
     valleys; from the design values, where landmarks start far off, GTSAM's loop is kept: on the 2x2 test rig the
     first stage in `lfgraph.engine.schur`'s loop, with or without embedded iterations, lost 95 % of its tracks behind
     the views)"""
-    priors = gtsam.NonlinearFactorGraph()
-    priors.push_back(selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference, sigmas,
-                                                   free))
+    pose_mean, pose_sigmas = selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference,
+                                                           sigmas, free)
     pinned = selfcal_graph.intrinsics_gauges(calib.grid) if hold_gauges else None
-    priors.push_back(selfcal_graph.intrinsics_map_priors(calib.intrinsics, design.intrinsics[0], sigmas, free,
-                                                         pinned))
+    mean, sig = selfcal_graph.intrinsics_map_priors(calib.intrinsics, design.intrinsics[0], sigmas, free, pinned)
+    priors = PriorTable(calib.grid.reference, pose_mean, pose_sigmas, mean, sig, calib.lenses)
     settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol,
                                  landmark_iterations=landmark_iterations or 0)
     plan = StagePlan("+".join(sorted(free)), "selfcal", cameras=True, intrinsics=True, priors=priors,

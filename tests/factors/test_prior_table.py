@@ -68,3 +68,24 @@ def test_each_view_gets_the_prior_of_its_own_lens_model():
         assert factor.prior().equals(view.to_gtsam(), 1e-12)
         n = 10 if view.lens == "unified" else 9
         np.testing.assert_allclose(factor.noiseModel().sigmas(), np.arange(1.0, n + 1.0))
+
+
+def test_a_stage_plan_says_what_its_priors_are_as_data():
+    from lfgraph.datasets.rig import RigConfig, make_rig
+    from lfgraph.refinement.config import DriftModel, Stage
+    from lfgraph.refinement.priors import view_priors
+    from lfgraph.refinement.stages import stage_plan
+
+    rig = make_rig(RigConfig(rows=2, cols=2), np.random.default_rng(0))
+    drift = view_priors(rig, DriftModel())
+    poses = stage_plan(Stage.POSES, rig, priors=drift)
+    table = poses.priors
+    free = [v for v in range(rig.num_views) if v != rig.grid.reference]
+    np.testing.assert_array_equal(table.pose_sigmas[free], drift.pose_sigmas[free])  # the drift model's sigmas
+    np.testing.assert_array_equal(table.pose_mean, drift.centre.ref_T_view)  # centred on the input
+    assert table.intrinsics_sigmas is None  # a poses stage holds the intrinsics as constants
+    assert table.graph.size() == rig.num_views + 1  # one pose prior per view, and the range gauge
+    every = stage_plan(Stage.ALL, rig, priors=drift).priors
+    np.testing.assert_array_equal(every.intrinsics_sigmas[free][:, [0, 1, 3, 4]], drift.intrinsics_sigmas[free])
+    assert every.graph.size() == 2 * rig.num_views + 1
+    assert stage_plan(Stage.POINTS, rig, priors=drift).priors.graph.size() == 0
