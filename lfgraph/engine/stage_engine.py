@@ -86,14 +86,12 @@ class StagePlan:
     Attributes:
         name: the stage's name (graph hooks see it as ``GraphContext.stage``).
         wing: ``refinement`` or ``selfcal`` (``GraphContext.kind``).
-        cameras: the views' poses are variables (False: the points stage, landmarks through constant cameras).
-        intrinsics: the views' intrinsics are variables too (`scene_graph.sfm_factors`).
         priors: the camera variables' priors and gauges as data (`lfgraph.factors.prior_table.PriorTable`: per view a
             mean and sigmas per parameter, held ones at ``HELD_SIGMA``, and gauge factors such as a range): what pulls
             the free groups and pins the rest; its ``graph`` is what the solvers add.
         frees: what the priors leave free of a free view (`lfgraph.factors.groups.Group`: pan/tilt, roll, position,
             focal, principal, distortion, k1 and their unions); what counts a stage's parameters derives from it.
-            Variables the plan holds are still variables (``cameras``, ``intrinsics``), pinned by ``priors``.
+            Variables the plan holds are still variables (`cameras`, `intrinsics`), pinned by ``priors``.
         settings: the optimiser's iterations, tolerance and embedded landmark iterations.
         eliminate_landmarks: GTSAM's graph is solved with the landmarks eliminated first (`lfgraph.engine.schur`);
             False: GTSAM's own Levenberg–Marquardt and ordering.
@@ -104,8 +102,6 @@ class StagePlan:
 
     name: str
     wing: str
-    cameras: bool
-    intrinsics: bool
     priors: PriorTable
     settings: OptimizerSettings
     frees: frozenset[Group] = frozenset()
@@ -113,6 +109,17 @@ class StagePlan:
     bulk: bool = False
     keep_distortion: bool = False
     tangential: bool = True
+
+    @property
+    def cameras(self) -> bool:
+        """The views' poses are variables: the priors have pose rows (none: the points stage, landmarks through
+        constant cameras)."""
+        return self.priors.pose_sigmas is not None
+
+    @property
+    def intrinsics(self) -> bool:
+        """The views' intrinsics are variables too (`scene_graph.sfm_factors`): the priors have calibration rows."""
+        return self.priors.intrinsics_sigmas is not None
 
 
 @dataclass(frozen=True)

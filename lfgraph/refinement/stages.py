@@ -64,10 +64,9 @@ def stage_plan(stage: Stage, calib: Calibration, scale_sigma_mm: float | None = 
                                                          None if priors is None else priors.intrinsics_sigmas)
             table = dataclasses.replace(table, intrinsics_mean=mean, intrinsics_sigmas=sigmas,
                                         lenses=calib.lenses)
-    return StagePlan(str(stage), "refinement", cameras=stage != Stage.POINTS, intrinsics=stage.frees_intrinsics,
-                     priors=table, settings=OptimizerSettings(max_iterations=max_iterations,
-                                                              relative_error_tol=relative_tol),
-                     frees=stage.groups, bulk=True, keep_distortion=True)
+    settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol)
+    return StagePlan(str(stage), "refinement", priors=table, settings=settings, frees=stage.groups, bulk=True,
+                     keep_distortion=True)
 
 
 def stage_graph(stage: Stage, calib: Calibration, pixels: np.ndarray, valid: np.ndarray, points: np.ndarray,

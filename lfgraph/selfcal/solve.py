@@ -69,7 +69,7 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
     priors = PriorTable(calib.grid.reference, pose_mean, pose_sigmas, mean, sig, calib.lenses)
     settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol,
                                  landmark_iterations=landmark_iterations or 0)
-    plan = StagePlan("+".join(sorted(free)), "selfcal", cameras=True, intrinsics=True, priors=priors,
+    plan = StagePlan("+".join(sorted(free)), "selfcal", priors=priors,
                      settings=settings, frees=frozenset(map(Group, free)),
                      eliminate_landmarks=landmark_iterations is not None, tangential=False)
     out = run_plan(plan, calib, pixels, valid, points, model, callback, hooks)
