@@ -32,6 +32,8 @@ UNIFIED_START_FOCAL_SCALE = 2.0  # ... so its focal length starts at twice the f
 MONO_FLAGS = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST  # the paper's model: k1, k2, no tangential, no skew
 FISHEYE_FLAGS = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
 FISHEYE_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+# a fisheye fit's fallback start (`_fisheye_calibrate`): the equidistant lens, k1..k4 held at 0
+EQUIDISTANT_FLAGS = cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4
 HELDOUT_FOLDS = 8  # k of the k-fold held-out-frame error (every frame is held out once)
 SIMPLER_MARGIN = 0.02  # a model richer than radtan is kept only if it predicts held-out frames >= 2 % better ...
 SIMPLER_MIN_GAIN_PX = 0.005  # ... and by >= 0.005 px (noise-free data: both models fit to ~0)
@@ -108,10 +110,7 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
     size = obs.image_size(v)
     use_guess = guess is not None and guess.lens == lens
     if opencv == "fisheye":
-        _, K, D, rvecs, tvecs = cv2.fisheye.calibrate(  # noqa: N806
-            [o.reshape(1, -1, 3) for o in objs], [i.reshape(1, -1, 2) for i in imgs], size,
-            guess.K if use_guess else None, guess.dist_cv.copy() if use_guess else None,
-            flags=FISHEYE_FLAGS | (cv2.CALIB_USE_INTRINSIC_GUESS if use_guess else 0), criteria=FISHEYE_CRITERIA)
+        K, D, rvecs, tvecs = _fisheye_calibrate(objs, imgs, size, guess if use_guess else None)  # noqa: N806
         intr = Intrinsics.from_opencv(K, D.ravel(), lens=lens)
     else:
         _, K, dist, rvecs, tvecs = cv2.calibrateCamera(  # noqa: N806
@@ -125,6 +124,35 @@ def fit_mono(obs: BoardObservations, v: int, lens: str, frames: Sequence[int] | 
     cam = np.einsum("nij,nj->ni", T[:, :3, :3], np.concatenate(objs)) + T[:, :3, 3]
     sq = np.sum((intr.project(cam) - np.concatenate(imgs)) ** 2, axis=1)
     return MonoFit(intr, float(np.sqrt(np.mean(sq))), poses)
+
+
+def _fisheye_calibrate(objs: list[np.ndarray], imgs: list[np.ndarray], size: tuple[int, int],
+                       guess: Intrinsics | None) -> tuple[np.ndarray, np.ndarray, tuple, tuple]:
+    """``cv2.fisheye.calibrate`` of one view (K, D, rvecs, tvecs), started from ``guess`` or OpenCV's own start; when
+    that fails, once more from the equidistant fit (k1..k4 held at 0, then freed). OpenCV's fisheye iteration has no
+    step control: a step can leave the undistortion's range, and `InitExtrinsics` then asserts on a NaN. On hetero1's
+    2048x2048 fisheye (OpenCV's multiview test data) it did so in 25 of 180 fits of corners moved by +-1 ulp (3-30 %
+    per set of frames, measured), so whether fisheye was chosen hung on the corners' last bits; from the equidistant
+    fit, 0 of 180, at the same minimum (RMS equal to 6 digits).
+
+    Raises:
+        cv2.error: both fits failed (the first one's error).
+    """
+    objs3, imgs2 = [o.reshape(1, -1, 3) for o in objs], [i.reshape(1, -1, 2) for i in imgs]
+
+    def fit(K, D, flags):  # noqa: N803
+        return cv2.fisheye.calibrate(objs3, imgs2, size, K, D, flags=FISHEYE_FLAGS | flags,
+                                     criteria=FISHEYE_CRITERIA)[1:]
+
+    try:
+        return fit(guess.K, guess.dist_cv.copy(), cv2.CALIB_USE_INTRINSIC_GUESS) if guess is not None \
+            else fit(None, None, 0)
+    except cv2.error as first:
+        try:
+            K, D, _, _ = fit(None, None, EQUIDISTANT_FLAGS)  # noqa: N806
+            return fit(K, np.zeros_like(D), cv2.CALIB_USE_INTRINSIC_GUESS)
+        except cv2.error:
+            raise first from None
 
 
 def _fit_unified(obs: BoardObservations, v: int, frames: list[int], guess: Intrinsics | None) -> MonoFit:

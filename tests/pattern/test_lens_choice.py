@@ -305,3 +305,64 @@ def test_the_papers_schedule_refines_a_wide_lens_views_focal_length_and_principa
     # two together act
     before, after = transfer_error_at_infinity(original, truth), transfer_error_at_infinity(refined, truth)
     assert after.max() < INTRINSICS_REPAIRED_SHARE * before.max(), (before, after)
+
+
+def test_a_failed_fisheye_fit_is_restarted_from_the_equidistant_fit(monkeypatch):
+    """OpenCV's fisheye iteration can step where its undistortion gives NaN and assert (`_fisheye_calibrate`): the
+    fit is then made again from the equidistant lens and reaches the same minimum."""
+    from lfgraph.pattern.lenses import fit_mono
+
+    _, obs = _synthetic("fisheye")
+    plain = fit_mono(obs, 0, "fisheye")
+    original, calls = cv2.fisheye.calibrate, []
+
+    def fails_first(*args, **kwargs):
+        calls.append(kwargs["flags"])
+        if len(calls) == 1:
+            raise cv2.error("fabs(norm_u1) > 0 in function 'InitExtrinsics'")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(cv2.fisheye, "calibrate", fails_first)
+    again = fit_mono(obs, 0, "fisheye")
+    assert len(calls) == 3 and calls[1] & cv2.CALIB_FIX_K1 and calls[2] & cv2.CALIB_USE_INTRINSIC_GUESS
+    assert np.allclose(again.intrinsics.K, plain.intrinsics.K, rtol=1e-6)
+    assert np.isclose(again.rms_px, plain.rms_px, rtol=1e-6)
+    failures = []
+
+    def always_fails(*args, **kwargs):
+        failures.append(kwargs["flags"])
+        raise cv2.error("first" if len(failures) == 1 else "again")
+
+    monkeypatch.setattr(cv2.fisheye, "calibrate", always_fails)
+    with pytest.raises(cv2.error, match="first"):  # both failed: the first failure is said
+        fit_mono(obs, 0, "fisheye")
+
+
+HETERO = Path(__file__).resolve().parents[3] / "shared" / "data" / "opencv_multiview" / "3cams-hetero"
+ULP_TRIALS = 12  # OpenCV's own start failed on 9 of 30 such draws of this fold (measured), so 12 all pass by chance
+# with probability ~1.4e-2 at most
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HETERO.is_dir(), reason="OpenCV's multiview test data (../shared/data) is not there")
+def test_the_wide_fisheye_fit_does_not_hang_on_the_corners_last_bits(tmp_path):
+    """hetero1's 2048x2048 fisheye (OpenCV's test data), the benchmark's second fold: a fisheye fit of corners moved
+    by +-1 ulp succeeds every time, at one minimum (it failed on 3-30 % of such draws, and the lens choice then fell
+    to radtan: held-out 0.772 -> 2.409 px in the whole benchmark run)."""
+    from lfgraph.core.grid import ViewGrid
+    from lfgraph.io.points import PointBoard, read_opencv_multiview
+    from lfgraph.pattern.lenses import fit_mono
+
+    obj = np.array([[(2 * j + i % 2) * 0.04, i * 0.04, 0.0] for i in range(11) for j in range(8)])
+    for k, cam in enumerate(["cam_7", "cam_4"]):
+        (tmp_path / f"cam_{k}.json").symlink_to(HETERO / f"{cam}.json")
+    obs = read_opencv_multiview(tmp_path, PointBoard(obj, "obj"), ViewGrid(1, 2, 0),
+                                ((1920, 1080), {0: (1920, 1080), 1: (2048, 2048)})).subset_frames(np.arange(127))
+    shared = np.nonzero(obs.seen.sum(axis=0) >= 2)[0]
+    train = obs.subset_frames([f for f in range(obs.num_frames) if f not in set(shared[1::5])])
+    rng = np.random.default_rng(0)
+    rms = []
+    for _ in range(ULP_TRIALS):
+        moved = np.nextafter(train.corners_px, train.corners_px + rng.choice([-1.0, 1.0], train.corners_px.shape))
+        rms.append(fit_mono(dataclasses.replace(train, corners_px=moved), 1, "fisheye").rms_px)
+    assert np.ptp(rms) < 1e-6 * np.mean(rms)
