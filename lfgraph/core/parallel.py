@@ -1,4 +1,5 @@
-"""Run independent tasks on a local process pool with a progress bar, or on this process's threads (`thread_map`).
+"""Run independent tasks on a local process pool with a progress bar, or on this process's threads (`thread_map`);
+numpy's and OpenCV's BLAS on one thread (`one_blas_thread`).
 
 The pool's processes never outlive this one and never see Ctrl-C:
 
@@ -31,7 +32,10 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
+from functools import lru_cache
 from typing import Any
+
+import threadpoolctl
 
 from lfgraph.core.files import deferred_interrupt, process_alive
 
@@ -231,13 +235,69 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any], jobs: int | None, 
     return results
 
 
+# ------------------------------------------------------------------------------ BLAS threads
+_BLAS_LOCK = threading.Lock()
+_blas_users = 0
+_blas_limit = None
+
+
+@lru_cache(maxsize=1)
+def _blas_controller() -> threadpoolctl.ThreadpoolController:
+    """threadpoolctl's view of the BLAS libraries loaded in this process (numpy's and OpenCV's OpenBLAS; scanned
+    once)."""
+    return threadpoolctl.ThreadpoolController()
+
+
+def _free_blas_control() -> None:
+    """Let the calling thread change the limit: threadpoolctl (3.8) lets one thread at a time size a process-wide
+    OpenBLAS pool (the first to set a limit, until it clears itself or ends) and silently ignores the others. A limit
+    set by one thread and restored by another (the last of several users to finish) was left in place: measured,
+    BLAS stayed on one thread for the rest of the process once two threads had used this guard at once. Called
+    under the lock, before and after each change (no thread keeps control between changes)."""
+    clear = getattr(getattr(threadpoolctl, "OpenBLASController", None), "clear_controlling_thread", None)
+    if clear is not None:
+        clear(force=True)
+
+
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """numpy's and OpenCV's BLAS on one thread (threadpoolctl): the reduced systems of the engine are small (C <= a
+    few hundred), and on a shared machine their threads mostly spin (measured: a 286-landmark solve took 87 ms of
+    CPU with 2 threads, 3.5 ms with one). The limit is process-wide: counted across threads, set by the first user to
+    start and restored by the last to finish, whichever threads they are; BLAS calls of other threads in the meantime
+    run on one thread (`thread_map` holds it for its calls, so none of them sees it change)."""
+    global _blas_users, _blas_limit
+    with _BLAS_LOCK:
+        if _blas_users == 0:
+            _free_blas_control()
+            _blas_limit = _blas_controller().limit(limits=1, user_api="blas")
+            _free_blas_control()
+        _blas_users += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _blas_users -= 1
+            if _blas_users == 0 and _blas_limit is not None:
+                _free_blas_control()
+                _blas_limit.restore_original_limits()
+                _free_blas_control()
+                _blas_limit = None
+
+
 def thread_map(fn: Callable[[Any], Any], items: Sequence[Any], workers: int | None = None) -> list[Any]:
     """``[fn(i) for i in items]`` in order, on up to ``workers`` threads of this process (default: the cores it may
     run on): for calls that release the GIL (OpenCV's, numpy's on large arrays). The first item's exception, in
-    order, is raised, after every call has ended."""
+    order, is raised, after every call has ended.
+
+    BLAS runs on one thread throughout (`one_blas_thread`, entered before the first call and left after the last,
+    on one worker too): the calls already share the cores, and OpenBLAS's results differ in the last bits between
+    one thread and two (OpenCV's fisheye fit of hetero1's 2048x2048 view, measured), so a limit changed by one call
+    (an engine solve) while another is inside BLAS made that call's result depend on timing."""
     workers = min(len(items), workers or len(os.sched_getaffinity(0)))
-    if workers <= 1:
-        return [fn(i) for i in items]
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="lfgraph") as pool:
-        futures = [pool.submit(fn, i) for i in items]
-    return [f.result() for f in futures]
+    with one_blas_thread():
+        if workers <= 1:
+            return [fn(i) for i in items]
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="lfgraph") as pool:
+            futures = [pool.submit(fn, i) for i in items]
+        return [f.result() for f in futures]

@@ -19,16 +19,12 @@ on the refinement's projections evaluated in bulk (no GTSAM factor per observati
 
 from __future__ import annotations
 
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from functools import lru_cache
 
 import gtsam
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
+from lfgraph.core.parallel import one_blas_thread
 from lfgraph.engine.result import OptimizationResult
 from lfgraph.engine.schur_system import (
     NotReducible,
@@ -49,38 +45,6 @@ LAMBDA_FACTOR = 10.0
 LAMBDA_UPPER = 1e5
 MIN_MODEL_FIDELITY = 1e-3
 TINY_LINEAR_CHANGE = 1e-20  # a predicted cost decrease below this is treated as none (fidelity by the sign alone)
-
-
-@lru_cache(maxsize=1)
-def _blas_controller() -> ThreadpoolController:
-    """threadpoolctl's view of the BLAS libraries loaded in this process (scanned once)."""
-    return ThreadpoolController()
-
-
-_BLAS_LOCK = threading.Lock()
-_blas_users = 0
-_blas_limit = None
-
-
-@contextmanager
-def one_blas_thread() -> Iterator[None]:
-    """numpy's BLAS on one thread (threadpoolctl): the reduced system is small (C <= a few hundred), and on a shared
-    machine its threads mostly spin (measured: a 286-landmark solve took 87 ms of CPU with 2 threads, 3.5 ms with
-    one). The limit is process-wide: counted across threads, set by the first solve to start and restored by the last
-    to finish; BLAS calls of other threads in the meantime run on one thread."""
-    global _blas_users, _blas_limit
-    with _BLAS_LOCK:
-        if _blas_users == 0:
-            _blas_limit = _blas_controller().limit(limits=1, user_api="blas")
-        _blas_users += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _blas_users -= 1
-            if _blas_users == 0 and _blas_limit is not None:
-                _blas_limit.restore_original_limits()
-                _blas_limit = None
 
 
 def _solve(sys_: ReducedSystem, lam: float) -> tuple[np.ndarray, np.ndarray]:
