@@ -191,10 +191,13 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
     return errors(calib, truth)
 
 
-PIN_KINDS = ("board", "distance", "plane")  # one board frame; one distance; one distance on a wall of known depth
+PIN_KINDS = ("board", "2 boards", "distance", "plane")  # one board frame; two tilted about perpendicular axes; one
+# distance; one distance on a wall of known depth
 PIN_SEEDS = 3
 WRONG_SEEDS = 1  # pin seeds of the 5 % wrong distance (alone, and on a wall of known depth) per row
 HONEST_Z = (0.5, 2.0)  # the pinned zoom's error / sigma, RMS over seeds, should lie in this range
+UNPINNED = "no pin"  # the scene's own zoom error / sigma (one per row: a rig seed gives one draw of the scene's error,
+# which a distance pin mostly keeps, so its pin seeds are not independent draws of it)
 
 
 def zoom_px(calib: Calibration) -> float:
@@ -213,6 +216,7 @@ def pinned(rig: str, frames: int, truth: Calibration, design: Design, report, co
         fx, z, sig = [], [], []
         for s in range(seeds):
             pin = pinning.board_pin(rig, truth, s) if kind == "board" else \
+                pinning.board_pin(rig, truth, s, frames=2) if kind == "2 boards" else \
                 pinning.distance_pin(rig, truth, frames, rig_seed, s) if kind == "distance" else \
                 pinning.plane_pin(rig, truth, frames, rig_seed, s)
             try:
@@ -309,12 +313,14 @@ def main() -> int:
             if args.pin_seeds:
                 more, missed, worst = pinned(rig, frames, truth, design, report, config, args.pin_seeds, args.seed,
                                              z_by_kind)
+                z_none = (zoom_px(est) - zoom_px(truth)) / report.modes[0].posterior_sigma
+                z_by_kind.setdefault(UNPINNED, []).append(z_none)
                 pin_rows += [[rig, frames, "self-cal, no pin", f"{mine['fx_px']:.4g}",
                               f"{100 * abs(zoom_px(est) - zoom_px(truth)) / zoom_px(truth):.3g}",
-                              f"{100 * report.modes[0].posterior_sigma / zoom_px(truth):.3g}", ""],
+                              f"{100 * report.modes[0].posterior_sigma / zoom_px(truth):.3g}", f"{z_none:+.2f}"],
                              ["", frames, f"checkerboard {frames} boards", f"{board['fx_px']:.4g}", "", "", ""],
                              *more]
-                failures += missed + [f"{rig}, {frames} frames: fx with one {k} pin {v / board['fx_px']:.2g}x the "
+                failures += missed + [f"{rig}, {frames} frames: fx with the {k} pin {v / board['fx_px']:.2g}x the "
                                       "checkerboard's" for k, v in worst.items() if v > TARGET_RATIO * board["fx_px"]]
             if frames == TARGET_FRAMES:
                 missed = [m for m in METRICS if ratios[m] > TARGET_RATIO]
@@ -332,9 +338,9 @@ def main() -> int:
           "slope per grid step) and the rest, px")
     print(format_table(["rig", "frames", *GAUGE_PARTS], g_rows))
     if pin_rows:
-        print("pins (one board frame; one distance of ~1 m known to 1 mm): the absolute fx error (RMS over views, "
-              "worst "
-              "over pin seeds), the common zoom's error and posterior sigma (%, worst) and error / sigma over seeds")
+        print("pins (one board frame; two about perpendicular axes; one distance of ~1 m known to 1 mm): the absolute "
+              "fx error (RMS over views, worst over pin seeds), the common zoom's error and posterior sigma (%, worst) "
+              "and error / sigma over seeds")
         print(format_table(["rig", "frames", "method", "fx px", "zoom error %", "zoom sigma %", "error / sigma"],
                            pin_rows))
         pooled = {k: float(np.sqrt(np.mean(np.square(z)))) for k, z in z_by_kind.items()}
@@ -343,7 +349,7 @@ def main() -> int:
         failures += [f"the zoom's error / sigma with a {k} pin, RMS over rows and seeds, {v:.2f} (target "
                      f"{HONEST_Z[0]:g}-{HONEST_Z[1]:g})" + (": the scene's own zoom sigma, which a distance alone "
                                                             "leaves" if k == "distance" else "")
-                     for k, v in pooled.items() if not HONEST_Z[0] <= v <= HONEST_Z[1]]
+                     for k, v in pooled.items() if k != UNPINNED and not HONEST_Z[0] <= v <= HONEST_Z[1]]
     print("targets missed: " + ("; ".join(failures) if failures else "none"))
     return 1 if failures else 0
 

@@ -6,7 +6,9 @@
   are, its centre on the array's central axis, as near as every view still sees it whole (the nearest of the peer's
   distances that does: the perspective, and with it what the frame says of the zoom, grows with the board's size in
   the image); corners = true projections + `CORNER_SIGMA_PX` Gaussian noise, seen by every view that sees it whole;
-  its corner noise is left for the pin to measure.
+  its corner noise is left for the pin to measure. Two boards: that frame and a second one tilted about the
+  perpendicular in-plane axis (one tilted plane leaves the focal length confounded with the principal point across its
+  tilt axis; a second tilt about the other axis separates them, as in Zhang's method).
 - Distance: two points marked in the reference view of one rendered frame (Shi–Tomasi corners on flat texture, the
   pair about `DISTANCE_M` apart with the most depth between them, among the marks the KLT follows into every view),
   their true positions from the exact depth of the rendered scene, their distance measured with a 1-sigma of
@@ -53,13 +55,10 @@ def tilt_deg(ref_T_board: np.ndarray) -> float:  # noqa: N803
     return float(np.degrees(np.arccos(min(1.0, abs(ref_T_board[2, 2])))))
 
 
-def board_pin(rig: str, truth: Calibration, seed: int) -> BoardPin:
-    """One tilted board frame of the rig's checkerboard (seeded), held as the manual says (module docstring)."""
-    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=1)
-    rng = np.random.default_rng([seed, 43])
-    tilt = np.radians(rng.uniform(MIN_TILT_DEG, MAX_TILT_DEG))
-    axis = rng.uniform(0, 2 * np.pi)
-    roll = np.radians(rng.uniform(-cfg.max_roll_deg, cfg.max_roll_deg))
+def _held_frame(truth: Calibration, cfg, tilt: float, axis: float, roll: float, rng: np.random.Generator):
+    """A board tilted ``tilt`` (rad) about the in-plane direction ``axis`` (rad), rolled ``roll`` (rad), centred on the
+    array's axis at the nearest of `BOARD_DISTANCES` steps over the peer's range from which every view sees it whole
+    (else the one most views see): (its `CheckerboardTruth`, distance m)."""
     turn = cv2.Rodrigues(tilt * np.array([np.cos(axis), np.sin(axis), 0.0]))[0] @ \
         cv2.Rodrigues(np.array([0.0, 0.0, roll]))[0]
     obj = cfg.board.object_points()
@@ -74,10 +73,34 @@ def board_pin(rig: str, truth: Calibration, seed: int) -> BoardPin:
             best = (seen, dist, board)
         if seen == truth.num_views:
             break
-    seen, dist, board = best
+    return best[2], float(best[1])
+
+
+def board_pin(rig: str, truth: Calibration, seed: int, frames: int = 1) -> BoardPin:
+    """One tilted board frame of the rig's checkerboard (seeded), held as the manual says (module docstring); with
+    ``frames=2`` a second one tilted about the perpendicular in-plane axis (its own tilt and roll drawn the same way;
+    the first frame is the one-frame pin's)."""
+    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=1)
+    rng = np.random.default_rng([seed, 43])
+    tilt = np.radians(rng.uniform(MIN_TILT_DEG, MAX_TILT_DEG))
+    axis = rng.uniform(0, 2 * np.pi)
+    roll = np.radians(rng.uniform(-cfg.max_roll_deg, cfg.max_roll_deg))
+    board, dist = _held_frame(truth, cfg, tilt, axis, roll, rng)
     corners, valid = make_corner_observations(board, CORNER_SIGMA_PX, np.random.default_rng([seed, 47]))
-    return BoardPin(corners, valid, obj, name=f"1 board frame (tilt {tilt_deg(board.ref_T_board[0]):.0f} deg, "
-                                              f"{dist:.2f} m, seed {seed})")
+    name = f"1 board frame (tilt {tilt_deg(board.ref_T_board[0]):.0f} deg, {dist:.2f} m, seed {seed})"
+    if frames == 2:
+        rng = np.random.default_rng([seed, 61])
+        tilt2 = np.radians(rng.uniform(MIN_TILT_DEG, MAX_TILT_DEG))
+        roll2 = np.radians(rng.uniform(-cfg.max_roll_deg, cfg.max_roll_deg))
+        board2, dist2 = _held_frame(truth, cfg, tilt2, axis + np.pi / 2, roll2, rng)
+        corners2, valid2 = make_corner_observations(board2, CORNER_SIGMA_PX, np.random.default_rng([seed, 67]))
+        corners, valid = np.concatenate([corners, corners2], axis=1), np.concatenate([valid, valid2], axis=1)
+        name = (f"2 board frames (tilts {tilt_deg(board.ref_T_board[0]):.0f} and "
+                f"{tilt_deg(board2.ref_T_board[0]):.0f} deg about perpendicular axes, {dist:.2f} and {dist2:.2f} m, "
+                f"seed {seed})")
+    elif frames != 1:
+        raise ValueError(f"frames must be 1 or 2, got {frames}")
+    return BoardPin(corners, valid, cfg.board.object_points(), name=name)
 
 
 def _marks(image: np.ndarray, depth: np.ndarray, truth: Calibration,
