@@ -181,7 +181,7 @@ def add_parsers(sub: Any) -> None:
     pin = p.add_argument_group("pins: what fixes the common zoom (absolute focal length)")
     pin.add_argument("--pin-board", type=Path, metavar="DIR",
                      help="a capture folder of a few frames of a known board (even one, seen by one view or more; "
-                          "held tilted), with --board and --square-mm")
+                          "held tilted; better two, tilted about perpendicular axes), with --board and --square-mm")
     pin.add_argument("--board", help="the pin board: checkerboard inner corners COLSxROWS (e.g. 11x8) or "
                                      "charuco:SQUARESXxSQUARESY:DICT_NAME (with --marker-mm)")
     pin.add_argument("--square-mm", type=positive_float, help="the pin board's square side in millimetres")
