@@ -33,8 +33,8 @@ import targetless_data as data  # noqa: E402
 
 from lfgraph.core.camera import project_world  # noqa: E402
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL  # noqa: E402
+from lfgraph.engine.triangulate import triangulate_dlt  # noqa: E402
 from lfgraph.factors.noise import RobustKernel  # noqa: E402
-from lfgraph.refinement.triangulate import triangulate_dlt  # noqa: E402
 from lfgraph.selfcal import SelfCalConfig  # noqa: E402
 from lfgraph.selfcal.pinned import zoom_of  # noqa: E402
 from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, run_map_stage  # noqa: E402
