@@ -125,7 +125,7 @@ def test_an_internal_failure_is_said_as_such_not_as_bad_input(boards, tmp_path, 
     def broken(*_args, **_kwargs):
         raise RuntimeError("Indeterminant linear system detected while working near variable 7")
 
-    monkeypatch.setattr("lfgraph.pattern.pipeline.calibrate_joint", broken)  # lfgraph's own code, not a library
+    monkeypatch.setattr("lfgraph.pattern.schedule.calibrate_joint", broken)  # lfgraph's own code, not a library
     code, text = run(["calibrate", boards, *SMALL, "-o", tmp_path / "c.json"], capsys)
     assert code == EXIT_INTERNAL and "internal error" in text and "report" in text
     assert not (tmp_path / "c.json").exists()
