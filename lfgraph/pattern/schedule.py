@@ -80,11 +80,7 @@ def joint_schedule(run: BoardRun, config: CalibrateConfig, screens: bool, say: O
                 f"view-frames dropped" + (f", the start RMS {r.rms_before_px:.4f} -> {r.rms_after_px:.4f} px"
                                           if dropped_view_frames[-1] else " (the start unchanged)"))
 
-    def fitted(r: StageRecord) -> str:
-        return (f"calibrate stage joint: {r.observations} corners, RMS {r.rms_before_px:.4f} -> "
-                f"{r.rms_after_px:.4f} px, {r.iterations} iterations")
-
     steps = [Step("screen", screen, prepare=lambda s: s if screens else None, outliers=False, describe=screened),
-             Step("joint", joint, outliers=False, describe=fitted)]
+             Step("joint", joint, outliers=False)]  # its line is the route's (`lfgraph.pattern.pipeline.calibrate`)
     state, _ = run_schedule(steps, board_state(run), say)
     return state.tracks
