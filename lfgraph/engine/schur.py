@@ -294,8 +294,12 @@ def problem_covariance(problem, state) -> np.ndarray:
         elif sys_.V.shape[0]:
             inv = inv3(sys_.V, strict=False)
             # a landmark block singular in floating point (a far landmark on a short baseline: its depth direction
-            # carries ~no information, and its Jacobian none either) is marginalised by its pseudo-inverse
-            flat = np.all(inv == 0.0, axis=(1, 2)) & np.any(sys_.V != 0.0, axis=(1, 2))
+            # carries ~no information, and its Jacobian none either) is marginalised by its pseudo-inverse; so is
+            # one whose determinant came out a rounding error above zero (a track of two views captured at one
+            # place, templeSparseRing's 0 and 10: an eigenvalue ratio of -4e-16 to 1e-16, whose inverse of ~1e16
+            # left the reduced system indefinite)
+            ev = np.linalg.eigvalsh(sys_.V)
+            flat = (ev[:, 0] <= PSEUDO_INVERSE_RCOND * ev[:, -1]) & (ev[:, -1] > 0.0)
             if flat.any():
                 inv[flat] = np.linalg.pinv(sys_.V[flat], rcond=PSEUDO_INVERSE_RCOND, hermitian=True)
             vw = _times_w(inv, sys_.W).reshape(-1, n_c)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lfgraph.core.camera import project_world, undistort_views
+from lfgraph.core.geometry import make_T, rotation_from_rotvec
 from lfgraph.datasets.rig import RigConfig, ShakeConfig, make_rig, shake_rig
 from lfgraph.engine.optimize import OptimizerSettings, optimize
 from lfgraph.engine.schur import marginal_covariance, problem_covariance
@@ -24,6 +25,9 @@ SAME_SOLUTION = 1e-9  # rad and m: the same minimum as GTSAM's optimiser (same L
 SAME_COVARIANCE = 1e-6  # relative: the reduced camera system's inverse vs GTSAM's Marginals
 STAGE_TOL_OFFSET = 1e-6  # rad and m: the bulk stage stops at REFINE_RELATIVE_TOL, GTSAM's path at 1e-10
 SAME_UNDISTORT = 1e-14  # normalised units: one Newton loop for all views vs one per view
+ONE_PLACE_TRACKS = 40
+ONE_PLACE_DEPTH_SIGMA_M = 1.0  # GTSAM's reference: this prior on such landmarks (at 3 m it is indeterminate)
+ONE_PLACE_COVARIANCE = 1e-7  # relative: the prior's effect falls as 1 / sigma^2 (3.8e-8 at 0.3 m, 3.4e-9 at 1 m)
 
 
 def scene(seed=0, n=150, reference=0, tangential=0.0, lens="radtan"):
@@ -202,3 +206,35 @@ def test_closed_form_landmark_cholesky_factors_the_blocks_and_refuses_indefinite
     indefinite[7] = np.diag([1.0, -1.0, 1.0])
     with pytest.raises(np.linalg.LinAlgError):
         chol3_inv(indefinite)
+
+
+def test_marginals_of_tracks_seen_from_one_place_match_gtsams_with_a_weak_depth_prior():
+    """A track of two views at one place (templeSparseRing captured view 0 twice, as views 0 and 10) has no depth:
+    its landmark block is singular, and rounding leaves its determinant a hair above or below zero. Those blocks are
+    marginalised by their pseudo-inverse: the cameras' covariance is the limit of GTSAM's with a weak prior on such
+    landmarks' positions, where GTSAM's Marginals without it finds the system indeterminate."""
+    rig, pix, valid = scene(seed=3)
+    poses = rig.ref_T_view.copy()
+    poses[2] = make_T(rotation_from_rotvec([0.0, 0.01, 0.02]), poses[0][:3, 3])  # view 2 stands where view 0 does
+    rig = rig.replace(ref_T_view=poses)
+    rng = np.random.default_rng(4)
+    depth = rng.uniform(1.5, 5.0, ONE_PLACE_TRACKS)
+    pts = np.column_stack([rng.uniform(-0.2, 0.2, (ONE_PLACE_TRACKS, 2)) * depth[:, None], depth])
+    pts = np.concatenate([triangulate_dlt(rig, pix, valid), pts])
+    pix = np.stack([project_world(rig.intrinsics[v], rig.view_T_ref(v), pts) for v in range(9)])
+    one_place = np.zeros(len(pts), dtype=bool)
+    one_place[-ONE_PLACE_TRACKS:] = True
+    valid = np.concatenate([valid, np.zeros((9, ONE_PLACE_TRACKS), dtype=bool)], axis=1)
+    valid[np.ix_([0, 2], np.flatnonzero(one_place))] = True
+    model = measurement_noise(RobustKernel("none"), 0.05)
+    priors = view_priors(rig, DriftModel())
+    problem, state = stage_problem(Stage.POSES, rig, pix, valid, pts, model, priors=priors)
+    cov = problem_covariance(problem, state)
+    graph, values = stage_graph(Stage.POSES, rig, pix, valid, pts, model, priors=priors)
+    for i in np.flatnonzero(one_place):
+        graph.add(gtsam.PriorFactorPoint3(landmark_key(int(i)), pts[i], gtsam.noiseModel.Isotropic.Sigma(3, ONE_PLACE_DEPTH_SIGMA_M)))
+    marginals = gtsam.Marginals(graph, values)
+    for v in (1, 2, 5):
+        block = camera_block(problem.layout, view_pose_key(v))
+        expected = marginals.marginalCovariance(view_pose_key(v))
+        assert np.max(np.abs(cov[block, block] - expected)) < ONE_PLACE_COVARIANCE * np.max(np.abs(expected))
