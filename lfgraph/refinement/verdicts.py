@@ -114,9 +114,12 @@ class ViewVerdict:
 
     def as_dict(self) -> dict:
         """JSON-ready figures: the view's name under ``view``, the verdict, reason and needs, arrays as lists of
-        floats."""
+        floats (None where there is no number: no posterior, an undetermined system)."""
+        def num(v) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
         def f(x):
-            return [float(v) for v in np.ravel(x)] if np.ndim(x) else float(x)
+            return [num(v) for v in np.ravel(x)] if np.ndim(x) else num(x)
 
         return {"view": self.name, "verdict": self.verdict, "applied": self.applied, "reason": self.reason,
                 "needs": list(self.needs), "change_sigma": f(self.change_sigma),

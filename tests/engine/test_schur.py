@@ -231,8 +231,9 @@ def test_marginals_of_tracks_seen_from_one_place_match_gtsams_with_a_weak_depth_
     problem, state = stage_problem(Stage.POSES, rig, pix, valid, pts, model, priors=priors)
     cov = problem_covariance(problem, state)
     graph, values = stage_graph(Stage.POSES, rig, pix, valid, pts, model, priors=priors)
+    weak = gtsam.noiseModel.Isotropic.Sigma(3, ONE_PLACE_DEPTH_SIGMA_M)
     for i in np.flatnonzero(one_place):
-        graph.add(gtsam.PriorFactorPoint3(landmark_key(int(i)), pts[i], gtsam.noiseModel.Isotropic.Sigma(3, ONE_PLACE_DEPTH_SIGMA_M)))
+        graph.add(gtsam.PriorFactorPoint3(landmark_key(int(i)), pts[i], weak))
     marginals = gtsam.Marginals(graph, values)
     for v in (1, 2, 5):
         block = camera_block(problem.layout, view_pose_key(v))

@@ -203,3 +203,22 @@ def test_unordered_matching_on_the_middlebury_ring(test_data):
     err = reprojection_errors(truth, triangulate_dlt(truth, tracks.points_px, tracks.valid), tracks.points_px,
                               tracks.valid)
     assert np.nanmedian(err) < 0.3  # most tracks are right; the outliers are what the filters are for
+
+
+def test_a_verdict_without_a_posterior_is_saved_with_nulls(tmp_path):
+    """A fit whose posterior could not be computed reports NaN sigmas; the refined calibration must still save (its
+    metrics carry null there, JSON has no NaN) rather than fail after the whole refinement ran."""
+    import json
+
+    from lfgraph.refinement.verdicts import ViewVerdict
+
+    nan3 = np.full(3, np.nan)
+    verdict = ViewVerdict(1, "r00_c01", "UNCERTAIN", 0.0, np.zeros(3), np.zeros(3), np.zeros(4), 0.0, nan3, nan3,
+                          np.full(4, np.nan), float("nan"), 12, False, "no posterior")
+    data = verdict.as_dict()
+    json.dumps(data, allow_nan=False)
+    assert data["sigma_rotation_deg"] == [None] * 3 and data["predicted_transfer_px"] is None
+    rig = make_rig(RigConfig(rows=1, cols=2), np.random.default_rng(0))
+    rig.replace(metrics={"refinement": {"verdicts": [data]}}).save(tmp_path / "calib.json")
+    stored = Calibration.load(tmp_path / "calib.json").metrics["refinement"]["verdicts"][0]
+    assert stored["sigma_position_mm"][0] is None
