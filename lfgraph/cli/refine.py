@@ -92,7 +92,8 @@ def _refine(args: argparse.Namespace) -> int:
     print(refinement_text(calib, refined, report))
     counts = report.verdict_counts()
     summary = ", ".join(f"{counts[k]} {k}" for k in ("DRIFTED", "OK", "UNCERTAIN") if k in counts)
-    print(f"verdict: {summary}; " + ("the DRIFTED views were refined" if report.accepted else
+    written = sum(v.applied for v in report.verdicts)
+    print(f"verdict: {summary}; " + (f"{written} views written (applied: yes above)" if report.accepted else
                                      "nothing was changed (see the reasons above)"))
     print(f"wrote {args.output}")
     return EXIT_OK

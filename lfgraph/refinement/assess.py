@@ -34,10 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.observer import SilentObserver
-from lfgraph.engine.triangulate import reprojection_errors, triangulate_dlt
 from lfgraph.refinement.config import RefineConfig
-from lfgraph.refinement.fit import fit_auto, gate_rms, has_kernel, informative
+from lfgraph.refinement.fit import fit_auto, informative
+from lfgraph.refinement.heldout import fold_refits, heldout_test, untested_views
 from lfgraph.refinement.leverage import without_bent_tracks
 from lfgraph.refinement.posterior import (
     GROUPS,
@@ -54,7 +53,6 @@ from lfgraph.refinement.posterior import (
 from lfgraph.refinement.priors import view_priors
 from lfgraph.refinement.verdicts import (
     MAX_TRACK_SIGMA_PX,
-    MIN_TRACK_RMS_PX,
     Decision,
     OutlierEvidence,
     ViewVerdict,
@@ -64,14 +62,7 @@ from lfgraph.refinement.verdicts import (
     verdict_of,
     view_sigmas,
 )
-
-FOLD_SEED = 14
-MAX_FRAME_FOLDS = 5  # with several frames, at most this many folds of whole frames (the jackknife's units)
-HELDOUT_CONSISTENCY = 10.0  # held-out RMS of the candidate at most this x the full fit's RMS of its own tracks:
-# legitimate thin fits predicted held-out tracks at up to ~5x (one frame of a 3x3 rig: 0.40 px vs 0.08 px); fits of
-# mismatches at 17-39x (keyboard textures in benchmarks/sweep.py)
-# ... floored at MIN_TRACK_RMS_PX; a refit leaving more than MAX_TRACK_SIGMA_PX has fitted mismatches (verdicts)
-
+from lfgraph.refinement.whole import written_whole
 
 
 def group_significance(before: Calibration, after: Calibration, post: Posterior, v: int) -> dict[str, float]:
@@ -100,26 +91,6 @@ def group_significance(before: Calibration, after: Calibration, post: Posterior,
         d2 = float(dn @ np.linalg.lstsq(cn, dn, rcond=1e-12)[0])
         out[name] = chi2_sigma(d2, int(idx_a.size))
     return out
-
-
-def heldoutfinite_rms(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(V, N) reprojection errors of tracks triangulated with ``calib`` (not refitted: they test it)."""
-    return reprojection_errors(calib, triangulate_dlt(calib, pixels, valid), pixels, valid)
-
-
-def fold_split(n: int, folds: int) -> np.ndarray:
-    """(n,) fold index of each track, seeded."""
-    return np.random.default_rng(FOLD_SEED).permutation(np.arange(n) % folds)
-
-
-def combine(calib: Calibration, refined: Calibration, views: set[int]) -> Calibration:
-    """``calib`` with ``views`` taken from ``refined`` (poses and intrinsics)."""
-    poses = np.array(calib.ref_T_view)
-    intr = list(calib.intrinsics)
-    for v in views:
-        poses[v] = refined.ref_T_view[v]
-        intr[v] = refined.intrinsics[v]
-    return calib.replace(ref_T_view=poses, intrinsics=tuple(intr))
 
 
 @dataclass(frozen=True)
@@ -205,78 +176,6 @@ def with_input_uncertainty(post: Posterior, calib: Calibration) -> Posterior:
     return Posterior(pose_cov, intr_cov, post.cross, post.intrinsics_free, post.sigma_px, post.held)
 
 
-def fold_refits(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, frame_of: np.ndarray | None,
-                config: RefineConfig) -> tuple[list[Calibration], list[np.ndarray], list[frozenset[int]]]:
-    """The fold refits (each without one fold of the fit's tracks) and, for each, the (N,) mask of the tracks it did
-    not see and the views it held (too few observations without its fold). Folds are whole frames when ``frame_of``
-    (the frame of each kept track) is given — errors within a frame are correlated —, else random tracks; none when
-    ``config.folds`` is 0."""
-    if not config.folds:
-        return [], [], []
-    if frame_of is not None:
-        uniq = np.unique(frame_of)
-        k = min(len(uniq), max(config.folds, MAX_FRAME_FOLDS))
-        order = {f: i % k for i, f in enumerate(uniq)}
-        fold = np.array([order[f] for f in frame_of], dtype=int)
-    else:
-        fold = fold_split(px.shape[1], config.folds)
-    calibs, tests, held = [], [], []
-    for k in range(int(fold.max()) + 1 if fold.size else 0):
-        train, test = fold != k, fold == k
-        if not test.any() or not train.any():
-            continue
-        try:
-            fk = fit_auto(calib, px[:, train], ok[:, train], config, SilentObserver(), fit.held, fit.sigma_px)
-        except (RuntimeError, ValueError):
-            continue
-        calibs.append(fk.calib)
-        held.append(fk.held)
-        tests.append(test)
-    return calibs, tests, held
-
-
-def heldout_test(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, sig_views: set[int],
-                 fold_calibs: list[Calibration], fold_tests: list[np.ndarray], config: RefineConfig,
-                 obs) -> tuple[Calibration, bool, bool, float, float, float]:
-    """The candidate (the input with the views ``sig_views`` from the full fit) and its held-out test, which
-    scores what is written: each fold's refit, applied to the same views, on its left-out tracks. Returns
-    (candidate, accepted, inconsistent, held-out RMS of the input, of the candidate, the fit's own RMS) (px): RMS
-    under the Gaussian model, the kernel's cost as an RMS (`gate_rms`) under a robust one, where a candidate must
-    also be strictly better (a bounded kernel scores two far-off calibrations alike)."""
-    if not sig_views:
-        return calib, False, False, float("nan"), float("nan"), float("nan")
-    candidate = combine(calib, fit.calib, sig_views)
-    e_before = [heldoutfinite_rms(calib, px[:, t], ok[:, t]) for t in fold_tests]
-    e_after = [heldoutfinite_rms(combine(calib, fc, sig_views), px[:, t], ok[:, t])
-               for fc, t in zip(fold_calibs, fold_tests, strict=True)]
-    if not e_before:
-        return candidate, True, False, float("nan"), float("nan"), float("nan")
-    robust = has_kernel(fit.noise)
-    before = gate_rms(np.concatenate(e_before, axis=1), fit.noise, fit.sigma_px)
-    after = gate_rms(np.concatenate(e_after, axis=1), fit.noise, fit.sigma_px)
-    accepted = bool(after > 0 and before / after >= config.min_improvement and (after < before or not robust))
-    # the candidate must predict tracks it did not see about as well as it fits its own: far worse means the folds
-    # disagree (mismatches on a repeated pattern, too few tracks), whatever the input scores
-    fit_rms = gate_rms(reprojection_errors(fit.calib, fit.points, fit.pixels, fit.valid), fit.noise, fit.sigma_px)
-    inconsistent = bool(after > HELDOUT_CONSISTENCY * max(fit_rms, MIN_TRACK_RMS_PX))
-    accepted &= not inconsistent
-    obs.log(f"held-out tracks ({len(e_before)} folds): {'robust ' * robust}RMS {before:.4f} px with the input, "
-            f"{after:.4f} px with the candidate refitted without them (its own tracks {fit_rms:.4f} px): "
-            + ("accepted" if accepted else "rejected"))
-    return candidate, accepted, inconsistent, before, after, fit_rms
-
-
-def untested_views(calib: Calibration, sig_views: set[int], fold_held: list[frozenset[int]]) -> frozenset[int]:
-    """In a free arrangement, the views about to be written that every fold refit held (too few observations without
-    its fold, `RefineConfig.min_view_observations`): the held-out test never saw them change, so it cannot confirm
-    them (dinoSparseRing perturbed, seed 3, with the consistency rule asked of the folds' whole refits, a variant
-    measured and not kept: a view of 64 observations written 0.5 -> 2.1 deg off, the held-out RMS the input's to 4
-    decimals). Grids keep their rule (their benchmark figures were set with it)."""
-    if not calib.grid.is_free or not fold_held:
-        return frozenset()
-    return frozenset(v for v in sig_views if all(v in h for h in fold_held))
-
-
 def undetermined_changes(calib: Calibration, post: Posterior | None, sig_views: set[int],
                          significant: dict[int, tuple[str, ...]], size_px: np.ndarray, config: RefineConfig,
                          rays: np.ndarray) -> dict[int, float]:
@@ -304,6 +203,22 @@ def undetermined_changes(calib: Calibration, post: Posterior | None, sig_views: 
     return unsure
 
 
+def widened(post: Posterior | None, reported: Posterior | None, calib: Calibration, fold_calibs: list[Calibration],
+            observer) -> tuple[Posterior | None, Posterior | None]:
+    """The tested and the reported posteriors widened to the fold refits' scatter (`inflate`), each widening said."""
+    if reported is not None and np.any(reported.bending > 1.0):
+        observer.log(f"the tracks' own scatter is up to {np.sqrt(reported.bending.max()):.1f}x the graph's marginals "
+                     f"along the rig's bending modes (views turned in proportion to their offset): sigmas widened")
+    if post is None:
+        return post, reported
+    post, factors = inflate(post, calib, fold_calibs)
+    if np.any(factors > 1.0):
+        worst = np.unravel_index(np.argmax(factors), factors.shape)
+        observer.log(f"fold refits scatter up to {np.sqrt(factors.max()):.1f}x more than the graph's marginals "
+                     f"({calib.grid.name(int(worst[0]))}, {list(GROUPS)[int(worst[1])]}): sigmas widened")
+    return post, inflate(reported, calib, fold_calibs)[0]
+
+
 def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: RefineConfig, observer,
            coverage: float, frames: int, frame_of: np.ndarray | None = None,
            sigma_estimate: float | None = None) -> Assessment:
@@ -319,17 +234,7 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
     px, ok = pixels[:, fit.keep], valid[:, fit.keep]  # mismatches the full fit dropped are not evidence
     whole_frames = frame_of[fit.keep] if frame_of is not None and len(np.unique(frame_of)) >= 2 else None
     fold_calibs, fold_tests, fold_held = fold_refits(calib, fit, px, ok, whole_frames, config)
-    factors = np.ones((n, 4))
-    if reported is not None and np.any(reported.bending > 1.0):
-        observer.log(f"the tracks' own scatter is up to {np.sqrt(reported.bending.max()):.1f}x the graph's marginals "
-                     f"along the rig's bending modes (views turned in proportion to their offset): sigmas widened")
-    if post is not None:
-        post, factors = inflate(post, calib, fold_calibs)
-        reported = inflate(reported, calib, fold_calibs)[0]
-        if np.any(factors > 1.0):
-            worst = np.unravel_index(np.argmax(factors), factors.shape)
-            observer.log(f"fold refits scatter up to {np.sqrt(factors.max()):.1f}x more than the graph's marginals "
-                         f"({calib.grid.name(int(worst[0]))}, {list(GROUPS)[int(worst[1])]}): sigmas widened")
+    post, reported = widened(post, reported, calib, fold_calibs, observer)
     test_post = with_input_uncertainty(post, calib) if post is not None else None
     free = [v for v in range(n) if v != ref and v not in fit.held]
     zg = {v: group_significance(calib, fit.calib, test_post, v) if test_post is not None else {} for v in free}
@@ -360,10 +265,18 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         unsure_mismatch, sig_views = unsure_mismatch | sig_views, set()
     candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms = heldout_test(
         calib, fit, px, ok, sig_views, fold_calibs, fold_tests, config, observer)
+    whole = frozenset()
+    if not (accepted or mismatched or foreign is not None):  # a free arrangement's views together (module whole)
+        written, foreign = written_whole(calib, fit, px, ok, (fold_calibs, fold_tests, fold_held), significant,
+                                         bool(sig_views), config, observer)
+        if written is not None:
+            whole, (candidate, accepted, inconsistent, heldout_before, heldout_after, fit_rms) = written
+            sig_views = set(whole)
     foreign, outliers = refusal_cause(fit, foreign, accepted, observer)
     out = candidate if accepted else calib
     dec = Decision(significant, zg, z, frozenset(sig_views), frozenset(small), unsure, frozenset(unsure_mismatch),
-                    accepted, inconsistent, heldout_before, heldout_after, fit_rms, foreign, outliers, untested)
+                    accepted, inconsistent, heldout_before, heldout_after, fit_rms, foreign, outliers, untested,
+                    whole)
     written_size = change_size_px(calib, out, significant)
     own = calib.sigmas
     gauge_sigma = view_priors(calib, config.drift).pose_sigmas
@@ -376,7 +289,8 @@ def assess(calib: Calibration, pixels: np.ndarray, valid: np.ndarray, config: Re
         dk = np.array([a.fx - b.fx, a.fy - b.fy, a.cx - b.cx, a.cy - b.cy])
         s_rot, s_pos, s_int, pred = view_sigmas(calib, reported, v, rays, own, gauge_sigma, reported=True)
         tested = view_sigmas(calib, post, v, rays, own, gauge_sigma)[3]  # what the tests judge by
-        change_px = float(written_size[v] if applied else size_px[v] if significant.get(v) else proposed_px[v])
+        change_px = float(written_size[v] if applied and significant.get(v) else size_px[v] if significant.get(v)
+                          else proposed_px[v])
         verdict, reason, needs = verdict_of(v, dec, calib, fit, config, change_px, tested, post is not None)
         needs = () if needs is None else (*needs, *data_needs(calib, fit.points, fit.valid, v, coverage, frames))
         verdicts.append(ViewVerdict(v, calib.grid.name(v), verdict, float(z.get(v, 0.0)), np.degrees(d[:3]),

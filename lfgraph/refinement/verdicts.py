@@ -173,6 +173,7 @@ class Decision:
     foreign: tuple[float, float] | None = None  # (poses-only RMS, RMS with the intrinsics free) px: another unit's?
     outliers: OutlierEvidence | None = None  # wrong matches named as the cause of a refusal
     untested: frozenset[int] = frozenset()  # significant views no held-out fold refitted (free arrangements)
+    whole: frozenset[int] = frozenset()  # a free arrangement's views written together (`lfgraph.refinement.whole`)
 
     @property
     def disagreement(self) -> float:
@@ -218,6 +219,14 @@ def verdict_of(v: int, dec: Decision, calib: Calibration, fit, config: RefineCon
     if v in fit.held:
         return UNCERTAIN, (f"only {int(fit.valid[v].sum())} observations (< {config.min_view_observations}): "
                            f"held"), ask
+    if v in dec.whole:
+        confirmed = (f"the held-out tracks confirm the refit of every view written together ({dec.heldout_before:.3f}"
+                     f" px with the input, {dec.heldout_after:.3f} px with it)")
+        if dec.significant.get(v):
+            return DRIFTED, (", ".join(f"{g} {dec.zg[v][g]:.1f} sigma" for g in dec.significant[v])
+                             + f" changed ({change_px:.2f} px); {confirmed}: written from the full fit"), None
+        return UNCERTAIN, (f"no significant change of its own ({z:.1f} sigma, {change_px:.2f} px; 1 sigma = "
+                           f"{pred:.2f} px at infinity), written with the whole arrangement: {confirmed}"), ask
     if v in dec.sig_views and dec.accepted:
         return DRIFTED, (", ".join(f"{g} {dec.zg[v][g]:.1f} sigma" for g in dec.significant[v])
                          + f" changed ({change_px:.2f} px > tolerance {config.tolerance_px:g} px), confirmed by "

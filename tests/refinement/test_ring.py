@@ -20,6 +20,8 @@ ROUND_OFF_PX = 1e-9  # views not turned: the same projections to round-off
 MIRROR_BIAS_PX = 0.02  # px: a keypoint and its mirror image's, mapped back, agree in the median to within this
 # (OpenCV's default first octave puts both 0.25 px too far right and down: they disagree by 0.5 px)
 MIRROR_MATCH_PX = 1.0  # px: a keypoint's twin in the mirror image lies within this
+TEMPLE_POSITION_SIGMAS = 2.0  # a written position's error within this many of its reported (3-axis) sigma
+TEMPLE_HELDOUT_GAIN = 10.0  # the whole refit predicts held-out tracks this many times better than the knocked input
 
 
 def test_the_geometry_chooses_the_tracker():
@@ -97,9 +99,13 @@ def test_a_rendered_ring_through_the_commands(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_the_middlebury_temple_ring_is_never_made_worse(test_data):
-    """templeSparseRing perturbed by 0.5 deg and 1 % of the neighbour baseline: no view comes back farther from the
-    published cameras (the data leave pan and sideways motion nearly one: most views are UNCERTAIN and kept)."""
+def test_the_middlebury_temple_ring_knocked_as_a_whole_is_written_whole(test_data):
+    """templeSparseRing perturbed by 0.5 deg and 1 % of the neighbour baseline (2.24 mm), every view: one by one the
+    views' changes do not stand out against their pan traded for sideways motion, and writing only some beside their
+    knocked neighbours predicts the pairs between them no better (nothing was written); every view written together
+    is what the held-out tracks confirm. Every rotation comes back closer to the published cameras; a position may
+    not (the data leave 0.5-4 mm there, the knock is 2.24 mm), but within its reported sigma, and closer over the
+    ring."""
     from lfgraph.datasets.middlebury import load_mview
 
     truth, images = load_mview(test_data / "middlebury_temple")
@@ -112,18 +118,56 @@ def test_the_middlebury_temple_ring_is_never_made_worse(test_data):
     start = truth.replace(ref_T_view=poses)
     refined, report = lf.refine(start, [np.stack(images)])
     e0, e1 = lf.evaluate(start, truth), lf.evaluate(refined, truth)
-    assert np.all(e1.rotation_deg <= e0.rotation_deg + 1e-9)
-    assert np.all(np.linalg.norm(e1.position_mm, axis=1) <= np.linalg.norm(e0.position_mm, axis=1) + 1e-6)
+    free = np.arange(truth.num_views) != truth.grid.reference
+    assert all(v.applied for v in report.verdicts if v.view != truth.grid.reference)
+    assert np.all(e1.rotation_deg[free] < e0.rotation_deg[free])
+    p0, p1 = np.linalg.norm(e0.position_mm, axis=1), np.linalg.norm(e1.position_mm, axis=1)
+    sigma = np.array([np.linalg.norm(v.sigma_position_mm) for v in report.verdicts])
+    assert np.all(p1[free] < TEMPLE_POSITION_SIGMAS * sigma[free])
+    assert np.sqrt(np.mean(p1[free] ** 2)) < np.sqrt(np.mean(p0[free] ** 2))
+    assert report.heldout_after_px < report.heldout_before_px / TEMPLE_HELDOUT_GAIN
 
 
 def test_a_free_arrangements_view_no_fold_refitted_is_not_confirmed():
     """A view every fold refit held (too few observations without its fold) was never tested by held-out tracks: in a
     free arrangement it is not written (dinoSparseRing perturbed, seed 3, under a looser held-out rule: a view of 64
     observations went 0.5 -> 2.1 deg with the held-out RMS the input's to 4 decimals). A grid keeps its rule."""
-    from lfgraph.refinement.assess import untested_views
+    from lfgraph.refinement.heldout import untested_views
 
     ring = ring_calibration()
     assert untested_views(ring, {1, 2}, [frozenset({1}), frozenset({1, 3})]) == {1}
     assert untested_views(ring, {1, 2}, []) == frozenset()  # no folds: nothing to ask
     grid = ring.replace(grid=ViewGrid(1, ring.num_views, 0))
     assert untested_views(grid, {1, 2}, [frozenset({1})]) == frozenset()
+
+
+def test_tracks_seen_from_one_place_test_nothing_and_a_whole_ring_is_asked_only_when_every_view_was_tested():
+    """A track of views at one place has no depth: the held-out test leaves it out (templeSparseRing's views 0 and
+    10: one such track came back 670 px off through a ring 0.004-0.36 deg from the truth). The whole free
+    arrangement is asked only when no view was held by the fit or a fold refit, some view changed significantly, and
+    the rig is free."""
+    from types import SimpleNamespace
+
+    from lfgraph.refinement.heldout import one_place
+    from lfgraph.refinement.whole import whole_views
+
+    ring = ring_calibration()
+    poses = ring.ref_T_view.copy()
+    poses[5][:3, 3] = poses[0][:3, 3] + 1e-6  # view 5 stands where view 0 does
+    ring = ring.replace(ref_T_view=poses)
+    valid = np.zeros((ring.num_views, 3), dtype=bool)
+    valid[[0, 5], 0] = True  # one place
+    valid[[0, 1], 1] = True  # neighbours
+    valid[[0, 5, 6], 2] = True  # one place and another
+    assert one_place(ring, valid).tolist() == [True, False, False]
+
+    fit = SimpleNamespace(held=frozenset())
+    moved = {1: ("roll",), 2: ()}
+    everyone = frozenset(range(1, ring.num_views))
+    assert whole_views(ring, fit, [frozenset(), frozenset()], moved) == everyone
+    assert whole_views(ring, fit, [frozenset({3}), frozenset()], moved) == frozenset()  # a fold held view 3
+    assert whole_views(ring, SimpleNamespace(held=frozenset({4})), [frozenset()], moved) == frozenset()
+    assert whole_views(ring, fit, [], moved) == frozenset()  # no folds: nothing to confirm it
+    assert whole_views(ring, fit, [frozenset()], {1: (), 2: ()}) == frozenset()  # nothing significant
+    grid = ring.replace(grid=ViewGrid(1, ring.num_views, 0))
+    assert whole_views(grid, fit, [frozenset()], moved) == frozenset()
