@@ -15,10 +15,11 @@ from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.schedule import TrackState
 from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.selfcal.config import Design, SelfCalConfig
-from lfgraph.selfcal.pinned import SceneFit, fit_pins, pin_warnings, weak_modes, zoom_of
+from lfgraph.selfcal.pinned import SceneFit, fit_pins, mode_rows, pin_warnings, weak_modes, zoom_of
 from lfgraph.selfcal.pins import PIN_TYPES, DistancePin, PinError
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, modes
 from lfgraph.selfcal.retrack import retrack
+from lfgraph.selfcal.scatter import mode_pulls, project_views, robust_joint, track_sandwich
 from lfgraph.selfcal.solve import drop_outliers, initial_landmarks, posterior, zoom_to_prior
 from lfgraph.selfcal.stages import (
     SelfCalibrationError,
@@ -97,7 +98,8 @@ def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam
     (calibration, posterior, modes, one `PinResult` per pin, the scene fit with its zoom and sigma)."""
     grid = scene.calib.grid
     distortion = "distortion" in scene.free
-    post, joint = posterior(graph, values, scene.calib.lenses)
+    post, cameras = posterior(graph, values, scene.calib.lenses, poses=True)
+    joint = _track_robust(scene, values, cameras, say)
     zoom, sigma = zoom_of(scene.calib, joint, scene.sigmas, distortion)
     mode_values, mode_cov = weak_modes(scene.calib, joint)
     scene = dataclasses.replace(scene, zoom_px=zoom, zoom_sigma_px=sigma, modes=mode_values, modes_cov=mode_cov)
@@ -105,6 +107,22 @@ def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam
         return scene.calib, post, modes(joint, design_tangent_sigmas(scene.sigmas)[grid.reference], grid,
                                         distortion), (), scene
     return (*_pinned(scene, config, say), scene)
+
+
+def _track_robust(scene: SceneFit, values: gtsam.Values, cameras: np.ndarray, say: Observer) -> np.ndarray:
+    """The (DV, DV) covariance of every view's calibration from the final fit's ``cameras`` covariance (calibrations,
+    then poses), its weak modes widened to how the tracks' residuals scatter (`lfgraph.selfcal.scatter`)."""
+    calib, tracks = scene.calib, scene.tracks
+    n_cal = len(cameras) - 6 * calib.num_views
+    rows = mode_rows(calib.grid, calib.num_views, n_cal // calib.num_views)
+    pulls = mode_pulls(calib, values, scene.points, tracks.valid, cameras, rows)
+    residuals = np.where(tracks.valid[..., None], tracks.pixels - project_views(calib, scene.points), 0.0)
+    assumed, seen = track_sandwich(pulls, np.nan_to_num(residuals), scene.noise_px)
+    joint = robust_joint(cameras[:n_cal, :n_cal], rows, assumed, seen)
+    before, after = (float(np.sqrt(rows[0] @ c @ rows[0])) for c in (cameras[:n_cal, :n_cal], joint))
+    say.log(f"self-calibration: the zoom's sigma {before:.3g} px from the graph, {after:.3g} px with the tracks' "
+            "own scatter (used)")
+    return joint
 
 
 def _pinned(scene: SceneFit, config: SelfCalConfig, say: Observer) -> tuple[Calibration, Sigmas, list[Mode], tuple]:

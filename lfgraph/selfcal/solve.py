@@ -125,11 +125,12 @@ def drop_outliers(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
 
 
 def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, lenses: tuple[str, ...],
-              points: tuple[int, ...] = ()) -> tuple[Sigmas, np.ndarray]:
+              points: tuple[int, ...] = (), poses: bool = False) -> tuple[Sigmas, np.ndarray]:
     """Marginal sigmas of every view's calibration and pose at the optimum (`Sigmas`, rescaled by nothing: the
     final stage uses the measured noise; each view's ``lenses`` model says its coefficients), and the (DV, DV) joint
     covariance of every view's calibration (views in order, each in its model's tangent order: D = 9, or 10 for
-    Cal3Unified), followed by that of the Point3 keys ``points`` (3 each: a pin's points) when given.
+    Cal3Unified), followed by every view's pose (6 each, rotation first) when ``poses``, then by that of the Point3
+    keys ``points`` (3 each: a pin's points) when given.
 
     The covariances are `lfgraph.engine.schur.CameraMarginals` (the one posterior path): the inverse of the reduced
     camera system (the same numbers as GTSAM's `Marginals`, computed once for both where `Marginals` eliminated every
@@ -143,9 +144,9 @@ def posterior(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, lenses: t
     try:
         with gtsam_quiet():
             marginals = CameraMarginals(graph, values, LANDMARK_CHAR)
-            joint = marginals.joint(cal_keys + list(points))
-            sigmas = Sigmas.from_marginals(marginals, cal_keys, [view_pose_key(v) for v in range(len(lenses))],
-                                           lenses)
+            pose_keys = [view_pose_key(v) for v in range(len(lenses))]
+            joint = marginals.joint(cal_keys + (pose_keys if poses else []) + list(points))
+            sigmas = Sigmas.from_marginals(marginals, cal_keys, pose_keys, lenses)
     except RuntimeError as exc:
         raise RuntimeError(f"the marginals failed (an undetermined parameter): {exc}") from exc
     return sigmas, np.asarray(joint)
