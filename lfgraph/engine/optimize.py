@@ -29,6 +29,9 @@ class OptimizerSettings:
         error_tol: stop when the error itself falls below this.
         landmark_iterations: with ``eliminate``: after every step re-solve the landmarks with the cameras held, this
             many Gauss–Newton iterations (`lfgraph.engine.schur.GraphProblem`; 0 = plain Levenberg–Marquardt).
+        diagonal_damping: GTSAM's optimiser damps each variable in proportion to its own curvature (Marquardt's
+            scaling) instead of uniformly (the schur loop ignores it). Self-calibration reruns a stage with it when
+            the plain run threw its landmarks behind the views (`lfgraph.selfcal.stages.MIN_FRONT_SHARE`).
     """
 
     max_iterations: int = 100
@@ -36,6 +39,7 @@ class OptimizerSettings:
     absolute_error_tol: float = 1e-12
     error_tol: float = 0.0
     landmark_iterations: int = 0
+    diagonal_damping: bool = False
 
 
 @contextmanager
@@ -91,6 +95,8 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, settings:
     params.setRelativeErrorTol(settings.relative_error_tol)
     params.setAbsoluteErrorTol(settings.absolute_error_tol)
     params.setErrorTol(settings.error_tol)
+    if settings.diagonal_damping:
+        params.setDiagonalDamping(True)
     history: list[float] = []
 
     def hook(iteration: int, before: float, after: float) -> None:

@@ -29,17 +29,29 @@ from lfgraph.lenses import lens_model
 # minimum -0.05 px/step, posterior sigma 0.17, and 0.03 px); with 2 landmark iterations per step it reached the
 # minimum in 4 steps from there, 5 + 3 from the staged start
 LANDMARK_ITERATIONS = 2
+# landmarks the design geometry puts behind the reference view, when all are, start where the whole array sees this
+# disparity (px). Was 1000x the largest view offset: 18 m on paper-4x4, beyond the 10.8 m (1 px across the array) at
+# which `lfgraph.selfcal.stages.reachable` drops a landmark, so rig seed 4 at 10 frames lost every track before its
+# first stage; 10 px puts them at 1.08 m there (scenes 0.5-2 m)
+NO_DEPTH_DISPARITY_PX = 10.0
 # Cal3DS2 tangent order -> the parameters lfgraph reports
 
 
 def initial_landmarks(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """DLT landmarks; a landmark behind the reference view or not finite goes on its reference ray at the median
-    depth of the others (GTSAM gives landmarks behind a camera zero Jacobians)."""
+    depth of the others (GTSAM gives landmarks behind a camera zero Jacobians). When none is in front (the design
+    geometry's rotation errors swamp the disparities), every landmark goes where the whole array would see
+    `NO_DEPTH_DISPARITY_PX` of disparity: well inside what `lfgraph.selfcal.stages.reachable` keeps."""
     pts = triangulate_dlt(calib, pixels, valid)
     ref = calib.grid.reference
     bad = ~(np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0))
     good_z = pts[~bad, 2]
-    depth = float(np.median(good_z)) if len(good_z) else 1000.0 * float(np.max(np.abs(calib.ref_T_view[:, :3, 3])))
+    if len(good_z):
+        depth = float(np.median(good_z))
+    else:
+        centres = calib.ref_T_view[:, :3, 3]
+        span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
+        depth = calib.intrinsics[ref].fx * span / NO_DEPTH_DISPARITY_PX
     if bad.any():
         xy = calib.intrinsics[ref].undistort(pixels[ref, bad])
         xy = np.where(np.isfinite(xy), xy, 0.0)
@@ -51,6 +63,7 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
                   free: frozenset[str], sigmas: Sigmas, model: gtsam.noiseModel.Base, max_iterations: int,
                   relative_tol: float = INTERMEDIATE_RELATIVE_TOL, callback: IterationCallback | None = None,
                   hooks: tuple[Callable, ...] = (), hold_gauges: bool = True, landmark_iterations: int | None = None,
+                  damped: bool = False,
                   ) -> tuple[Calibration, np.ndarray, gtsam.NonlinearFactorGraph, gtsam.Values, int]:
     """One stage on the one stage runner (`lfgraph.engine.stage_engine.run_plan`): poses and intrinsics are variables;
     the groups in ``free`` are pulled to the design, the rest pinned at ``calib``; ``hold_gauges`` pins
@@ -61,14 +74,14 @@ def run_map_stage(calib: Calibration, design: Calibration, pixels: np.ndarray, v
     with that many embedded point iterations per step (the final stage: from the staged start it walks the near-gauge
     valleys; from the design values, where landmarks start far off, GTSAM's loop is kept: on the 2x2 test rig the
     first stage in `lfgraph.engine.schur`'s loop, with or without embedded iterations, lost 95 % of its tracks behind
-    the views)"""
+    the views). ``damped``: GTSAM's loop with Marquardt's diagonal damping (`OptimizerSettings.diagonal_damping`)."""
     pose_mean, pose_sigmas = selfcal_graph.pose_map_priors(calib.ref_T_view, design.ref_T_view, calib.grid.reference,
                                                            sigmas, free)
     pinned = selfcal_graph.intrinsics_gauges(calib.grid) if hold_gauges else None
     mean, sig = selfcal_graph.intrinsics_map_priors(calib.intrinsics, design.intrinsics[0], sigmas, free, pinned)
     priors = PriorTable(calib.grid.reference, pose_mean, pose_sigmas, mean, sig, calib.lenses)
     settings = OptimizerSettings(max_iterations=max_iterations, relative_error_tol=relative_tol,
-                                 landmark_iterations=landmark_iterations or 0)
+                                 landmark_iterations=landmark_iterations or 0, diagonal_damping=damped)
     plan = StagePlan("+".join(sorted(free)), "selfcal", priors=priors,
                      settings=settings, frees=frozenset(map(Group, free)),
                      eliminate_landmarks=landmark_iterations is not None, tangential=False)
