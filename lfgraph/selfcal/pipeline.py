@@ -24,6 +24,7 @@ from lfgraph.selfcal.scatter import mode_pulls, project_views, robust_joint, tra
 from lfgraph.selfcal.solve import drop_outliers, initial_landmarks, posterior, zoom_to_prior
 from lfgraph.selfcal.stages import (
     SelfCalibrationError,
+    depths_suffice,
     final_fit,
     final_free,
     measured_noise,
@@ -207,6 +208,7 @@ def calibrate_tracks(tracks: PooledTracks, design: Design, config: SelfCalConfig
     stages += passes
     calib, points, tracks = state.calib, state.points, state.tracks
     coverage = measure_coverage(calib, tracks, points, design.focal_px, design.pitch_mm / 1000.0)
+    depths_suffice(coverage)
     calib, post, mode_list, pins, scene = _posterior(
         SceneFit(calib, nominal, points, tracks, free, sigmas, used_noise, 0.0, 0.0), graph, values, config, say)
     if coverage.missing_regions():

@@ -162,8 +162,9 @@ class Coverage:
         """Whether enough observations (`MIN_CORNER_TRACKS` per view) reach `K1_RADIUS` to estimate k1."""
         return self.k1_tracks >= MIN_CORNER_TRACKS
 
-    def problems(self, min_frames: int) -> list[str]:
-        """Why these frames cannot determine the parameters (empty when they can)."""
+    def problems(self, min_frames: int, depths: bool = True) -> list[str]:
+        """Why these frames cannot determine the parameters (empty when they can); ``depths``: with the depth span
+        (only the final fit's depths are right: `lfgraph.selfcal.stages.depths_suffice`)."""
         out = []
         if self.frames < min_frames:
             out.append(f"only {self.frames} frame(s) gave tracks through every view; at least {min_frames} "
@@ -171,7 +172,7 @@ class Coverage:
         if self.tracks < MIN_TRACKS:
             out.append(f"only {self.tracks} tracks survived; at least {MIN_TRACKS} are needed (textured scenes, "
                        "more frames)")
-        if self.tracks and not self.depth_ratio >= MIN_DEPTH_RATIO:
+        if depths and self.tracks and not self.depth_ratio >= MIN_DEPTH_RATIO:
             out.append(f"the depths span only {self.depth_m[0]:.3g}-{self.depth_m[2]:.3g} m (far/near "
                        f"{self.depth_ratio:.2f} < {MIN_DEPTH_RATIO}); rotations and positions cannot be told apart "
                        "- add frames of nearer and farther scenes")

@@ -127,8 +127,10 @@ def test_posterior_sigmas_are_honest_on_noisy_tracks(truth):
 
 
 def test_refuses_frames_at_one_depth(truth):
+    # the depth span is read from the final fit (the staged fits' depths absorb focal errors); here that fit loses
+    # every landmark first, and says so
     tracks = synthetic_tracks(truth, 6, 60, 0.05, np.random.default_rng(3), depth_m=(1.0, 1.01))
-    with pytest.raises(SelfCalibrationError, match="nearer and farther"):
+    with pytest.raises(SelfCalibrationError, match="nearer and farther|at several depths"):
         calibrate_tracks(tracks, DESIGN)
 
 
