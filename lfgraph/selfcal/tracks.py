@@ -179,7 +179,8 @@ class Coverage:
         missing = self.missing_regions()
         if len(missing) > REGIONS * REGIONS - MIN_REGIONS:
             out.append(f"image regions without tracks in every view: {', '.join(missing)}; focal lengths and "
-                       "principal points need texture across the image")
+                       "principal points need texture across the image - add frames with texture there that every "
+                       "view sees (more frames of varied scenes)")
         return out
 
     def as_dict(self) -> dict:
