@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import pickle
 import sys
 import time
@@ -32,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import targetless_data as data  # noqa: E402
 import targetless_pins as pinning  # noqa: E402
 
+import lfgraph  # noqa: E402
 from lfgraph.cli.tables import format_table  # noqa: E402
 from lfgraph.core.calibration import Calibration  # noqa: E402
 from lfgraph.io.capture import open_capture  # noqa: E402
@@ -138,10 +140,21 @@ def tracks_for(rig: str, frames: int, config: SelfCalConfig, cache: Path, seed: 
     return t
 
 
+def code_fingerprint() -> str:
+    """A hash of lfgraph's source: a cached fit is reused only by the code that made it (a fit cached by an earlier
+    lfgraph was once read back as today's figures)."""
+    root = Path(lfgraph.__file__).parent
+    digest = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        digest.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
+    return digest.hexdigest()
+
+
 def fitted(rig: str, frames: int, tracks: PooledTracks, design: Design, config: SelfCalConfig, cache: Path,
            seed: int = 0) -> tuple[Calibration, object]:
     """The unpinned self-calibration of the first ``frames`` frames (`calibrate_tracks`), cached beside the frames
-    (a pickle of the calibration and its report: the pinned rows start from it without solving the scene again).
+    (a pickle of the calibration and its report, with `code_fingerprint`: the pinned rows start from it without
+    solving the scene again).
 
     Raises:
         SelfCalibrationError: the frames cannot do it (not cached: it is quick to find again).
@@ -149,16 +162,19 @@ def fitted(rig: str, frames: int, tracks: PooledTracks, design: Design, config: 
     tag = f"{config.tracks_per_frame}_klt{config.match.klt_levels}_{'retrack' if config.retrack else 'chain'}" \
           f"_{len(config.stages)}stages"
     path = data.dataset_dir(rig, seed, cache) / f"selfcal_{frames}_{tag}.pkl"
+    code = code_fingerprint()
     if path.exists():
         try:
             with path.open("rb") as fh:
-                return pickle.load(fh)
-        except (AttributeError, ImportError, EOFError, pickle.UnpicklingError):  # written by an older lfgraph: refit
-            pass
+                stored_code, out = pickle.load(fh)
+            if stored_code == code:
+                return out
+        except (AttributeError, ImportError, EOFError, ValueError, TypeError, pickle.UnpicklingError):
+            pass  # written by another lfgraph: refit
     out = calibrate_tracks(tracks, design, config)
     tmp = path.with_suffix(".tmp")
     with tmp.open("wb") as fh:
-        pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        pickle.dump((code, out), fh, protocol=pickle.HIGHEST_PROTOCOL)
     tmp.replace(path)
     return out
 
