@@ -25,7 +25,6 @@ HELDOUT_CONSISTENCY = 10.0  # held-out RMS of the candidate at most this x the f
 ONE_PLACE = 1e-3  # views whose centres lie within this share of the rig's span stand at one place
 
 
-
 def heldoutfinite_rms(calib: Calibration, pixels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(V, N) reprojection errors of tracks triangulated with ``calib`` (not refitted: they test it); NaN for a
     track seen from one place only (`one_place`)."""
@@ -61,8 +60,6 @@ def combine(calib: Calibration, refined: Calibration, views: set[int]) -> Calibr
         poses[v] = refined.ref_T_view[v]
         intr[v] = refined.intrinsics[v]
     return calib.replace(ref_T_view=poses, intrinsics=tuple(intr))
-
-
 
 
 def fold_refits(calib: Calibration, fit, px: np.ndarray, ok: np.ndarray, frame_of: np.ndarray | None,
