@@ -7,7 +7,7 @@ infinity and still not stand out against what the data leave undetermined there,
 views that do stand out beside their neighbours' knocked poses then predicts the pairs between them no better than
 the input. templeSparseRing perturbed 0.5 deg / 2.24 mm (seed 0): the written views' candidate predicted held-out
 tracks at 4.31 px against 6.76 px with the input and 0.10 px on its own tracks (refused: the frames disagree), while
-the fold refits of every view predicted them at 0.15 px; that fit has every rotation closer to the truth and 14 of
+the fold refits of every view predicted them at 0.12 px; that fit has every rotation closer to the truth and 14 of
 15 positions (the 15th 2.24 -> 2.43 mm, within its 2 mm sigma).
 
 The whole fit is written only when:
@@ -32,8 +32,8 @@ from lfgraph.refinement.verdicts import intrinsics_mismatch
 WHOLE_MIN_IMPROVEMENT = 5.0  # the input predicts the held-out tracks at least this x worse than the whole refit: the
 # knock must outweigh what the fit itself gets wrong. Rendered ring sweep (seeds 0-99): rings knocked 1.3-1.8 deg,
 # 6.5-13x, were written 2.1-2.8x closer at infinity (error / sigma <= 1.9; the temple 58x); rings knocked 0.27-0.30
-# deg, 2.6-3.2x, came back 1.2x farther: there an error common to every frame (2 px where the sigma says 0.7) is the
-# size of the knock
+# deg, 2.6-3.2x, came back 1.2x farther: there what the SIFT tracks' own offsets leave in the fit (2 px where the
+# sigma says 0.7) is the size of the knock
 
 
 def whole_views(calib: Calibration, fit, fold_held: list[frozenset[int]],
