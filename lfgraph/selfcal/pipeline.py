@@ -39,6 +39,9 @@ from lfgraph.selfcal.tracks import PooledTracks, measure_coverage, pool_tracks
 MISMATCH_FACTOR = 1.5
 # the re-tracking runs with the staged calibration's local maps, then again with the final fit's (`_final`)
 RETRACK_PASSES = 2
+SECOND_PASS_MIN_SHARE = 0.5  # ... kept only when it keeps at least this share of the first pass's tracks: on a 2x2
+# of 10 mm pitch with scenes at 3-4 m (small-2x2, 6 frames) the final fit's maps matched 228 of 1578, and its final
+# stage kept none (the first pass's fit is good there)
 
 
 def _retracked(tracks: PooledTracks, points: np.ndarray, calib: Calibration,
@@ -82,18 +85,33 @@ def _final(state: TrackState, nominal: Calibration, free: frozenset, sigmas: Sig
     # a wide lens's angles pin its focal length: no zoom valley to leave the staged landmarks off their depth (and on
     # the rendered fisheye 2x2 a second pass left the transfer at infinity 0.25 px against 0.11 px with one)
     passes = RETRACK_PASSES if use_retrack and not lens_model(nominal.intrinsics[0].lens).wide else 1
-    for _ in range(passes):
+    done = None  # the last pass's (state, graph, values, noise used, observations re-tracked)
+    for k in range(passes):
+        start = state
         if use_retrack:
             kept, kept_points, retracked, columns = _retracked(chain, points, calib, say)
-            state = TrackState.start(calib, kept.pixels, kept.valid, kept_points, kept)
-        noise = measured_noise(state.errors(), state.tracks.num_tracks, calib.num_views, free)
+            if k and kept.num_tracks < SECOND_PASS_MIN_SHARE * done[0].tracks.num_tracks:
+                say.log(f"self-calibration: re-tracked again, {kept.num_tracks} of the {done[0].tracks.num_tracks} "
+                        "tracks match: the first pass's fit is kept")
+                break
+            start = TrackState.start(calib, kept.pixels, kept.valid, kept_points, kept)
+        noise = measured_noise(start.errors(), start.tracks.num_tracks, calib.num_views, free)
         if {"focal", "distortion"} <= free:  # the zoom is an exact gauge only with the distortion free to follow it
-            calib, zoomed = zoom_to_prior(state.calib, state.points, nominal.intrinsics[0])
-            state = dataclasses.replace(state, calib=calib, points=zoomed)
-        state, graph, values, used_noise, passes = final_fit(state, nominal, free, sigmas, noise, design, config, say)
+            zoom_calib, zoomed = zoom_to_prior(start.calib, start.points, nominal.intrinsics[0])
+            start = dataclasses.replace(start, calib=zoom_calib, points=zoomed)
+        try:
+            state, graph, values, used_noise, passes = final_fit(start, nominal, free, sigmas, noise, design, config,
+                                                                 say)
+        except SelfCalibrationError as exc:
+            if done is None:
+                raise
+            say.log(f"self-calibration: the fit after re-tracking again failed ({exc}): the first pass's fit is kept")
+            break
+        done = (state, graph, values, used_noise, retracked)
         passes_out += passes
         if use_retrack:  # the next pass: the chain tracks the fit kept, its calibration and landmarks
             chain, points, calib = chain.subset(columns[state.index]), state.points, state.calib
+    state, graph, values, used_noise, retracked = done
     return state, graph, values, used_noise, passes_out, retracked
 
 

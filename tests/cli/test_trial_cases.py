@@ -255,12 +255,14 @@ def test_views_too_small_for_a_board_are_refused(tmp_path, capsys):
 
 def test_calibrate_scene_on_a_small_capture_finishes_or_says_why(tmp_path, capsys):
     """A 6-frame small-2x2 scene ended in exit 4 (a landmark block singular in floating point failed the marginals);
-    with 4 frames a NaN noise reached the noise model ("sigmas must be positive and finite, got [nan]")."""
+    with 4 frames a NaN noise reached the noise model ("sigmas must be positive and finite, got [nan]"). With the second
+    re-tracking (issue 43) the 6-frame fit after it kept no track: the first pass's fit is kept then."""
     sc = tmp_path / "sc6"
     assert main(["synth", "scene", str(sc), "--scene", "small-2x2", "--frames", "6", "--jobs", "1", "--quiet"]) == 0
     base = ["calibrate-scene", sc, "--grid", "2x2", "--pitch-mm", "10", "--focal-px", "300", "--quiet"]
     code, text = run([*base, "-o", tmp_path / "o6.json"], capsys)
     assert code == EXIT_OK, text
     code, text = run([*base, "--max-frames", "4", "-o", tmp_path / "o4.json"], capsys)
-    assert code == EXIT_OK or (code == 1 and "too few to measure the track noise" in text), text
+    says_why = ("too few to measure the track noise", "the depths span only")  # thin data: named, not a crash
+    assert code == EXIT_OK or (code == 1 and any(why in text for why in says_why)), text
     assert "nan" not in text and "internal error" not in text
