@@ -27,12 +27,15 @@ import targetless_data as data  # noqa: E402
 
 from lfgraph.datasets.scene import make_scene, render_scene_depth  # noqa: E402
 from lfgraph.engine.stage_engine import FINAL_RELATIVE_TOL  # noqa: E402
-from lfgraph.engine.triangulate import triangulate_dlt  # noqa: E402
+from lfgraph.engine.triangulate import (
+    project_views,  # noqa: E402
+    triangulate_dlt,  # noqa: E402
+)
 from lfgraph.factors.noise import RobustKernel  # noqa: E402
 from lfgraph.selfcal import SelfCalConfig  # noqa: E402
 from lfgraph.selfcal.pinned import mode_rows  # noqa: E402
 from lfgraph.selfcal.retrack import retrack  # noqa: E402
-from lfgraph.selfcal.scatter import mode_pulls, project_views  # noqa: E402
+from lfgraph.selfcal.scatter import mode_pulls  # noqa: E402
 from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, run_map_stage  # noqa: E402
 
 EDGE_PX = 4  # a depth-edge track: a depth change beyond EDGE_DEPTH within this many px of its reference pixel

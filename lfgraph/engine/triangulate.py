@@ -56,15 +56,10 @@ def triangulate_dlt(calib: Calibration, pixels: np.ndarray, valid: np.ndarray,
     return pts
 
 
-def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.ndarray,
-                        valid: np.ndarray) -> np.ndarray:
-    """(V, N) Euclidean reprojection error of each observation (NaN where not observed); all views at once, each
-    through its own lens (the model of `lfgraph.core.camera.Intrinsics.project`)."""
-    out = np.full(valid.shape, np.nan)
-    ok = np.all(np.isfinite(points_ref), axis=1)
-    if not ok.any() or valid.shape[0] == 0:
-        return out
-    pts = np.asarray(points_ref, dtype=np.float64)[ok]
+def project_views(calib: Calibration, points_ref: np.ndarray) -> np.ndarray:
+    """(V, N, 2) every landmark projected into every view, all views at once, each through its own lens (the model of
+    `lfgraph.core.camera.Intrinsics.project`); NaN for a landmark that is not finite or lies behind a view."""
+    pts = np.asarray(points_ref, dtype=np.float64)
     poses = np.asarray(calib.ref_T_view, dtype=np.float64)
     rt = np.swapaxes(poses[:, :3, :3], 1, 2)  # view_T_ref: R^T, -R^T t
     t = -np.einsum("vij,vj->vi", rt, poses[:, :3, 3])
@@ -77,8 +72,20 @@ def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.n
         x, y = pc[..., 0] / zz, pc[..., 1] / zz
     coef = np.broadcast_to(k[:, 4:], (len(k), 7, x.shape[1])).transpose(1, 0, 2)  # (7, V, n)
     xd, yd = lens_distort(np.broadcast_to(lenses[:, None], x.shape), coef, x, y)
+    return np.stack([k[:, 0] * xd + k[:, 2], k[:, 1] * yd + k[:, 3]], axis=-1)
+
+
+def reprojection_errors(calib: Calibration, points_ref: np.ndarray, pixels: np.ndarray,
+                        valid: np.ndarray) -> np.ndarray:
+    """(V, N) Euclidean reprojection error of each observation (NaN where not observed or the landmark is not
+    finite); all views at once (`project_views`)."""
+    out = np.full(valid.shape, np.nan)
+    ok = np.all(np.isfinite(points_ref), axis=1)
+    if not ok.any() or valid.shape[0] == 0:
+        return out
+    proj = project_views(calib, np.asarray(points_ref, dtype=np.float64)[ok])
     px = pixels[:, ok]
-    err = np.hypot(k[:, 0] * xd + k[:, 2] - px[..., 0], k[:, 1] * yd + k[:, 3] - px[..., 1])
+    err = np.hypot(proj[..., 0] - px[..., 0], proj[..., 1] - px[..., 1])
     sub = out[:, ok]
     m = valid[:, ok]
     sub[m] = err[m]

@@ -13,6 +13,7 @@ from lfgraph.core.calibration import Calibration
 from lfgraph.core.observer import Observer, resolve
 from lfgraph.core.sigmas import Sigmas
 from lfgraph.engine.schedule import TrackState
+from lfgraph.engine.triangulate import project_views
 from lfgraph.factors.selfcal_graph import design_tangent_sigmas
 from lfgraph.lenses import lens_model
 from lfgraph.selfcal.config import Design, SelfCalConfig
@@ -20,7 +21,7 @@ from lfgraph.selfcal.pinned import SceneFit, fit_pins, mode_rows, pin_warnings, 
 from lfgraph.selfcal.pins import PIN_TYPES, DistancePin, PinError
 from lfgraph.selfcal.report import GAUGES, Mode, SelfCalReport, modes
 from lfgraph.selfcal.retrack import retrack
-from lfgraph.selfcal.scatter import mode_pulls, project_views, robust_joint, track_sandwich
+from lfgraph.selfcal.scatter import mode_pulls, robust_joint, track_sandwich
 from lfgraph.selfcal.solve import drop_outliers, initial_landmarks, posterior, zoom_to_prior
 from lfgraph.selfcal.stages import (
     SelfCalibrationError,

@@ -25,17 +25,12 @@ import gtsam
 import numpy as np
 
 from lfgraph.core.calibration import Calibration
-from lfgraph.core.camera import project_world
+from lfgraph.engine.triangulate import project_views
 from lfgraph.factors.keys import calib_key, view_pose_key
 from lfgraph.factors.values import read_intrinsics, read_view_poses
 
 STEP_SIGMAS = 1e-3  # the cameras are moved along x_m by this many of the mode's sigmas (the pull is linear there)
 POINT_STEP_M = 1e-6  # central differences of a projection in its landmark
-
-
-def project_views(calib: Calibration, points: np.ndarray) -> np.ndarray:
-    """(V, N, 2) every landmark projected into every view."""
-    return np.stack([project_world(calib.intrinsics[v], calib.view_T_ref(v), points) for v in range(calib.num_views)])
 
 
 def _moved(calib: Calibration, values: gtsam.Values, step: np.ndarray) -> Calibration:

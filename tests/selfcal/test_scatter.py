@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from lfgraph.datasets.rig import make_rig
+from lfgraph.engine.triangulate import project_views
 from lfgraph.factors.noise import RobustKernel
 from lfgraph.selfcal import calibrate_tracks
 from lfgraph.selfcal.pinned import mode_rows, weak_modes
-from lfgraph.selfcal.scatter import mode_pulls, project_views, robust_joint, track_sandwich
+from lfgraph.selfcal.scatter import mode_pulls, robust_joint, track_sandwich
 from lfgraph.selfcal.solve import LANDMARK_ITERATIONS, measurement, posterior, run_map_stage
 from tests.selfcal.test_selfcal import DESIGN, RIG, synthetic_tracks
 
