@@ -207,8 +207,9 @@ def checkerboard(rig: str, truth: Calibration, frames: int, seed: int = 0) -> di
     return errors(calib, truth)
 
 
-PIN_KINDS = ("board", "2 boards", "distance", "plane")  # one board frame; two tilted about perpendicular axes; one
-# distance; one distance on a wall of known depth
+PIN_KINDS = ("board", "2 boards", "distance", "plane", "view")  # one board frame; two tilted about perpendicular
+# axes; one distance; one distance on a wall of known depth; one view's own earlier calibration
+PIN_TARGETED = PIN_KINDS[:4]  # held to TARGET_RATIO of the checkerboard; a view's own calibration is as good as it is
 PIN_SEEDS = 3
 WRONG_SEEDS = 1  # pin seeds of the 5 % wrong distance (alone, and on a wall of known depth) per row
 HONEST_Z = (0.5, 2.0)  # the pinned zoom's error / sigma, RMS over seeds, should lie in this range
@@ -234,7 +235,8 @@ def pinned(rig: str, frames: int, truth: Calibration, design: Design, report, co
             pin = pinning.board_pin(rig, truth, s) if kind == "board" else \
                 pinning.board_pin(rig, truth, s, frames=2) if kind == "2 boards" else \
                 pinning.distance_pin(rig, truth, frames, rig_seed, s) if kind == "distance" else \
-                pinning.plane_pin(rig, truth, frames, rig_seed, s)
+                pinning.plane_pin(rig, truth, frames, rig_seed, s) if kind == "plane" else \
+                pinning.view_pin(rig, truth, s)
             try:
                 est, rep = pin_scene(report, design, [pin], config)
             except PinError as exc:  # refused (PinRefused) or not fitted: either is a failure for a right pin
@@ -337,7 +339,8 @@ def main() -> int:
                              ["", frames, f"checkerboard {frames} boards", f"{board['fx_px']:.4g}", "", "", ""],
                              *more]
                 failures += missed + [f"{rig}, {frames} frames: fx with the {k} pin {v / board['fx_px']:.2g}x the "
-                                      "checkerboard's" for k, v in worst.items() if v > TARGET_RATIO * board["fx_px"]]
+                                      "checkerboard's" for k, v in worst.items()
+                                      if k in PIN_TARGETED and v > TARGET_RATIO * board["fx_px"]]
             if frames == TARGET_FRAMES:
                 missed = [m for m in METRICS if ratios[m] > TARGET_RATIO]
                 if missed:
@@ -354,7 +357,8 @@ def main() -> int:
           "slope per grid step) and the rest, px")
     print(format_table(["rig", "frames", *GAUGE_PARTS], g_rows))
     if pin_rows:
-        print("pins (one board frame; two about perpendicular axes; one distance of ~1 m known to 1 mm): the absolute "
+        print("pins (one board frame; two about perpendicular axes; one distance of ~1 m known to 1 mm; on a wall of "
+              "known depth; one view's own calibration from 10 boards): the absolute "
               "fx error (RMS over views, worst over pin seeds), the common zoom's error and posterior sigma (%, worst) "
               "and error / sigma over seeds")
         print(format_table(["rig", "frames", "method", "fx px", "zoom error %", "zoom sigma %", "error / sigma"],

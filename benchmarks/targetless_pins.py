@@ -14,6 +14,10 @@
   their true positions from the exact depth of the rendered scene, their distance measured with a 1-sigma of
   `SIGMA_PER_M` per metre; the marks are followed into the other views by `DistancePin.followed` as
   `calibrate_scene` does.
+- One view's intrinsics from an earlier calibration (a factory's, or the user's own): OpenCV's `calibrateCamera` of
+  that view alone (a seeded view) on `VIEW_BOARDS` boards of the peer's kind, corners = true projections +
+  `CORNER_SIGMA_PX` Gaussian noise, k1 and k2 free; its sigmas are OpenCV's (`calibrateCameraExtended`'s standard
+  deviations): an independent calibration, not lfgraph's own.
 - Distance on a plane of known depth: two marks on the background wall (a plane facing the array) of a frame of the
   nearest depth band, as far apart as the marks every view sees allow, their distance and the wall's depth each
   measured with a 1-sigma of `SIGMA_PER_M` per metre.
@@ -28,11 +32,12 @@ import numpy as np
 import targetless_data as data
 
 from lfgraph.core.calibration import Calibration
+from lfgraph.core.camera import Intrinsics
 from lfgraph.datasets.checkerboard import make_checkerboard_truth, make_corner_observations
 from lfgraph.datasets.scene import make_scene, render_scene_depth
 from lfgraph.engine.triangulate import triangulate_dlt
 from lfgraph.io.capture import open_capture
-from lfgraph.selfcal import BoardPin, DistancePin
+from lfgraph.selfcal import BoardPin, DistancePin, ViewPin
 from lfgraph.selfcal.pins import follow_marks
 
 CORNER_SIGMA_PX = 0.1  # the pin board's corner noise (as the checkerboard peer's)
@@ -47,6 +52,7 @@ FLAT_DEPTH = 0.01
 MARK_CANDIDATES = 400
 WALL_DEPTH = 1e-3  # a mark on the wall: its true depth within this share of the wall's
 WALL_SPAN = 0.25  # the wall's marks lie at least this share of its depth apart (a user marks them far apart)
+VIEW_BOARDS = 10  # boards of the pinned view's own earlier calibration
 FOLLOWED_DEPTH = 0.01  # a mark whose followed pixels triangulate (true cameras) further off its true depth is dropped
 
 
@@ -188,3 +194,26 @@ def distance_pin(rig: str, truth: Calibration, frames: int, rig_seed: int, seed:
     pin = DistancePin(measured, sigma, view=ref, frame=frame, marked_px=feats[[a, b]],
                       name=f"distance {true_m:.3f} m{f' {100 * error:+.0f} %' if error else ''} (seed {seed})")
     return pin.followed(images, truth.grid)
+
+
+def view_pin(rig: str, truth: Calibration, seed: int) -> ViewPin:
+    """One view (seeded) pinned to its own earlier calibration: OpenCV's ``calibrateCamera`` on `VIEW_BOARDS` board
+    frames that view sees whole (module docstring), with OpenCV's standard deviations as the pin's sigmas."""
+    rng = np.random.default_rng([seed, 71])
+    view = int(rng.integers(truth.num_views))
+    cfg = dataclasses.replace(data.base_scene(rig).checkerboard, frames=4 * VIEW_BOARDS)
+    board = make_checkerboard_truth(truth, cfg, rng)
+    corners, valid = make_corner_observations(board, CORNER_SIGMA_PX, np.random.default_rng([seed, 73]))
+    frames = np.flatnonzero(valid[view].all(axis=1))[:VIEW_BOARDS]
+    if len(frames) < VIEW_BOARDS:
+        raise ValueError(f"view {view} sees only {len(frames)} whole boards of {cfg.frames}")
+    obj = cfg.board.object_points().astype(np.float32)
+    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
+    _, k, dist, *_, std, _, _ = cv2.calibrateCameraExtended(
+        [obj] * len(frames), [corners[view, f].astype(np.float32) for f in frames], truth.image_size_px, None, None,
+        flags=flags)
+    std = std.ravel()  # fx, fy, cx, cy, k1, k2, p1, p2, k3, ...
+    lens = truth.intrinsics[view].lens
+    est = Intrinsics(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], k1=dist[0, 0], k2=dist[0, 1], lens=lens)
+    return ViewPin(view, est, tuple(std[:6]), name=f"view {truth.grid.name(view)} from {len(frames)} boards of its "
+                                                   f"own (seed {seed})")
