@@ -126,6 +126,24 @@ class Sigmas:
             return None
         return cls(np.concatenate([np.radians(rot), 1e-3 * pos], axis=1), intr, dist)
 
+    def with_calibration_cov(self, joint: np.ndarray, lenses: Sequence[str]) -> Sigmas:
+        """These sigmas with every view's intrinsics and coefficients read from ``joint``, the (DV, DV) covariance of
+        every view's calibration (views in order, each in its ``lenses`` model's tangent order, as `from_marginals`
+        reads them; e.g. calibrate-scene's, its weak modes widened to the tracks' own scatter); poses keep theirs.
+
+        Raises:
+            ValueError: ``joint`` is not the size the lenses give.
+        """
+        dims = [len(HEAD) + len(lens_model(lens).tangent) for lens in lenses]
+        ends = np.cumsum(dims)
+        if len(lenses) != self.num_views or np.shape(joint) != (ends[-1], ends[-1]):
+            raise ValueError(f"Sigmas.with_calibration_cov: a {np.shape(joint)} covariance for {self.num_views} views "
+                             f"of {sum(dims)} calibration parameters")
+        n = self.num_views
+        blocks = {v: joint[e - d:e, e - d:e] for v, (d, e) in enumerate(zip(dims, ends, strict=True))}
+        blocks |= {n + v: np.diag(self.pose[v] ** 2) for v in range(n)}
+        return Sigmas.from_marginals(_Blocks(blocks), range(n), range(n, 2 * n), lenses)
+
     @classmethod
     def from_marginals(cls, marginals: Any, calib_keys: Sequence[int], pose_keys: Sequence[int],
                        lenses: Sequence[str], scale: float = 1.0, tangential: bool = False) -> Sigmas:
@@ -145,3 +163,13 @@ class Sigmas:
                 if tangential or name not in model.tangential:
                     dist.setdefault(name, np.full(n, np.nan))[v] = kc[len(HEAD) + i]
         return cls(pose, intr, dist)
+
+
+@dataclass(frozen=True)
+class _Blocks:
+    """Covariance blocks by key, read as `Sigmas.from_marginals` reads a marginals object."""
+
+    blocks: Mapping[int, np.ndarray]
+
+    def block(self, key: int) -> np.ndarray:
+        return self.blocks[key]

@@ -124,6 +124,7 @@ def _posterior(scene: SceneFit, graph: gtsam.NonlinearFactorGraph, values: gtsam
     distortion = "distortion" in scene.free
     post, cameras = posterior(graph, values, scene.calib.lenses, poses=True)
     joint = _track_robust(scene, values, cameras, say)
+    post = post.with_calibration_cov(joint, scene.calib.lenses)  # per view as widened: a view's fx carries the zoom
     zoom, sigma = zoom_of(scene.calib, joint, scene.sigmas, distortion)
     mode_values, mode_cov = weak_modes(scene.calib, joint)
     scene = dataclasses.replace(scene, zoom_px=zoom, zoom_sigma_px=sigma, modes=mode_values, modes_cov=mode_cov)

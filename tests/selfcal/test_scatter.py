@@ -8,6 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from lfgraph.core.grid import ViewGrid
+from lfgraph.core.sigmas import Sigmas
 from lfgraph.datasets.rig import make_rig
 from lfgraph.engine.triangulate import project_views
 from lfgraph.factors.noise import RobustKernel
@@ -96,3 +98,29 @@ def test_project_views_is_every_views_projection(fitted):
     assert px.shape == (scene.calib.num_views, len(scene.points), 2)
     seen = scene.tracks.valid
     assert np.sqrt(np.mean((px[seen] - scene.tracks.pixels[seen]) ** 2)) < 2 * NOISE_PX  # the fit's residuals
+
+
+def test_a_widened_zoom_widens_every_views_focal_length_by_as_much():
+    """The report's per-view sigmas are read from the widened covariance: the zoom (the mean of every fx and fy)
+    widened by e px^2 with nothing else moved can only be every view's fx and fy moved together, so each view's fx and
+    fy variance grows by e and its principal point's stays."""
+    grid = ViewGrid(RIG.rows, RIG.cols, RIG.reference)
+    n, lenses = grid.num_views, ("radtan",) * grid.num_views
+    dim = 9  # Cal3DS2's tangent: fx, fy, s, cx, cy, k1, k2, p1, p2
+    rng = np.random.default_rng(5)
+    base = rng.uniform(0.2, 1.0, dim * n) ** 2
+    rows = mode_rows(grid, n, dim)
+    extra_px2 = 4.0
+    seen = np.zeros((len(rows), len(rows)))
+    seen[0, 0] = extra_px2
+    out = robust_joint(np.diag(base), rows, np.zeros_like(seen), seen)
+    pose = rng.uniform(1e-4, 1e-3, (n, 6))
+    sig = Sigmas(pose, np.zeros((n, 4))).with_calibration_cov(out, lenses)
+    b = base.reshape(n, dim)
+    assert np.allclose(sig.intrinsics[:, 0] ** 2, b[:, 0] + extra_px2)
+    assert np.allclose(sig.intrinsics[:, 1] ** 2, b[:, 1] + extra_px2)
+    assert np.allclose(sig.intrinsics[:, 2:] ** 2, b[:, 3:5])
+    assert np.allclose(sig.distortion["k1"] ** 2, b[:, 5])
+    assert np.array_equal(sig.pose, pose)
+    with pytest.raises(ValueError, match="covariance"):
+        Sigmas(pose, np.zeros((n, 4))).with_calibration_cov(out[1:, 1:], lenses)
