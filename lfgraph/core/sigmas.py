@@ -134,7 +134,7 @@ class Sigmas:
         Raises:
             ValueError: ``joint`` is not the size the lenses give.
         """
-        dims = [len(HEAD) + len(lens_model(lens).tangent) for lens in lenses]
+        dims = [lens_model(lens).tangent_size for lens in lenses]
         ends = np.cumsum(dims)
         if len(lenses) != self.num_views or np.shape(joint) != (ends[-1], ends[-1]):
             raise ValueError(f"Sigmas.with_calibration_cov: a {np.shape(joint)} covariance for {self.num_views} views "
